@@ -1,0 +1,62 @@
+"""Shared start-up for the console commands (each one is a Hydra app over ``conf/``).
+
+``hydra_command(task, config_name)`` returns a ``main()`` suitable for a console script:
+Hydra composes ``conf/<config_name>.yaml`` with the command line, then ``task(cfg)`` runs.
+A :class:`~denoiser.errors.UserError` becomes one line on stderr and exit code 2; the full
+traceback is shown only with ``DENOISER_DEBUG=1``.
+
+The configs live in the repository's top-level ``conf/`` directory; the package is meant to
+be installed in editable mode (``pip install -e .``, which ``make`` does).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Callable
+
+CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+
+
+def debug_enabled() -> bool:
+    return os.environ.get("DENOISER_DEBUG", "") not in ("", "0", "false", "False")
+
+
+def report_user_error(exc: BaseException) -> None:
+    """Print a user error as one line (or the traceback in debug mode) and exit 2."""
+    if debug_enabled():
+        raise exc
+    print(f"error: {exc}", file=sys.stderr)
+    sys.exit(2)
+
+
+def guarded(task: Callable) -> Callable:
+    """Wrap a task so user errors end the process with one line instead of a traceback."""
+    from denoiser.errors import UserError
+
+    def wrapper(cfg):
+        try:
+            return task(cfg)
+        except UserError as exc:  # a mistake in the input, not a bug
+            report_user_error(exc)
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            sys.exit(130)
+
+    wrapper.__name__ = getattr(task, "__name__", "task")
+    wrapper.__doc__ = task.__doc__
+    return wrapper
+
+
+def hydra_command(task: Callable, config_name: str) -> Callable[[], None]:
+    """Build a console-script entry point running ``task`` as a Hydra app."""
+    import hydra
+
+    def main() -> None:
+        if not debug_enabled():
+            os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+        app = hydra.main(config_path=CONF_DIR, config_name=config_name, version_base="1.3")(guarded(task))
+        app()
+
+    return main

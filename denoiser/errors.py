@@ -1,0 +1,23 @@
+"""User-facing errors: one clear line naming the file or key and the problem.
+
+Commands catch :class:`UserError` at the top (see :mod:`denoiser.cli`) and print
+``error: <message>`` on stderr with a non-zero exit instead of a traceback. Set
+``DENOISER_DEBUG=1`` to get the full traceback.
+"""
+
+
+class UserError(Exception):
+    """A mistake in the user's input (file, config, checkpoint), not a bug."""
+
+
+class ExrError(UserError):
+    """An EXR file is missing, unreadable, or lacks what the caller needs."""
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class ConfigError(UserError):
+    """A configuration value is invalid (names the key or file)."""

@@ -38,8 +38,8 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -293,7 +293,7 @@ class MetricAccumulator:
 
     def reset(self) -> None:
         """Forget everything (call at the start of each validation epoch)."""
-        self._seqs: "OrderedDict[str, _SequenceState]" = OrderedDict()
+        self._seqs: OrderedDict[str, _SequenceState] = OrderedDict()
 
     def set_flip_exposure(self, sequence: str, reference: torch.Tensor | FlipExposure) -> None:
         """Fix the FLIP exposure of ``sequence`` from its reference ``[T, 3, H, W]`` (or a range).
@@ -343,9 +343,8 @@ class MetricAccumulator:
             reset = [False] * t_count
         reset = [r or (state.last_index is None and t == 0) for t, r in enumerate(reset)]
         per_frame = {m: FRAME_METRICS[m](out, ref).tolist() for m in self.metrics if m in FRAME_METRICS}
-        if "flip" in self.metrics:
-            if state.exposure is None:
-                state.exposure = flip_exposure(ref)
+        if "flip" in self.metrics and state.exposure is None:
+            state.exposure = flip_exposure(ref)
         out_tm, ref_tm = tonemap(out), tonemap(ref)
         for t in range(t_count):
             idx = frame_index[t]
@@ -376,9 +375,9 @@ class MetricAccumulator:
         """One dict per frame: ``sequence``, ``frame``, ``warmup`` and each metric."""
         return [r for s in self._seqs.values() for r in s.rows if include_warmup or not r["warmup"]]
 
-    def per_sequence(self) -> "OrderedDict[str, dict[str, float]]":
+    def per_sequence(self) -> OrderedDict[str, dict[str, float]]:
         """``{sequence: {metric: mean over kept frames, "frames": count}}`` in first-seen order."""
-        result: "OrderedDict[str, dict[str, float]]" = OrderedDict()
+        result: OrderedDict[str, dict[str, float]] = OrderedDict()
         for name, state in self._seqs.items():
             kept = [r for r in state.rows if not r["warmup"]]
             if not kept:
@@ -399,7 +398,7 @@ class MetricAccumulator:
 
 def summarize(rows: Iterable[Mapping], metrics: Sequence[str]) -> dict[str, float]:
     """Mean over sequences of per-sequence means of ``rows`` (dicts with ``sequence`` and metrics)."""
-    by_seq: "OrderedDict[str, list[Mapping]]" = OrderedDict()
+    by_seq: OrderedDict[str, list[Mapping]] = OrderedDict()
     for r in rows:
         by_seq.setdefault(r["sequence"], []).append(r)
     seq_means = [{m: _nanmean(float(r[m]) for r in rs if m in r) for m in metrics} for rs in by_seq.values()]

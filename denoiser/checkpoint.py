@@ -1,0 +1,202 @@
+"""Load a trained :class:`~denoiser.nn.denoiser.Denoiser` from a Lightning checkpoint.
+
+Checkpoint contract (``docs/contracts.md``): a Lightning ``.ckpt`` (a dict written by ``torch.save``)
+whose ``hyper_parameters["net"]`` is the resolved net config (a plain dict with ``_target_``)
+and whose ``state_dict`` holds the denoiser's weights under the prefix ``net.`` (the
+Lightning module keeps the network it trains as attribute ``net``; a distillation module's
+frozen teacher sits under ``teacher.`` and is not loaded).
+
+Every way a file can be wrong is a one-line :class:`~denoiser.errors.UserError` naming it:
+missing file, not a checkpoint, no net config, a net config that cannot be built, and a
+checkpoint of another architecture (state-dict keys or shapes that do not match the net its
+own config builds).
+
+Checkpoints are loaded with ``torch.load(weights_only=True)`` first; a Lightning checkpoint
+holding other pickled objects (e.g. OmegaConf containers in ``hyper_parameters``) is then
+loaded with ``weights_only=False``: only load checkpoints you trust, as with Lightning itself.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from denoiser.errors import UserError
+
+NET_PREFIX = "net."
+
+
+def _plain(obj: Any) -> Any:
+    """OmegaConf containers -> plain dicts/lists (anything else unchanged)."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+    except ImportError:  # pragma: no cover - omegaconf is a dependency
+        return obj
+    if isinstance(obj, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(obj, resolve=True)
+    return obj
+
+
+def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+    """The raw checkpoint dict of ``path`` (UserError if missing or not a torch checkpoint)."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: checkpoint file does not exist")
+    if path.is_dir():
+        raise UserError(f"{path}: is a directory, not a checkpoint file")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError:
+        try:
+            ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        except Exception as exc:  # noqa: BLE001 - any failure means "not a checkpoint"
+            raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
+    except Exception as exc:  # noqa: BLE001
+        raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
+    if not isinstance(ckpt, Mapping):
+        raise UserError(f"{path}: not a Lightning checkpoint (top level is a {type(ckpt).__name__}, not a dict)")
+    return dict(ckpt)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else type(exc).__name__
+
+
+def net_config(ckpt: Mapping, path: str | os.PathLike) -> dict:
+    """The resolved net config (plain dict with ``_target_``) stored in a checkpoint dict."""
+    hparams = _plain(ckpt.get("hyper_parameters"))
+    if not isinstance(hparams, Mapping) or "state_dict" not in ckpt:
+        raise UserError(f"{path}: not a Lightning checkpoint (keys: {', '.join(sorted(map(str, ckpt))) or 'none'}; "
+                        "need 'state_dict' and 'hyper_parameters')")
+    cfg = _plain(hparams.get("net"))
+    if not isinstance(cfg, Mapping) or "_target_" not in cfg:
+        raise UserError(f"{path}: checkpoint has no net config (hyper_parameters['net'] with _target_); "
+                        f"hyper_parameters keys: {', '.join(sorted(map(str, hparams))) or 'none'}")
+    return dict(cfg)
+
+
+def net_state_dict(ckpt: Mapping, path: str | os.PathLike, prefix: str = NET_PREFIX) -> dict[str, torch.Tensor]:
+    """The entries of ``ckpt["state_dict"]`` under ``prefix``, with the prefix removed."""
+    state = ckpt.get("state_dict")
+    if not isinstance(state, Mapping):
+        raise UserError(f"{path}: checkpoint 'state_dict' is not a mapping")
+    out = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+    if not out:
+        prefixes = sorted({k.split(".", 1)[0] for k in state})
+        raise UserError(f"{path}: checkpoint has no weights under '{prefix}' (prefixes: {', '.join(prefixes) or 'none'})")
+    return out
+
+
+def describe_mismatch(model: torch.nn.Module, state: Mapping[str, torch.Tensor]) -> str | None:
+    """One line describing how ``state`` differs from ``model.state_dict()``, or None if it fits."""
+    own = model.state_dict()
+    missing = [k for k in own if k not in state]
+    unexpected = [k for k in state if k not in own]
+    shapes = [f"{k} {tuple(state[k].shape)} vs {tuple(own[k].shape)}" for k in own
+              if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    parts = []
+    if missing:
+        parts.append(f"{len(missing)} missing (e.g. {missing[0]})")
+    if unexpected:
+        parts.append(f"{len(unexpected)} unexpected (e.g. {unexpected[0]})")
+    if shapes:
+        parts.append(f"{len(shapes)} with other shapes (e.g. {shapes[0]})")
+    return "; ".join(parts) if parts else None
+
+
+def build_net(cfg: Mapping, path: str | os.PathLike = "<config>") -> torch.nn.Module:
+    """Instantiate a net config (``_target_``) with Hydra; UserError naming ``path`` on failure."""
+    from hydra.utils import instantiate
+
+    try:
+        net = instantiate(dict(cfg), _convert_="all")
+    except Exception as exc:  # noqa: BLE001 - a bad config is the user's mistake
+        raise UserError(f"{path}: net config cannot be instantiated ({_first_line(exc)})") from None
+    if not isinstance(net, torch.nn.Module):
+        raise UserError(f"{path}: net config builds a {type(net).__name__}, not a torch module")
+    return net
+
+
+def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "cpu"):
+    """Build the checkpoint's ``Denoiser`` from its stored config and load its weights.
+
+    Returns the network in eval mode on ``map_location``. Errors (all ``UserError`` naming
+    ``path``): missing file, not a checkpoint, no net config, another architecture.
+    """
+    ckpt = read_checkpoint(path, map_location)
+    cfg = net_config(ckpt, path)
+    state = net_state_dict(ckpt, path)
+    net = build_net(cfg, path)
+    problem = describe_mismatch(net, state)
+    if problem:
+        raise UserError(f"{path}: checkpoint weights do not fit the architecture of its net config "
+                        f"{cfg.get('_target_')} ({problem})")
+    net.load_state_dict(state, strict=True)
+    return net.to(map_location).eval()
+
+
+def save_checkpoint(path: str | os.PathLike, net: torch.nn.Module, net_cfg: Mapping, **extra: Any) -> Path:
+    """Write ``net`` as a minimal checkpoint in the Lightning format above, atomically.
+
+    ``net_cfg``: the resolved net config (with ``_target_``) that builds ``net``. Used by
+    tests and tools that need a checkpoint without running a trainer; ``extra`` keys go to
+    the top level (e.g. ``epoch``).
+    """
+    path = Path(path)
+    ckpt = {
+        "state_dict": {NET_PREFIX + k: v.detach().cpu() for k, v in net.state_dict().items()},
+        "hyper_parameters": {"net": dict(_plain(net_cfg))},
+        "epoch": 0,
+        "global_step": 0,
+        "pytorch-lightning_version": _lightning_version(),
+    }
+    ckpt.update(extra)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(ckpt, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _lightning_version() -> str:
+    try:
+        import lightning
+
+        return str(lightning.__version__)
+    except ImportError:  # pragma: no cover
+        return ""
+
+
+def compose_net_config(net: str = "student", kernel: str | None = None, overrides=()) -> dict:
+    """Resolved net config composed from ``conf/net/<net>.yaml`` and ``conf/kernel/<kernel>.yaml``.
+
+    ``kernel`` defaults to ``net``'s own name when such a kernel file exists, else ``student``.
+    ``overrides``: extra Hydra overrides (e.g. ``["net.unet.encoder=[8,8,8]"]``). Returns the
+    plain dict that ``build_net`` instantiates and checkpoints store under ``hyper_parameters['net']``.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from denoiser.cli import CONF_DIR
+
+    if kernel is None:
+        kernel = net if (Path(CONF_DIR) / "kernel" / f"{net}.yaml").exists() else "student"
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            cfg = compose(overrides=[f"+net={net}", f"+kernel={kernel}", *overrides])
+    except HydraException as exc:
+        raise UserError(f"net={net} kernel={kernel}: {_first_line(exc)}") from None
+    return OmegaConf.to_container(cfg.net, resolve=True)

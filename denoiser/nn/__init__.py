@@ -1,0 +1,17 @@
+"""Denoiser networks in plain PyTorch (no Lightning, no Hydra).
+
+Parts, each in its own module:
+
+* :mod:`.inputs`   - input sanitising and the half-precision-safe feature transforms;
+* :mod:`.embed`    - :class:`EmbedNet`, per-sample / per-pixel 1x1 feature extractor;
+* :mod:`.unet`     - :class:`UNet` with one output head per pyramid level;
+* :mod:`.kernels`  - :func:`apply_kernels`, per-pixel softmax-normalised k x k kernels;
+* :mod:`.pyramid`  - :class:`PyramidFilter` (partitioning pyramid);
+* :mod:`.filters`  - ablation filters :class:`SingleKernelFilter` and :class:`DirectColor`;
+* :mod:`.warp`     - :func:`warp_to_current` (backward motion, bilinear, zeros outside);
+* :mod:`.temporal` - :class:`TemporalRecurrence` (history state, blend weights, resets);
+* :mod:`.denoiser` - :class:`Denoiser` with the one ``step`` used everywhere;
+* :mod:`.critic`   - :class:`PatchCritic` for adversarial distillation.
+
+See ``docs/architecture.md`` for how the parts fit together.
+"""

@@ -1,0 +1,157 @@
+"""Denoiser: EmbedNet -> U-Net -> per-pixel kernels through a filter, recurrent in time.
+
+One :meth:`Denoiser.step` serves training, distillation, evaluation, export and inference;
+:meth:`Denoiser.forward` unrolls it over a window. Built by Hydra from ``conf/net/*.yaml``:
+``embed`` and ``unet`` are partial constructors (the Denoiser supplies the channel counts that
+follow from the other parts), ``filter`` and ``temporal`` are modules (``temporal: null`` turns
+the recurrence off).
+
+Per step (shapes for one frame ``[B, C, H, W]``):
+
+1. inputs are sanitised (NaN -> 0, Inf -> 65504) and transformed (:mod:`denoiser.nn.inputs`):
+   color ``log1p(max(x,0)/s)`` with the per-image scale ``s``, albedo, normal, depth features;
+2. EmbedNet runs per sample (``samples [B, S, 3, H, W]`` present) or per pixel;
+3. with temporal recurrence the warped history (:mod:`denoiser.nn.temporal`) is appended;
+4. the U-Net input is padded (replicate) at the right and bottom to a multiple of
+   ``self.multiple`` (2^len(encoder)); everything is cropped back afterwards, so any frame
+   size works, 1x1 included;
+5. the history color is blended into the input color, the filter (pyramid / single kernel /
+   direct) produces the filtered frame on linear radiance, the history output is blended in.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature, color_scale, guide_features, sanitize
+
+#: keys of a frame dict that the network reads (per time step); others are ignored
+FRAME_KEYS = ("color", "albedo", "normal", "depth", "motion", "samples")
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
+    """Replicate-pad ``[B, C, H, W]`` at the right and bottom so H and W are multiples."""
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    if ph == 0 and pw == 0:
+        return x
+    return F.pad(x, (0, pw, 0, ph), mode="replicate")
+
+
+def detach_state(state: dict | None) -> dict | None:
+    """Detach every tensor of a state dict (truncated backpropagation through time)."""
+    return None if state is None else {k: v.detach() for k, v in state.items()}
+
+
+class Denoiser(nn.Module):
+    """Recurrent kernel-predicting denoiser.
+
+    Args:
+        embed: ``embed(in_channels=...) -> EmbedNet`` (partial constructor).
+        unet: ``unet(in_channels=..., head_channels=[...]) -> UNet`` (partial constructor).
+        filter: a filter module with ``head_channels``, ``multiple`` and
+            ``forward(x, heads, scale) -> (output, weights)``
+            (:class:`~denoiser.nn.pyramid.PyramidFilter` and the ablation filters).
+        temporal: :class:`~denoiser.nn.temporal.TemporalRecurrence` or None (no recurrence).
+
+    Attributes:
+        feature_channels: widths of ``extras["features"]`` (one map per U-Net level, finest
+            first; the same count for every config with the same number of encoder blocks).
+    """
+
+    def __init__(self, embed: Callable[..., nn.Module], unet: Callable[..., nn.Module],
+                 filter: nn.Module, temporal: nn.Module | None = None):
+        super().__init__()
+        self.embed = embed(in_channels=3 + GUIDE_CHANNELS)
+        self.temporal = temporal
+        self.filter = filter
+        unet_in = self.embed.out_channels + (temporal.input_channels if temporal is not None else 0)
+        heads = list(filter.head_channels)
+        self.filter_head0 = heads[0]
+        if temporal is not None:
+            heads[0] += temporal.head_channels
+        self.unet = unet(in_channels=unet_in, head_channels=heads)
+        self.multiple = max(self.unet.multiple, filter.multiple)
+        self.feature_channels = list(self.unet.feature_channels)
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def embed_inputs(self, frame: dict, color: torch.Tensor, scale: torch.Tensor,
+                     guide: torch.Tensor) -> torch.Tensor:
+        """EmbedNet input: ``[B, 10, H, W]`` per pixel, or ``[B, S, 10, H, W]`` with samples."""
+        samples = frame.get("samples")
+        if samples is None:
+            return torch.cat([color_feature(color, scale), guide], dim=1)
+        samples = sanitize(samples)
+        b, s, _, h, w = samples.shape
+        feats = color_feature(samples, scale.unsqueeze(1))
+        return torch.cat([feats, guide.unsqueeze(1).expand(b, s, GUIDE_CHANNELS, h, w)], dim=2)
+
+    def step(self, frame: dict, state: dict | None = None, reset: torch.Tensor | None = None):
+        """Denoise one frame.
+
+        frame: ``color [B, 3, H, W]`` linear HDR, ``albedo [B, 3, H, W]``, ``normal [B, 3, H, W]``,
+            ``depth [B, 1, H, W]``, ``motion [B, 2, H, W]`` (needed with temporal recurrence),
+            optional ``samples [B, S, 3, H, W]``.
+        state: previous step's state (dict of ``[B, C, H, W]``) or None (= reset all).
+        reset: bool ``[B]`` or None; True discards that item's history.
+
+        Returns ``(output [B, 3, H, W] float32 linear HDR, state, extras)`` where extras has
+        ``"features"`` (list of U-Net maps, ``feature_channels`` wide, at the padded size
+        divided by 2^level) and ``"weights"`` (dict of ``[B, k, H, W]``: ``history_in``,
+        ``history_out``, ``valid`` with temporal recurrence; ``partition`` for the pyramid).
+        """
+        color = sanitize(frame["color"])
+        h, w = color.shape[-2:]
+        scale = color_scale(color)
+        guide = guide_features(frame)
+        net_in = self.embed(self.embed_inputs(frame, color, scale, guide))
+        history = None
+        if self.temporal is not None:
+            history = self.temporal.warp(state, frame["motion"], reset, like=color)
+            net_in = torch.cat([net_in, self.temporal.inputs(history, scale).to(net_in.dtype)], dim=1)
+        heads, features = self.unet(pad_to_multiple(net_in, self.multiple))
+        filter_heads = [heads[0][:, : self.filter_head0]] + list(heads[1:])
+        weights: dict[str, torch.Tensor] = {}
+        filter_in = color
+        if history is not None:
+            temporal_head = heads[0][:, self.filter_head0:, :h, :w]
+            filter_in, weights["history_in"] = self.temporal.blend_in(color, history, temporal_head)
+        filtered, filter_weights = self.filter(pad_to_multiple(filter_in, self.multiple), filter_heads, scale)
+        weights.update({k: v[..., :h, :w] for k, v in filter_weights.items()})
+        output = filtered[..., :h, :w]
+        new_state: dict[str, torch.Tensor] = {}
+        if history is not None:
+            output, weights["history_out"] = self.temporal.blend_out(output, history, temporal_head)
+            weights["valid"] = history["valid"]
+            new_state = self.temporal.next_state(output, filter_in, temporal_head, guide)
+        return output, new_state, {"features": features, "weights": weights}
+
+    def forward(self, frames: dict, state: dict | None = None, reset: torch.Tensor | None = None,
+                detach_every: int = 0):
+        """Unroll :meth:`step` over a window.
+
+        frames: batch dict with ``[B, T, C, H, W]`` tensors (``samples [B, T, S, 3, H, W]``);
+            other keys are ignored. reset: bool ``[B, T]``; None uses ``frames["reset"]`` if
+            present (else only ``state is None`` resets). detach_every: k > 0 detaches the state
+            before every k-th step (truncated BPTT).
+
+        Returns ``(outputs [B, T, 3, H, W], final state, list of T extras dicts)``.
+        """
+        if reset is None:
+            reset = frames.get("reset")
+        steps = frames["color"].shape[1]
+        outputs, extras_list = [], []
+        for t in range(steps):
+            if detach_every and t > 0 and t % detach_every == 0:
+                state = detach_state(state)
+            frame = {k: frames[k][:, t] for k in FRAME_KEYS if frames.get(k) is not None}
+            out, state, extras = self.step(frame, state, None if reset is None else reset[:, t])
+            outputs.append(out)
+            extras_list.append(extras)
+        return torch.stack(outputs, dim=1), state, extras_list

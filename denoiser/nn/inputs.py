@@ -1,0 +1,97 @@
+"""Input sanitising and the feature transforms that keep HDR range safe for half precision.
+
+The network never sees raw radiance: every input is mapped to a bounded or logarithmic range
+(DESIGN 3.3), while the filter itself works on linear radiance. All transforms run in float32
+(call them outside autocast, or they upcast themselves) and are elementwise or per-image
+reductions, so they are cheap.
+
+Formulas (``x`` a tensor, ``B`` the batch):
+
+* sanitise: ``nan_to_num(x, nan=0, posinf=POSINF, neginf=-POSINF)`` with ``POSINF = 65504``
+  (the reader already does this; repeated here so the network is robust on its own);
+* color scale (per image): ``s = mean_{c,h,w}(max(color, 0)) + COLOR_EPS``, ``COLOR_EPS = 1e-3``;
+* color feature: ``log1p(max(x, 0) / s)``, at most ``log1p(65504 / 1e-3) ~ 18`` for sanitised
+  inputs: fine in float16 and bfloat16;
+* albedo feature: ``log1p(clamp(albedo, 0, ALBEDO_MAX))`` with ``ALBEDO_MAX = 100`` (renderers
+  exceed 1 on some paths; the log keeps such values within ~4.6);
+* normal feature: ``clamp(normal, -1, 1)``;
+* depth feature: ``d / (d + m)`` in [0, 1), where ``d = clamp(depth, 0, DEPTH_FAR)``,
+  ``DEPTH_FAR = 1e10`` (no-hit pixels map to ~1), and ``m`` is the mean depth of the image's
+  hit pixels (``d < DEPTH_HIT``, ``DEPTH_HIT = 1e9``) plus ``DEPTH_EPS = 1e-6`` (``m = 1`` when
+  nothing is hit). The feature is scale invariant: scenes in millimetres or kilometres look alike.
+"""
+
+from __future__ import annotations
+
+import torch
+
+POSINF = 65504.0
+COLOR_EPS = 1e-3
+ALBEDO_MAX = 100.0
+DEPTH_FAR = 1e10
+DEPTH_HIT = 1e9
+DEPTH_EPS = 1e-6
+
+#: channels of :func:`guide_features`: albedo (3), normal (3), depth (1)
+GUIDE_CHANNELS = 7
+
+
+def sanitize(x: torch.Tensor, posinf: float = POSINF) -> torch.Tensor:
+    """Replace NaN by 0 and +-Inf by +-``posinf``; returns float32. ``x``: any shape."""
+    return torch.nan_to_num(x.float(), nan=0.0, posinf=posinf, neginf=-posinf)
+
+
+def color_scale(color: torch.Tensor) -> torch.Tensor:
+    """Per-image normalisation scale ``mean(max(color, 0)) + COLOR_EPS``.
+
+    color: ``[B, 3, H, W]`` linear HDR (sanitised) -> ``[B, 1, 1, 1]`` float32, > 0.
+    """
+    return color.float().clamp_min(0).mean(dim=(1, 2, 3), keepdim=True) + COLOR_EPS
+
+
+def color_feature(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``log1p(max(x, 0) / scale)``.
+
+    x: ``[B, ..., H, W]`` linear HDR; scale: ``[B, 1, 1, 1]`` (broadcast over extra dims of x
+    by the caller) -> same shape as x, float32, >= 0.
+    """
+    return torch.log1p(x.float().clamp_min(0) / scale)
+
+
+def albedo_feature(albedo: torch.Tensor) -> torch.Tensor:
+    """``log1p(clamp(albedo, 0, ALBEDO_MAX))``: ``[B, 3, H, W]`` -> ``[B, 3, H, W]``."""
+    return torch.log1p(albedo.float().clamp(0, ALBEDO_MAX))
+
+
+def normal_feature(normal: torch.Tensor) -> torch.Tensor:
+    """``clamp(normal, -1, 1)``: ``[B, 3, H, W]`` camera-space normals -> same shape."""
+    return normal.float().clamp(-1, 1)
+
+
+def depth_feature(depth: torch.Tensor) -> torch.Tensor:
+    """Bounded depth ``d / (d + mean hit depth)``.
+
+    depth: ``[B, 1, H, W]`` planar depth (no hit = large) -> ``[B, 1, H, W]`` in [0, 1).
+    """
+    d = depth.float().clamp(0, DEPTH_FAR)
+    hit = (d < DEPTH_HIT).float()
+    count = hit.sum(dim=(1, 2, 3), keepdim=True)
+    mean = (d * hit).sum(dim=(1, 2, 3), keepdim=True) / count.clamp_min(1)
+    mean = torch.where(count > 0, mean, torch.ones_like(mean)) + DEPTH_EPS
+    return d / (d + mean)
+
+
+def guide_features(frame: dict) -> torch.Tensor:
+    """Auxiliary-buffer features of one frame, ``[B, GUIDE_CHANNELS=7, H, W]``.
+
+    frame: dict with ``albedo [B, 3, H, W]``, ``normal [B, 3, H, W]``, ``depth [B, 1, H, W]``
+    (sanitised or not). Order: albedo feature, normal feature, depth feature.
+    """
+    return torch.cat(
+        [
+            albedo_feature(sanitize(frame["albedo"])),
+            normal_feature(sanitize(frame["normal"])),
+            depth_feature(sanitize(frame["depth"], posinf=DEPTH_FAR)),
+        ],
+        dim=1,
+    )

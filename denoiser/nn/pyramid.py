@@ -1,0 +1,95 @@
+"""PyramidFilter: partitioning pyramid of per-pixel kernels (after Balint et al. 2023).
+
+With L levels and kernel sizes ``k_0..k_{L-1}`` (finest first), the network predicts at full
+resolution L partition logits and the level-0 kernel logits, and at scale 1/2^i the level-i
+kernel logits. For linear radiance ``x`` ``[B, 3, H, W]``:
+
+    w       = softmax_L(partition logits)                        (float32, sums to 1 per pixel)
+    p_i     = avg_pool_{2^i}(w_i * [x, 1])                        partition i, [B, 4, H/2^i, W/2^i]
+    y_i     = apply_kernels(p_i, kernel logits of level i)        (softmax-normalised, float32)
+    acc     = y_{L-1};  acc = up2_bilinear(acc) + y_i  for i = L-2 .. 0
+    output  = acc[:, :3] / acc[:, 3:]
+
+The constant channel ``1`` travels through exactly the same non-negative linear operators as
+``x``, and the division normalises the result: every output pixel is a convex combination of
+input pixels, whatever the predicted weights and even next to the border (zero padding in the
+kernels, clamping in the upsampling). This normalisation is our addition to the cited method
+(there the partitions preserve the image's total energy but not per-pixel convexity); it costs
+one extra channel and guarantees the filter cannot create energy, NaN or overflow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from denoiser.errors import ConfigError
+from denoiser.nn.kernels import apply_kernels
+
+#: smallest normaliser; the normaliser is a sum of positive float32 weights, this only guards
+#: against underflow.
+NORM_EPS = 1e-20
+
+
+def with_ones(x: torch.Tensor) -> torch.Tensor:
+    """``[B, C, H, W]`` -> ``[B, C + 1, H, W]`` with a constant-1 channel appended (float32)."""
+    x = x.float()
+    return torch.cat([x, torch.ones_like(x[:, :1])], dim=1)
+
+
+def normalize(acc: torch.Tensor) -> torch.Tensor:
+    """``[B, C + 1, H, W]`` filtered ``[x, 1]`` -> ``[B, C, H, W]`` = ``acc[:, :C] / acc[:, C]``."""
+    return acc[:, :-1] / acc[:, -1:].clamp_min(NORM_EPS)
+
+
+def check_kernel_sizes(kernel_sizes: Sequence[int]) -> list[int]:
+    sizes = [int(k) for k in kernel_sizes]
+    if not sizes or any(k < 1 or k % 2 == 0 for k in sizes):
+        raise ConfigError(f"kernel.sizes: need one or more odd sizes >= 1, got {list(kernel_sizes)}")
+    return sizes
+
+
+class PyramidFilter(nn.Module):
+    """Partitioning-pyramid kernel filter.
+
+    Args:
+        kernel_sizes: kernel size per level, finest first (``${kernel.sizes}``).
+
+    ``head_channels[i]`` is what the U-Net head at scale 1/2^i must predict: level 0 has
+    ``L + k_0^2`` channels (partition logits first), level i >= 1 ``k_i^2``.
+    """
+
+    def __init__(self, kernel_sizes: Sequence[int]):
+        super().__init__()
+        self.kernel_sizes = check_kernel_sizes(kernel_sizes)
+        self.levels = len(self.kernel_sizes)
+        self.head_channels = [self.levels + self.kernel_sizes[0] ** 2] + [
+            k * k for k in self.kernel_sizes[1:]]
+        self.multiple = 2 ** (self.levels - 1)
+
+    def forward(self, x: torch.Tensor, heads: Sequence[torch.Tensor], scale: torch.Tensor
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """x: ``[B, 3, H, W]`` linear radiance (H, W multiples of 2^(L-1));
+        heads[i]: ``[B, head_channels[i], H/2^i, W/2^i]``; scale: ``[B, 1, 1, 1]`` (unused).
+
+        Returns ``(output [B, 3, H, W] float32, {"partition": [B, L, H, W]})``.
+        """
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            x1 = with_ones(x)
+            head0 = heads[0].float()
+            partition = torch.softmax(head0[:, : self.levels], dim=1)
+            logits = [head0[:, self.levels:]] + [heads[i].float() for i in range(1, self.levels)]
+            filtered = []
+            for i in range(self.levels):
+                part = partition[:, i: i + 1] * x1
+                if i > 0:
+                    part = F.avg_pool2d(part, 2 ** i)
+                filtered.append(apply_kernels(part, logits[i]))
+            acc = filtered[-1]
+            for i in range(self.levels - 2, -1, -1):
+                acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",
+                                    align_corners=False) + filtered[i]
+            return normalize(acc), {"partition": partition}

@@ -1,0 +1,121 @@
+"""U-Net with one 1x1 output head per pyramid level (DESIGN 2, "How the U-Net reads").
+
+With ``encoder = [e0, e1, ..., e_{n-1}]``, ``bottleneck = b`` and ``decoder = [d0, ..., d_{n-2}]``:
+
+* encoder block i runs at scale 1/2^i: ``conv3x3(e_i) LReLU conv3x3(e_i) LReLU``, its output is
+  kept as skip i, then a 2x2 max-pool;
+* the bottleneck runs at 1/2^n: two conv3x3 of width b, then a 2x upsample;
+* decoder block j runs at scale 1/2^(n-1-j): concatenate skip (n-1-j) with the upsampled input,
+  two conv3x3 of width d_j, then a 2x upsample;
+* at full resolution the upsampled features are concatenated with skip 0: that concatenation
+  feeds the level-0 head.
+
+The level-i head (a 1x1 conv) reads the features at scale 1/2^i: level 0 the full-resolution
+concatenation, level i >= 1 the output of the decoder block at scale 1/2^i (before its
+upsample). These n maps are also returned as ``features`` (for feature distillation);
+``feature_channels`` lists their widths. Input height and width must be multiples of 2^n
+(:class:`~denoiser.nn.denoiser.Denoiser` pads).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from denoiser.errors import ConfigError
+
+
+def conv_block(cin: int, cout: int, negative_slope: float) -> nn.Sequential:
+    """``conv3x3 LReLU conv3x3 LReLU``: ``[B, cin, H, W] -> [B, cout, H, W]``."""
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1),
+        nn.LeakyReLU(negative_slope),
+        nn.Conv2d(cout, cout, 3, padding=1),
+        nn.LeakyReLU(negative_slope),
+    )
+
+
+class UNet(nn.Module):
+    """U-Net with per-level output heads.
+
+    Args:
+        in_channels: input channels (set by :class:`Denoiser`).
+        encoder: widths of the encoder blocks, finest first (student ``[32, 64, 128]``).
+        bottleneck: width of the bottleneck at 1/2^len(encoder) (student 128).
+        decoder: widths of the decoder blocks, coarsest first (student ``[64, 32]``);
+            ``len(decoder) == len(encoder) - 1``.
+        head_channels: output channels per level, finest first (0 = no head at that level);
+            at most ``len(encoder)`` levels.
+        negative_slope: LeakyReLU slope.
+        upsample: ``F.interpolate`` mode of the 2x upsampling ("bilinear" or "nearest").
+    """
+
+    def __init__(self, in_channels: int, encoder: Sequence[int], bottleneck: int,
+                 decoder: Sequence[int], head_channels: Sequence[int],
+                 negative_slope: float = 0.1, upsample: str = "bilinear"):
+        super().__init__()
+        encoder, decoder, head_channels = list(encoder), list(decoder), list(head_channels)
+        if len(encoder) < 1:
+            raise ConfigError("net.unet.encoder: needs at least one width")
+        if len(decoder) != len(encoder) - 1:
+            raise ConfigError(
+                f"net.unet.decoder: expected {len(encoder) - 1} widths for {len(encoder)} encoder "
+                f"blocks, got {len(decoder)}")
+        if len(head_channels) > len(encoder):
+            raise ConfigError(
+                f"kernel.sizes: {len(head_channels)} pyramid levels need a U-Net with at least as "
+                f"many scales, net.unet.encoder has {len(encoder)}")
+        self.levels = len(encoder)
+        self.multiple = 2 ** self.levels
+        self.upsample_mode = upsample
+        self.align = False if upsample in ("bilinear", "bicubic") else None
+
+        self.encoder = nn.ModuleList()
+        cin = in_channels
+        for width in encoder:
+            self.encoder.append(conv_block(cin, width, negative_slope))
+            cin = width
+        self.bottleneck = conv_block(cin, bottleneck, negative_slope)
+        self.decoder = nn.ModuleList()
+        cin = bottleneck
+        for j, width in enumerate(decoder):
+            skip = encoder[self.levels - 1 - j]
+            self.decoder.append(conv_block(cin + skip, width, negative_slope))
+            cin = width
+        # features per level, finest first
+        self.feature_channels = [encoder[0] + cin] + [decoder[self.levels - 1 - i]
+                                                      for i in range(1, self.levels)]
+        self.heads = nn.ModuleList(
+            [nn.Conv2d(self.feature_channels[i], n, 1) if n > 0 else nn.Identity()
+             for i, n in enumerate(head_channels)])
+        self.head_channels = head_channels
+
+    def _up(self, x: torch.Tensor) -> torch.Tensor:
+        return F.interpolate(x, scale_factor=2, mode=self.upsample_mode, align_corners=self.align)
+
+    def forward(self, x: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """x: ``[B, C_in, H, W]`` with H, W multiples of ``self.multiple``.
+
+        Returns ``(heads, features)``: ``heads[i]``: ``[B, head_channels[i], H/2^i, W/2^i]``
+        (None where head_channels[i] == 0); ``features[i]``: ``[B, feature_channels[i], H/2^i,
+        W/2^i]`` for i in 0..levels-1.
+        """
+        skips = []
+        for block in self.encoder:
+            x = block(x)
+            skips.append(x)
+            x = F.max_pool2d(x, 2)
+        x = self._up(self.bottleneck(x))
+        features: list[torch.Tensor] = [None] * self.levels  # type: ignore[list-item]
+        for j, block in enumerate(self.decoder):
+            scale = self.levels - 1 - j
+            x = block(torch.cat([skips[scale], x], dim=1))
+            features[scale] = x
+            x = self._up(x)
+        features[0] = torch.cat([skips[0], x], dim=1)
+        heads = [head(features[i]) if n > 0 else None
+                 for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
+        return heads, features

@@ -1,0 +1,178 @@
+"""``SequenceDataModule``: the LightningDataModule of every training/evaluation command.
+
+Built by Hydra from ``conf/data/*.yaml`` (``_target_``); keys mirror the constructor. Splits
+live at ``<root>/<split>/<sequence>/`` in the configured layout. Loaders:
+
+* ``train_dataloader``: :class:`~denoiser.data.dataset.WindowDataset` of ``train_split``
+  (windows of ``window`` frames, ``stride`` apart, random ``crop``, ``augment``), shuffled,
+  ``batch_size`` items; with ``use_unlabeled`` also windows of ``unlabeled_split`` mixed in at
+  ``unlabeled_ratio`` (:class:`~denoiser.data.sampler.MixedSampler`); every item then has a
+  ``reference`` (zeros when unlabeled) and ``labeled: bool[B]`` says which are real;
+* ``val_dataloader`` / ``test_dataloader``: :class:`~denoiser.data.dataset.SequenceDataset`,
+  whole frames in order, batch size 1; ``val_window: null`` gives one whole sequence per batch.
+
+Streaming: datasets hold only the index; ``num_workers``, ``persistent_workers`` and
+``pin_memory`` go to every DataLoader; ``cache_dir`` (or null) enables the decoded-frame cache;
+``precache: true`` fills it for all splits in ``prepare_data`` (with a progress bar).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+
+import lightning as L
+from torch.utils.data import ConcatDataset, DataLoader
+from tqdm.auto import tqdm
+
+from denoiser.data.augment import Augment
+from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
+from denoiser.data.layouts.base import Layout
+from denoiser.data.reader import FrameReader
+from denoiser.data.sampler import MixedSampler
+from denoiser.errors import ConfigError
+
+DEFAULT_BUFFERS = ("color", "albedo", "normal", "depth", "motion")
+
+
+def _instantiate(obj, cls):
+    """Accept an object of ``cls`` or a Hydra config for one (``_target_``)."""
+    if obj is None or isinstance(obj, cls):
+        return obj
+    if isinstance(obj, Mapping):
+        if "_target_" in obj:
+            from hydra.utils import instantiate
+
+            return instantiate(obj)
+        if cls is Augment:
+            return Augment(**dict(obj))
+    raise ConfigError(f"data: expected a {cls.__name__} or its config, got {type(obj).__name__}")
+
+
+class SequenceDataModule(L.LightningDataModule):
+    """Sequences of ``root`` as Lightning dataloaders (see the module docstring for the keys)."""
+
+    def __init__(
+        self,
+        root: str,
+        layout: Layout | Mapping,
+        buffers: Sequence[str] = DEFAULT_BUFFERS,
+        samples: bool = False,
+        window: int = 8,
+        stride: int = 1,
+        crop: int | Sequence[int] | None = 128,
+        batch_size: int = 4,
+        num_workers: int = 0,
+        persistent_workers: bool = False,
+        pin_memory: bool = False,
+        cache_dir: str | None = None,
+        precache: bool = False,
+        augment: Augment | Mapping | None = None,
+        use_unlabeled: bool = False,
+        unlabeled_ratio: float = 0.5,
+        train_split: str = "train",
+        val_split: str | None = "val",
+        test_split: str | None = "test",
+        unlabeled_split: str = "unlabeled",
+        val_window: int | None = None,
+    ):
+        super().__init__()
+        self.root = str(root)
+        self.layout = _instantiate(layout, Layout)
+        self.buffers = tuple(buffers)
+        self.samples = bool(samples)
+        self.window = int(window)
+        self.stride = int(stride)
+        self.crop = crop
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.persistent_workers = bool(persistent_workers) and self.num_workers > 0
+        self.pin_memory = bool(pin_memory)
+        self.cache_dir = str(cache_dir) if cache_dir else None
+        self.precache = bool(precache)
+        self.augment = _instantiate(augment, Augment)
+        self.use_unlabeled = bool(use_unlabeled)
+        self.unlabeled_ratio = float(unlabeled_ratio)
+        self.splits = {"train": train_split, "val": val_split, "test": test_split, "unlabeled": unlabeled_split}
+        self.val_window = val_window
+        if self.batch_size < 1:
+            raise ConfigError(f"data.batch_size: must be >= 1, got {batch_size}")
+        self.train_set: WindowDataset | None = None
+        self.unlabeled_set: WindowDataset | None = None
+        self.val_set: SequenceDataset | None = None
+        self.test_set: SequenceDataset | None = None
+
+    # ------------------------------------------------------------------ datasets
+    def _windows(self, split: str, labeled: bool) -> WindowDataset:
+        sources = index_split(self.layout, self.root, split)
+        return WindowDataset(sources, self.layout, self.buffers, self.window, stride=self.stride, crop=self.crop,
+                             augment=self.augment, labeled=labeled, samples=self.samples,
+                             cache_dir=self.cache_dir, fill_reference=self.use_unlabeled)
+
+    def _sequences(self, split: str) -> SequenceDataset:
+        sources = index_split(self.layout, self.root, split)
+        return SequenceDataset(sources, self.layout, self.buffers, window=self.val_window, labeled=True,
+                               samples=self.samples, cache_dir=self.cache_dir)
+
+    def prepare_data(self) -> None:
+        if self.precache and self.cache_dir:
+            self.fill_cache()
+
+    def fill_cache(self) -> int:
+        """Decode every frame of every configured split into the cache (progress bar); files decoded."""
+        reader = FrameReader(self.layout, self.cache_dir)
+        names = [self.splits[k] for k in ("train", "val", "test") if self.splits[k]]
+        if self.use_unlabeled:
+            names.append(self.splits["unlabeled"])
+        jobs = []
+        for split in names:
+            if not os.path.isdir(os.path.join(self.root, split)):
+                continue
+            for src in index_split(self.layout, self.root, split):
+                wanted = [b for b in (*self.buffers, "reference", "samples") if b in src.buffers]
+                jobs.extend((src, i, wanted) for i in range(src.frames))
+        for src, i, wanted in tqdm(jobs, desc="cache frames", unit="frame"):
+            reader.read(src, i, wanted, crop=(0, 0, 1, 1))
+        return reader.decoded
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit") and self.train_set is None:
+            self.train_set = self._windows(self.splits["train"], labeled=True)
+            if self.use_unlabeled:
+                self.unlabeled_set = self._windows(self.splits["unlabeled"], labeled=False)
+        if stage in (None, "fit", "validate") and self.val_set is None and self.splits["val"]:
+            self.val_set = self._sequences(self.splits["val"])
+        if stage in (None, "test", "predict") and self.test_set is None and self.splits["test"]:
+            self.test_set = self._sequences(self.splits["test"])
+
+    # ------------------------------------------------------------------ loaders
+    def _loader(self, dataset, batch_size: int, shuffle: bool = False, sampler=None) -> DataLoader:
+        return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, sampler=sampler,
+                          num_workers=self.num_workers, persistent_workers=self.persistent_workers,
+                          pin_memory=self.pin_memory)
+
+    def train_dataloader(self) -> DataLoader:
+        if self.train_set is None:
+            self.setup("fit")
+        if self.unlabeled_set is not None:
+            mixed = ConcatDataset([self.train_set, self.unlabeled_set])
+            sampler = MixedSampler(len(self.train_set), len(self.unlabeled_set), self.unlabeled_ratio)
+            return self._loader(mixed, self.batch_size, sampler=sampler)
+        return self._loader(self.train_set, self.batch_size, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        if self.val_set is None:
+            self.setup("validate")
+        if self.val_set is None:
+            return []
+        return self._loader(self.val_set, 1)
+
+    def test_dataloader(self) -> DataLoader:
+        if self.test_set is None:
+            self.setup("test")
+        if self.test_set is None:
+            return []
+        return self._loader(self.test_set, 1)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self.test_dataloader()

@@ -1,0 +1,15 @@
+"""Layouts: how logical buffers map to files and EXR channels (``conf/data/layout/*.yaml``)."""
+
+from denoiser.data.layouts.base import BufferSpec, Layout, SequenceSource, image_size
+from denoiser.data.layouts.blender import BlenderLayout, vector_to_motion
+from denoiser.data.layouts.native import NativeLayout
+
+__all__ = [
+           "BlenderLayout",
+           "BufferSpec",
+           "Layout",
+           "NativeLayout",
+           "SequenceSource",
+           "image_size",
+           "vector_to_motion",
+]

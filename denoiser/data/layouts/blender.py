@@ -1,0 +1,150 @@
+"""Blender Cycles multilayer EXR renders, noisy and reference renders in separate folders.
+
+::
+
+    <root>/<split>/<sequence>/noisy/0001.exr, 0002.exr, ...      # low-spp render with passes
+    <root>/<split>/<sequence>/reference/0001.exr, ...            # high-spp render (labeled splits)
+    <root>/<split>/<sequence>/sequence.json                       # optional (cuts, cameras, spp)
+
+A directory with the ``.exr`` files directly in it (no ``noisy/`` folder) is read as the noisy
+frames of one unlabeled sequence (e.g. for ``denoiser-denoise layout=blender``). Noisy and
+reference frames are paired by file name; frames are ordered by the number in the name.
+
+Facts about Cycles 4.x files (DESIGN 3.1): single-part scanline EXR, float32, channels
+``<ViewLayer>.<Pass>.<chan>``. ``Combined.RGBA`` is the raw noisy image when Cycles' denoiser is
+off; ``Noisy Image.RGBA`` exists only when the denoiser ran (and then ``Combined`` is denoised),
+so the alias table of ``conf/data/layout/blender.yaml`` tries ``Noisy Image`` first for
+``color``. ``Denoising Normal`` is camera space in our axes, ``Denoising Albedo`` is the albedo,
+``Depth.Z`` / ``Denoising Depth.Z`` are planar depth (no hit = 1e10).
+
+Pass names are matched through the alias table with every prefix of ``layer_prefixes``
+(default ``ViewLayer.`` and none); failing those, the single view layer of the file whose
+channels complete the pass is used (several candidate layers are an error naming them).
+
+**Motion, the one conversion**: Blender's ``Vector`` pass stores in (X, Y) the position in frame
+t-1 minus the position in frame t, in pixels, with +Y pointing *up*; (Z, W) look forward to t+1.
+Our ``motion`` (DESIGN 3.1) is the same backward displacement with y pointing *down*, so
+``motion = (X, -Y)``: :func:`vector_to_motion`, referenced from the layout config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from denoiser.data import exr
+from denoiser.data.layouts.base import Layout, SequenceSource, image_size
+from denoiser.data.layouts.native import check_sizes, derived_meta, list_sequence_dirs
+from denoiser.data.sequence import SEQUENCE_JSON, check_frames_on_disk, load_sequence_json
+from denoiser.errors import ExrError, UserError
+
+
+def vector_to_motion(vector: np.ndarray) -> np.ndarray:
+    """Blender ``Vector`` (X, Y[, Z, W]) ``[H, W, >=2]`` -> our backward motion ``[H, W, 2]``.
+
+    Blender: (X, Y) = pos(t-1) - pos(t) in pixels, +Y up. Ours: pos(t-1) - pos(t), y down.
+    Hence ``motion = (X, -Y)``.
+    """
+    vector = np.asarray(vector, dtype=np.float32)
+    motion = np.array(vector[..., :2], dtype=np.float32, copy=True)
+    motion[..., 1] *= -1.0
+    return motion
+
+
+_NUM_RE = re.compile(r"(\d+)")
+
+
+def _natural_key(path: Path):
+    return [int(t) if t.isdigit() else t for t in _NUM_RE.split(path.name)]
+
+
+def exr_files(directory: Path) -> list[Path]:
+    """``*.exr`` files of a directory (hidden/temporary ones skipped), in frame-number order."""
+    return sorted((p for p in directory.iterdir() if p.suffix.lower() == ".exr" and not p.name.startswith(".")),
+                  key=_natural_key)
+
+
+class BlenderLayout(Layout):
+    """Cycles multilayer EXRs; ``noisy_dir`` and ``reference_dir`` are sub-folder names."""
+
+    name = "blender"
+    samples_role = "noisy"
+
+    def __init__(self, buffers: Mapping[str, object], noisy_dir: str = "noisy", reference_dir: str = "reference",
+                 layer_prefixes: Sequence[str] = ("ViewLayer.", "")):
+        super().__init__(buffers, default_file="noisy")
+        self.noisy_dir = noisy_dir
+        self.reference_dir = reference_dir
+        self.layer_prefixes = tuple(layer_prefixes)
+
+    def list_sequences(self, split_dir):
+        return list_sequence_dirs(split_dir)
+
+    def resolve(self, path: Path, buffer: str, present: Iterable[str]) -> tuple[str, ...] | None:
+        present = set(present)
+        for alt in self.specs[buffer].alternatives:
+            for prefix in self.layer_prefixes:
+                names = tuple(prefix + c for c in alt)
+                if all(n in present for n in names):
+                    return names
+            tail = "." + alt[0]
+            layers = sorted({n[: -len(alt[0])] for n in present
+                             if n.endswith(tail) and "." not in n[: -len(tail)]})
+            layers = [p for p in layers if all(p + c in present for c in alt)]
+            if len(layers) > 1:
+                raise ExrError(path, f"buffer {buffer}: several view layers hold {alt[0].split('.')[0]} "
+                                     f"({', '.join(p[:-1] for p in layers)}); set layout.layer_prefixes")
+            if layers:
+                return tuple(layers[0] + c for c in alt)
+        return None
+
+    def open_sequence(self, directory, name=None) -> SequenceSource:
+        directory = Path(directory)
+        if not directory.is_dir():
+            raise UserError(f"{directory}: sequence directory does not exist")
+        noisy_dir = directory / self.noisy_dir
+        if not noisy_dir.is_dir():
+            noisy_dir = directory
+        noisy = exr_files(noisy_dir)
+        if not noisy:
+            raise UserError(f"{noisy_dir}: no .exr frames (expected Blender renders in {self.noisy_dir}/ or here)")
+        files = {"noisy": tuple(noisy)}
+        ref_dir = directory / self.reference_dir
+        if ref_dir.is_dir():
+            refs = {p.name: p for p in exr_files(ref_dir)}
+            missing = [p.name for p in noisy if p.name not in refs]
+            if missing:
+                raise UserError(f"{ref_dir}: no reference frame for noisy frame(s) {', '.join(missing[:5])}")
+            files["reference"] = tuple(refs[p.name] for p in noisy)
+
+        buffers = self._buffers(files)
+        json_path = directory / SEQUENCE_JSON
+        if json_path.exists():
+            meta = load_sequence_json(json_path)
+            check_frames_on_disk(meta, json_path, noisy)
+            meta = dataclasses.replace(meta, buffers=buffers)
+        else:
+            meta = derived_meta(noisy, buffers)
+        for paths in files.values():
+            check_sizes(list(paths), meta.width, meta.height, f"{directory} ({noisy[0].name})")
+        return SequenceSource(name=name or directory.name, directory=directory, meta=meta, files=files,
+                              buffers=buffers)
+
+    def _buffers(self, files: Mapping[str, tuple[Path, ...]]) -> tuple[str, ...]:
+        present = {role: exr.list_channels(paths[0]) for role, paths in files.items()}
+        out = []
+        for b, spec in self.specs.items():
+            if spec.file in present and self.resolve(files[spec.file][0], b, present[spec.file]) is not None:
+                out.append(b)
+        if "color" not in out:
+            path = files["noisy"][0]
+            raise ExrError(path, f"no noisy color ({' or '.join(a[0] for a in self.specs['color'].alternatives)} "
+                                 f"with a view-layer prefix); present: {', '.join(sorted(present['noisy']))}")
+        return tuple(out)
+
+
+__all__ = ["BlenderLayout", "exr_files", "image_size", "vector_to_motion"]

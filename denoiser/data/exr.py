@@ -127,6 +127,9 @@ def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -
     """
     path = Path(path)
     f = _open(path)
+    if not f.parts or not all(part.channels for part in f.parts):
+        # OpenEXR.File only warns (on stderr) and drops the parts whose pixels cannot be read
+        raise ExrError(path, "truncated or corrupt EXR (pixel data unreadable)")
     found: dict[str, np.ndarray] = {}
     try:
         for part in f.parts:
@@ -333,9 +336,12 @@ def write_multipart(path: str | os.PathLike, parts: Sequence[Mapping[str, np.nda
     """Write a multi-part EXR: one ``{channel: [H, W]}`` dict per part (used by tests and tools)."""
     path = Path(path)
     exr_parts = []
+    first = np.asarray(next(iter(parts[0].values()))).shape
+    # every part must share one display window; data windows follow each part's own size
+    display = (np.array([0, 0], np.int32), np.array([first[1] - 1, first[0] - 1], np.int32))
     for i, chans in enumerate(parts):
         header = {"compression": _compression(compression), "type": OpenEXR.scanlineimage,
-                  "name": (names[i] if names else f"part{i}")}
+                  "name": (names[i] if names else f"part{i}"), "displayWindow": display}
         exr_parts.append(OpenEXR.Part(header, {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in chans.items()}))
 
     def write(tmp: str) -> None:

@@ -1,0 +1,205 @@
+"""Render one sequence into the native layout (DESIGN 3.1), resumably.
+
+``<out_dir>/frame_0000.exr ...`` (written atomically by :func:`denoiser.data.exr.write_frame`)
+and ``<out_dir>/sequence.json`` (:func:`denoiser.data.sequence.write_sequence_json`, rewritten
+after every frame). A frame whose file exists with every expected channel is skipped, so an
+interrupted render continues where it stopped; its timings come from the previous
+``sequence.json``. Settings that differ from an existing ``sequence.json`` are an error
+unless ``overwrite`` is set (then stale frames are replaced).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from denoiser.data.exr import buffer_channels, list_channels, sample_channels, write_frame
+from denoiser.data.sequence import SEQUENCE_JSON, load_sequence_json, write_sequence_json
+from denoiser.errors import ExrError, UserError
+from denoiser.render import seeds as sd
+from denoiser.render.motion import backward_motion
+from denoiser.render.passes import NO_HIT_DEPTH, FrameRenderer
+from denoiser.render.spec import SceneSpec
+from denoiser.render.variant import active_variant
+
+CONVENTIONS = {
+    "color": "mean radiance of the frame's samples, linear HDR, box pixel filter",
+    "albedo": "first-hit albedo at the pixel centre, clamped to [0, 1]; 0 = no hit",
+    "normal": "first-hit shading normal at the pixel centre, camera space (x right, y up, z into the scene), "
+              "unit length; 0 = no hit",
+    "depth": f"planar depth along the camera's viewing axis at the pixel centre; no hit = {NO_HIT_DEPTH:g}",
+    "motion": "backward motion in pixels: the surface seen at pixel centre p in frame t was at p + motion in "
+              "frame t-1; x right, y down",
+    "camera": "to_world: Mitsuba camera-to-world matrix (row-major; columns left, up, forward, position; "
+              "the camera looks along local +z); fov: horizontal, degrees",
+    "time": "frame t is the instant tau = t; with motion blur the shutter spans tau in [t - s/2, t + s/2]",
+    "seeds": "noisy/reference: Mitsuba sampler seed per frame; samples: seed of each single-sample pass, "
+             "frame-major (frame * sample_count + k)",
+}
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What to render for one sequence."""
+
+    frames: int
+    spp: int
+    ref_spp: int
+    width: int
+    height: int
+    labeled: bool = True
+    save_samples: bool = False
+    half: bool = False
+
+    def buffers(self) -> list[str]:
+        out = ["color"] + (["samples"] if self.save_samples else []) + ["albedo", "normal", "depth", "motion"]
+        return out + (["reference"] if self.labeled else [])
+
+    def channels(self) -> list[str]:
+        names: list[str] = []
+        sizes = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2, "reference": 3}
+        for b in self.buffers():
+            if b == "samples":
+                names += [c for k in range(self.spp) for c in sample_channels(k)]
+            else:
+                names += list(buffer_channels(b, sizes[b]))
+        return names
+
+
+def frame_path(out_dir: Path, t: int) -> Path:
+    return out_dir / f"frame_{t:04d}.exr"
+
+
+def frame_complete(path: Path, channels: list[str]) -> bool:
+    """True when ``path`` is a readable EXR holding every channel in ``channels``."""
+    if not path.exists():
+        return False
+    try:
+        present = set(list_channels(path))
+    except ExrError:
+        return False
+    return all(c in present for c in channels)
+
+
+def render_frame(renderer: FrameRenderer, spec: SceneSpec, t: int, settings: RenderSettings,
+                 seeds: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """All buffers of frame ``t`` (``{name: [H,W,C]}``, samples ``[S,H,W,3]``) and seconds per buffer."""
+    seconds: dict[str, float] = {}
+    out: dict[str, np.ndarray] = {}
+    tic = time.perf_counter()
+    if settings.save_samples:
+        out["samples"] = renderer.samples(t, seeds["samples"])
+        out["color"] = out["samples"].mean(axis=0)
+    else:
+        out["color"] = renderer.radiance(t, settings.spp, seeds["noisy"])
+    seconds["color"] = time.perf_counter() - tic
+    tic = time.perf_counter()
+    aux = renderer.aux(t)
+    out.update(albedo=aux.albedo, normal=aux.normal, depth=aux.depth)
+    seconds["aux"] = time.perf_counter() - tic
+    tic = time.perf_counter()
+    out["motion"] = backward_motion(spec, aux, t, settings.width, settings.height)
+    seconds["motion"] = time.perf_counter() - tic
+    if settings.labeled:
+        tic = time.perf_counter()
+        out["reference"] = renderer.reference(t, settings.ref_spp, seeds["reference"])
+        seconds["reference"] = time.perf_counter() - tic
+    return out, seconds
+
+
+def _frame_seeds(seq_seed: int, t: int, settings: RenderSettings) -> dict[str, Any]:
+    s: dict[str, Any] = {"noisy": sd.pass_seed(seq_seed, t, sd.NOISY)}
+    if settings.labeled:
+        s["reference"] = sd.pass_seed(seq_seed, t, sd.REFERENCE)
+    if settings.save_samples:
+        s["samples"] = [sd.pass_seed(seq_seed, t, sd.FIRST_SAMPLE + k) for k in range(settings.spp)]
+    return s
+
+
+def _previous(out_dir: Path, settings: RenderSettings, identity: dict, overwrite: bool) -> list[dict] | None:
+    """Per-frame timings of a previous run with the same settings (None if there is none)."""
+    path = out_dir / SEQUENCE_JSON
+    if not path.exists():
+        return None
+    meta = load_sequence_json(path)
+    previous = dict(meta.extra.get("render_settings", {}))
+    if previous != identity:
+        if overwrite:
+            return None
+        changed = sorted(k for k in set(previous) | set(identity) if previous.get(k) != identity.get(k))
+        raise UserError(f"{path}: rendered with different settings ({', '.join(changed)}); "
+                        f"pass overwrite=true to re-render or choose another root")
+    return list(meta.extra.get("frame_seconds", []))
+
+
+def render_sequence(mi, spec: SceneSpec, out_dir: str | Path, settings: RenderSettings, seq_seed: int,
+                    overwrite: bool = False, on_frame: Callable[[int, bool], None] | None = None) -> dict:
+    """Render (or resume) one sequence; returns the written ``sequence.json`` content.
+
+    ``on_frame(t, skipped)`` is called after each frame (progress bars).
+    """
+    out_dir = Path(out_dir)
+    identity = {**asdict(settings), "scene": spec.name, "sequence_seed": seq_seed}
+    previous = _previous(out_dir, settings, identity, overwrite) or []
+    renderer = FrameRenderer(mi, spec, settings.width, settings.height)
+    channels = settings.channels()
+    frame_seconds: list[dict[str, float]] = []
+    seeds = [_frame_seeds(seq_seed, t, settings) for t in range(settings.frames)]
+    meta = None
+    for t in range(settings.frames):
+        path = frame_path(out_dir, t)
+        done = not overwrite and t < len(previous) and frame_complete(path, channels)
+        if done:
+            frame_seconds.append(previous[t])
+        else:
+            buffers, seconds = render_frame(renderer, spec, t, settings, seeds[t])
+            write_frame(path, buffers, half=settings.half, attributes={"frameIndex": t})
+            frame_seconds.append({k: round(v, 4) for k, v in seconds.items()})
+        meta = _metadata(mi, spec, settings, seq_seed, seeds, frame_seconds, identity)
+        write_sequence_json(out_dir / SEQUENCE_JSON, meta)
+        if on_frame is not None:
+            on_frame(t, done)
+    return meta
+
+
+def _metadata(mi, spec: SceneSpec, settings: RenderSettings, seq_seed: int, seeds: list[dict],
+              frame_seconds: list[dict], identity: dict) -> dict:
+    totals: dict[str, float] = {}
+    for fs in frame_seconds:
+        for k, v in fs.items():
+            totals[k] = round(totals.get(k, 0.0) + v, 4)
+    cameras = [{"to_world": spec.camera.to_world(float(t)).tolist(), "fov": spec.camera.fov, "fov_axis": "x"}
+               for t in range(settings.frames)]
+    seed_lists: dict[str, Any] = {"sequence": seq_seed, "noisy": [s["noisy"] for s in seeds]}
+    if settings.labeled:
+        seed_lists["reference"] = [s["reference"] for s in seeds]
+    if settings.save_samples:
+        seed_lists["samples"] = [x for s in seeds for x in s["samples"]]
+    return {
+        "width": settings.width, "height": settings.height, "frames": settings.frames, "spp": settings.spp,
+        "ref_spp": settings.ref_spp if settings.labeled else 0,
+        "buffers": settings.buffers(), "sample_count": settings.spp if settings.save_samples else 0,
+        "cameras": cameras, "cuts": [],
+        "scene": {"name": spec.name, "effects": spec.effects.names(),
+                  "effect_params": {k: dict(v) for k, v in spec.effects.declared.items()},
+                  "test_only": spec.test_only, "params": spec.params},
+        "renderer": {"name": "mitsuba", "version": mi.__version__, "variant": active_variant() or mi.variant(),
+                     "integrator": "path", "max_depth": _depth(spec)},
+        "seeds": seed_lists,
+        "render_seconds": totals,
+        "frame_seconds": frame_seconds,
+        "frames_done": len(frame_seconds),
+        "render_settings": identity,
+        "conventions": CONVENTIONS,
+    }
+
+
+def _depth(spec: SceneSpec) -> int:
+    from denoiser.render.effects import path_depth
+
+    return path_depth(spec.effects)

@@ -1,0 +1,148 @@
+"""Render passes of one frame: noisy colour, per-sample radiance, auxiliary buffers, reference.
+
+All arrays are numpy float32, ``[H, W, C]`` (samples ``[S, H, W, 3]``).
+
+* noisy colour: ``spp`` samples through the main sensor (box pixel filter) with one seed;
+  with ``save_samples`` ``spp`` passes of 1 sample, each with its own seed;
+* motion blur (``camera.shutter > 0``): samples are spread over stratified sub-frame instants
+  ``tau in [t - shutter/2, t + shutter/2]`` and averaged (one scene per instant; the scene is
+  otherwise rendered at ``tau = t``);
+* auxiliary buffers: one ray through each pixel centre at ``tau = t`` (pinhole, also with dof;
+  Mitsuba's ``aov`` integrator): albedo (clamped to [0, 1]; Mitsuba's exceeds 1 on rough
+  conductors), camera-space shading normal, planar depth (no hit: ``NO_HIT_DEPTH``), the world
+  position and the object hit (index into ``spec.objects``, -1 = none or a light);
+* reference: ``ref_spp`` samples with its own seed, same sensor as the noisy colour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from denoiser.render import transforms as tf
+from denoiser.render.build import AUX_SENSOR, MAIN_SENSOR, scene_dict
+from denoiser.render.shapes import object_of
+from denoiser.render.spec import SceneSpec
+
+NO_HIT_DEPTH = 1e10
+MAX_TIME_SAMPLES = 16  # sub-frame instants for a motion-blurred reference
+AOVS = "albedo:albedo,nn:sh_normal,pos:position,dd:depth,sid:shape_index"
+
+
+@dataclass
+class AuxBuffers:
+    """Pixel-centre buffers of one frame.
+
+    ``albedo [H,W,3]`` in [0,1]; ``normal [H,W,3]`` camera space unit (0 = no hit);
+    ``depth [H,W,1]`` planar (``NO_HIT_DEPTH`` = no hit); ``position [H,W,3]`` world;
+    ``hit bool [H,W]``; ``object int32 [H,W]`` (-1 = no object).
+    """
+
+    albedo: np.ndarray
+    normal: np.ndarray
+    depth: np.ndarray
+    position: np.ndarray
+    hit: np.ndarray
+    object: np.ndarray
+
+
+class FrameRenderer:
+    """Renders the passes of a :class:`SceneSpec` at ``width x height`` (scenes cached per ``tau``)."""
+
+    def __init__(self, mi, spec: SceneSpec, width: int, height: int):
+        self.mi = mi
+        self.spec = spec
+        self.width = width
+        self.height = height
+        self._cached: tuple[float, object] | None = None
+        self._aov = None
+        self.scene_loads = 0
+
+    # -- scenes
+    def scene(self, tau: float):
+        """The loaded Mitsuba scene at time ``tau`` (the last one is cached)."""
+        if self._cached is None or self._cached[0] != tau:
+            self._cached = (tau, self.mi.load_dict(scene_dict(self.mi, self.spec, tau, self.width, self.height)))
+            self.scene_loads += 1
+        return self._cached[1]
+
+    def _sensor(self, scene, name: str):
+        return next(s for s in scene.sensors() if s.id() == name)
+
+    def _render(self, tau: float, spp: int, seed: int) -> np.ndarray:
+        scene = self.scene(tau)
+        img = self.mi.render(scene, sensor=self._sensor(scene, MAIN_SENSOR), spp=int(spp), seed=int(seed) & 0xFFFFFFFF)
+        return np.array(img, dtype=np.float32)[..., :3]
+
+    def _instants(self, t: int, count: int, seed: int) -> list[float]:
+        """``count`` stratified instants over the shutter interval of frame ``t`` (just ``t`` if closed)."""
+        shutter = self.spec.camera.shutter
+        if shutter <= 0:
+            return [float(t)] * count
+        u = np.random.default_rng(seed).random(count)
+        return [float(t + shutter * ((k + u[k]) / count - 0.5)) for k in range(count)]
+
+    # -- passes
+    def radiance(self, t: int, spp: int, seed: int, time_samples: int | None = None) -> np.ndarray:
+        """Mean radiance ``[H,W,3]`` of ``spp`` samples (spread over sub-frame instants if blurred)."""
+        if self.spec.camera.shutter <= 0:
+            return self._render(float(t), spp, seed)
+        n = min(spp, time_samples or spp)
+        counts = [spp // n + (1 if k < spp % n else 0) for k in range(n)]
+        acc = np.zeros((self.height, self.width, 3), np.float32)
+        for k, (tau, c) in enumerate(zip(self._instants(t, n, seed), counts)):
+            acc += c * self._render(tau, c, seed + 7919 * (k + 1))
+        return acc / spp
+
+    def samples(self, t: int, seeds: list[int]) -> np.ndarray:
+        """Per-sample radiance ``[S,H,W,3]``: one 1-spp pass per seed (and per instant if blurred)."""
+        taus = self._instants(t, len(seeds), seeds[0])
+        return np.stack([self._render(tau, 1, s) for tau, s in zip(taus, seeds)])
+
+    def reference(self, t: int, spp: int, seed: int) -> np.ndarray:
+        return self.radiance(t, spp, seed, time_samples=MAX_TIME_SAMPLES)
+
+    def aux(self, t: int) -> AuxBuffers:
+        """Albedo, normal, depth, position and object id through the pixel centres at ``tau = t``."""
+        mi = self.mi
+        scene = self.scene(float(t))
+        if self._aov is None:
+            self._aov = mi.load_dict({"type": "aov", "aovs": AOVS})
+        img = np.array(mi.render(scene, sensor=self._sensor(scene, AUX_SENSOR), integrator=self._aov, spp=1, seed=0),
+                       dtype=np.float32)
+        albedo, nn, pos, dist, sid = img[..., 0:3], img[..., 3:6], img[..., 6:9], img[..., 9], img[..., 10]
+        hit = dist > 0
+        cam = self.spec.camera.to_world(float(t))
+        normal = tf.apply_vector(np.linalg.inv(cam), nn.astype(np.float64)) * np.array([-1.0, 1.0, 1.0])
+        length = np.linalg.norm(normal, axis=-1, keepdims=True)
+        normal = np.where(hit[..., None] & (length > 0), normal / np.maximum(length, 1e-12), 0.0)
+        depth = tf.camera_space(cam, pos.astype(np.float64))[..., 2]
+        depth = np.where(hit, depth, NO_HIT_DEPTH)
+        return AuxBuffers(
+            albedo=np.where(hit[..., None], np.clip(albedo, 0.0, 1.0), 0.0).astype(np.float32),
+            normal=normal.astype(np.float32), depth=depth[..., None].astype(np.float32),
+            position=pos.astype(np.float64), hit=hit, object=self._object_ids(scene, sid, hit))
+
+    def _object_ids(self, scene, sid: np.ndarray, hit: np.ndarray) -> np.ndarray:
+        """Map Mitsuba's per-pixel shape index to object indices: one probe ray per distinct shape."""
+        names = {o.name: i for i, o in enumerate(self.spec.objects)}
+        out = np.full(sid.shape, -1, np.int32)
+        sensor = self._sensor(scene, AUX_SENSOR)
+        for value in np.unique(sid[hit]):
+            ys, xs = np.nonzero((sid == value) & hit)
+            y, x = int(ys[0]), int(xs[0])
+            shape_id = self._probe(scene, sensor, (x + 0.5) / self.width, (y + 0.5) / self.height)
+            if shape_id is not None and object_of(shape_id) in names:
+                out[(sid == value) & hit] = names[object_of(shape_id)]
+        return out
+
+    def _probe(self, scene, sensor, u: float, v: float) -> str | None:
+        mi = self.mi
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(u, v), mi.Point2f(0.5, 0.5))
+        si = scene.ray_intersect(ray)
+        shape = si.shape
+        if hasattr(shape, "id"):
+            return shape.id() if shape is not None else None
+        entry = shape[0]
+        return entry.id() if entry is not None else None

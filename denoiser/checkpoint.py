@@ -171,11 +171,11 @@ def save_checkpoint(path: str | os.PathLike, net: torch.nn.Module, net_cfg: Mapp
 
 
 def _lightning_version() -> str:
-    try:
-        import lightning
+    from importlib.metadata import PackageNotFoundError, version
 
-        return str(lightning.__version__)
-    except ImportError:  # pragma: no cover
+    try:
+        return version("lightning")  # without importing it (slow)
+    except PackageNotFoundError:  # pragma: no cover
         return ""
 
 

@@ -1,0 +1,130 @@
+"""Tests of denoiser-eval on tiny real EXR sequences with a checkpoint built in the test."""
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_eval_data import write_dataset
+
+from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.errors import UserError
+from denoiser.report import read_csv
+
+VENV_BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    write_dataset(root / "data", sequences=2, frames=4, size=32, cuts=(2,))
+    cfg = compose_net_config("tiny", "student")
+    torch.manual_seed(0)
+    a = save_checkpoint(root / "a.ckpt", build_net(cfg), cfg)
+    torch.manual_seed(1)
+    b = save_checkpoint(root / "b.ckpt", build_net(cfg), cfg)
+    return root, a, b
+
+
+def compose_eval(overrides):
+    from hydra import compose, initialize_config_dir
+
+    from denoiser.cli import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("eval", overrides=overrides)
+
+
+def test_eval_tables_images_and_values(setup, tmp_path):
+    from denoiser.evaluate import run
+
+    root, a, b = setup
+    out = tmp_path / "out"
+    cfg = compose_eval(["data=tiny", f"data.root={root / 'data'}", f"ckpt={{teacher: {a}, student: {b}}}",
+                        f"out_dir={out}", "images.size=16", "warmup=1", "save_exr=true"])
+    overall = run(cfg)
+    assert list(overall) == ["noisy input", "OIDN-fast", "OIDN-balanced", "OIDN-high", "teacher", "student"]
+    rows = read_csv(out / "metrics.csv")
+    assert len(rows) == 6 * 3  # 2 sequences + mean per method
+    noisy = {r["sequence"]: r for r in rows if r["method"] == "noisy input"}
+    # the noisy input's PSNR recomputed from the EXR files (frames 1 and 3 are kept: warm-up 1 frame
+    # after the resets at frames 0 and 2)
+    from denoiser.data.exr import read_frame
+    from denoiser.metrics import psnr
+
+    values = []
+    for t in (1, 3):
+        bufs, _ = read_frame(root / "data/test/seq_000" / f"frame_{t:04d}.exr",
+                             {"color": ("color.R", "color.G", "color.B"),
+                              "reference": ("reference.R", "reference.G", "reference.B")})
+        to_t = {k: torch.from_numpy(v).permute(2, 0, 1)[None] for k, v in bufs.items()}
+        values.append(float(psnr(to_t["color"], to_t["reference"])[0]))
+    assert noisy["test/seq_000"]["frames"] == 2
+    assert math.isclose(noisy["test/seq_000"]["psnr"], sum(values) / 2, rel_tol=1e-5)
+    mean = noisy["mean"]["psnr"]
+    assert math.isclose(mean, (noisy["test/seq_000"]["psnr"] + noisy["test/seq_001"]["psnr"]) / 2, rel_tol=1e-6)
+    # OIDN really denoises; tPSNR is defined only where no cut precedes (frames 1 and 3)
+    assert overall["OIDN-high"]["psnr"] > overall["noisy input"]["psnr"] + 3
+    assert overall["OIDN-fast"]["flip"] < overall["noisy input"]["flip"]
+    frames = read_csv(out / "frames.csv")
+    cut = [r for r in frames if r["method"] == "student" and r["sequence"] == "test/seq_000" and r["frame"] == 2]
+    assert math.isnan(cut[0]["tpsnr"]) and cut[0]["warmup"] == "True"
+    md = (out / "metrics.md").read_text()
+    assert "| teacher |" in md and "## Per scene" in md and "scene1" in md
+    assert (out / "images" / "test_seq_000.png").stat().st_size > 1000
+    assert len(list((out / "exr" / "student").rglob("*.exr"))) == 8
+
+
+def test_networks_run_recurrently_over_the_sequence(setup, tmp_path):
+    """Eval's per-frame outputs equal Denoiser.forward over the whole sequence (state carried)."""
+    from denoiser.checkpoint import load_denoiser
+    from denoiser.data.exr import read_channels
+    from denoiser.evaluate import open_test_split, run
+
+    root, a, _ = setup
+    out = tmp_path / "out"
+    cfg = compose_eval(["data=tiny", f"data.root={root / 'data'}", f"ckpt=[{a}]", "~baselines.oidn_fast",
+                        "~baselines.oidn_balanced", "~baselines.oidn_high", "metrics=[psnr]",
+                        f"out_dir={out}", "images.frame=null", "save_exr=true", "sequences=[seq_001]"])
+    run(cfg)
+    _, sources, dataset = open_test_split(cfg.data, "test", ["seq_001"])
+    item = dataset.load(sources[0], 0, 4, None)
+    item["reset"] = torch.tensor([True, False, True, False])
+    net = load_denoiser(a)
+    with torch.no_grad():
+        expected, _, _ = net({k: v[None] for k, v in item.items() if isinstance(v, torch.Tensor)},
+                             reset=item["reset"][None])
+    for t in range(4):
+        ch = read_channels(out / "exr" / "a" / "test" / "seq_001" / f"frame_{t:04d}.exr")
+        got = np.stack([ch["denoised.R"], ch["denoised.G"], ch["denoised.B"]])
+        assert np.allclose(got, expected[0, t].numpy(), atol=1e-5), t
+    assert not (out / "images").exists()
+
+
+def test_eval_user_errors(setup, tmp_path):
+    from denoiser.evaluate import checkpoint_paths, run
+
+    root, _, _ = setup
+    base = ["data=tiny", f"data.root={root / 'data'}", f"out_dir={tmp_path}"]
+    with pytest.raises(UserError, match="missing.ckpt: checkpoint file does not exist"):
+        run(compose_eval(base + [f"ckpt=[{tmp_path / 'missing.ckpt'}]"]))
+    with pytest.raises(UserError, match="no sequence"):
+        run(compose_eval(base + ["sequences=[nope]"]))
+    with pytest.raises(UserError, match="unknown"):
+        run(compose_eval(base + ["metrics=[psnr,lpips]"]))
+    assert list(checkpoint_paths(["x/s.ckpt", "y/s.ckpt"])) == ["x/s", "y/s"]
+    assert list(checkpoint_paths("x/s.ckpt")) == ["s"]
+
+
+def test_eval_console_script_reports_one_line(tmp_path):
+    proc = subprocess.run([str(VENV_BIN / "denoiser-eval"), "data=tiny", f"data.root={tmp_path / 'nothing'}",
+                           f"hydra.run.dir={tmp_path / 'h'}"], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith("error: ") and "nothing/test" in proc.stderr
+    assert "Traceback" not in proc.stderr

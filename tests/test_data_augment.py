@@ -16,8 +16,8 @@ from denoiser.data import augment as aug
 from denoiser.data.augment import Augment
 from denoiser.data.dataset import WindowDataset, index_split
 from denoiser.data.layouts import NativeLayout
-from denoiser.errors import ConfigError
 from denoiser.data.synthetic import write_synthetic_sequence
+from denoiser.errors import ConfigError
 
 NATIVE = {"color": ["color.R", "color.G", "color.B"], "albedo": ["albedo.R", "albedo.G", "albedo.B"],
           "normal": ["normal.X", "normal.Y", "normal.Z"], "depth": ["depth.Z"], "motion": ["motion.X", "motion.Y"],

@@ -36,7 +36,7 @@ def make_dataset(root: Path, sequences: int, frames: int, size: int) -> None:
 
 
 def build(root: Path, cache: Path | None, workers: int, window: int, crop: int, batch: int):
-    overrides = [f"+data=default", f"data.root={root}", f"data.num_workers={workers}",
+    overrides = ["+data=default", f"data.root={root}", f"data.num_workers={workers}",
                  f"data.persistent_workers={workers > 0}", f"data.window={window}", f"data.crop={crop}",
                  f"data.batch_size={batch}", "data.val_split=null", "data.test_split=null",
                  f"data.cache_dir={cache if cache else 'null'}"]

@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import OpenEXR
@@ -93,7 +93,7 @@ def _open(path: Path, header_only: bool = False) -> OpenEXR.File:
     _check_exr_file(path)
     try:
         return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
-    except Exception as exc:  # OpenEXR raises plain RuntimeError/Exception on damage
+    except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain RuntimeError/Exception on damage
         detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ExrError(path, f"truncated or corrupt EXR ({detail})") from None
 
@@ -136,7 +136,7 @@ def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -
             for cname, ch in part.channels.items():
                 if cname not in found:
                     found[cname] = ch.pixels
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - any failure while decoding pixels means damage
         raise ExrError(path, f"truncated or corrupt EXR ({str(exc).strip() or type(exc).__name__})") from None
     if names is None:
         wanted = list(found)

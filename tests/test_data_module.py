@@ -1,0 +1,192 @@
+"""SequenceDataModule from the Hydra configs: batches, unlabeled mixing, cache, NaN/Inf report."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from denoiser.cli import CONF_DIR
+from denoiser.data import exr
+from denoiser.data.cache import FrameCache
+from denoiser.data.datamodule import SequenceDataModule
+from denoiser.data.dataset import index_split
+from denoiser.data.layouts import NativeLayout
+from denoiser.data.reader import FrameReader
+from denoiser.data.synthetic import write_synthetic_sequence
+
+DATA_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data").glob("*.yaml"))
+LAYOUT_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data" / "layout").glob("*.yaml"))
+REQUIRED_KEYS = {"root", "layout", "window", "crop", "batch_size", "num_workers", "persistent_workers",
+                 "pin_memory", "cache_dir", "augment", "use_unlabeled", "unlabeled_ratio", "val_split",
+                 "test_split"}
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dm")
+    for i in range(2):
+        write_synthetic_sequence(root / "train" / f"t{i}", frames=4, width=32, height=32, seed=i, cuts=[2] if i else [])
+    write_synthetic_sequence(root / "val" / "v0", frames=3, width=32, height=24, seed=10)
+    write_synthetic_sequence(root / "test" / "x0", frames=2, width=32, height=32, seed=11)
+    write_synthetic_sequence(root / "unlabeled" / "u0", frames=4, width=32, height=32, seed=12, labeled=False)
+    return root
+
+
+def make(root, *overrides, option="tiny"):
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        cfg = compose(overrides=[f"+data={option}", f"data.root={root}", *overrides])
+    dm = instantiate(cfg.data)
+    assert isinstance(dm, SequenceDataModule)
+    return dm
+
+
+@pytest.mark.parametrize("option", DATA_OPTIONS)
+@pytest.mark.parametrize("layout", LAYOUT_OPTIONS)
+def test_every_data_option_composes(option, layout, root, tmp_path):
+    assert {"default", "demo", "tiny"} <= set(DATA_OPTIONS) and {"native", "blender"} <= set(LAYOUT_OPTIONS)
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        cfg = compose(overrides=[f"+data={option}", f"data/layout={layout}"])
+    assert REQUIRED_KEYS <= set(cfg.data)
+    assert cfg.data.layout._target_.endswith({"native": "NativeLayout", "blender": "BlenderLayout"}[layout])
+    cfg.data.root = str(root)
+    cfg.data.cache_dir = str(tmp_path / "cache")
+    dm = instantiate(cfg.data)
+    assert dm.layout.name == layout
+    if layout == "native":  # the fixture data is native: one real batch through the configured pipeline
+        dm.num_workers, dm.persistent_workers, dm.crop = 0, False, 16
+        dm.window = min(dm.window, 4)
+        batch = next(iter(dm.train_dataloader()))
+        assert batch["color"].shape[1:] == (dm.window, 3, 16, 16)
+
+
+def test_train_batches_follow_the_contract(root):
+    dm = make(root)
+    dm.setup("fit")
+    batches = list(dm.train_dataloader())
+    assert sum(b["color"].shape[0] for b in batches) == len(dm.train_set) == 2 * (4 - 3 + 1)
+    b = batches[0]
+    B, T = b["color"].shape[:2]
+    assert (B, T) == (2, 3)
+    shapes = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2, "reference": 3}
+    for k, c in shapes.items():
+        assert b[k].shape == (B, T, c, 16, 16) and b[k].dtype == torch.float32, k
+    assert b["reset"].shape == (B, T) and b["reset"].dtype == torch.bool and b["reset"][:, 0].all()
+    assert b["labeled"].shape == (B,) and b["labeled"].dtype == torch.bool and b["labeled"].all()
+    assert b["frame_index"].dtype == torch.int64 and b["frame_index"].shape == (B, T)
+    assert isinstance(b["sequence"], list) and len(b["sequence"]) == B and b["sequence"][0].startswith("train/t")
+    assert "samples" not in b
+    resets = {(s, f[0].item()): r.tolist() for bb in batches for s, f, r in
+              zip(bb["sequence"], bb["frame_index"], bb["reset"])}
+    assert resets[("train/t1", 0)] == [True, False, True] and resets[("train/t1", 1)] == [True, True, False]
+    assert resets[("train/t0", 1)] == [True, False, False]
+
+
+def test_val_and_test_are_whole_sequences_in_order(root):
+    dm = make(root)
+    val = list(dm.val_dataloader())
+    assert len(val) == 1 and val[0]["color"].shape == (1, 3, 3, 24, 32)
+    assert val[0]["reset"].tolist() == [[True, False, False]] and val[0]["sequence"] == ["val/v0"]
+    test = list(dm.test_dataloader())
+    assert test[0]["color"].shape == (1, 2, 3, 32, 32) and test[0]["labeled"].tolist() == [True]
+    pieces = list(make(root, "data.val_window=2").val_dataloader())
+    assert [p["frame_index"].tolist() for p in pieces] == [[[0, 1]], [[2]]]
+    assert [p["reset"].tolist() for p in pieces] == [[[True, False]], [[False]]]
+    assert list(make(root, "data.val_split=null").val_dataloader()) == []
+
+
+def test_unlabeled_mixed_in(root):
+    dm = make(root, "data.use_unlabeled=true", "data.unlabeled_ratio=0.5", "data.batch_size=8")
+    dm.setup("fit")
+    n_lab, n_unl = len(dm.train_set), len(dm.unlabeled_set)
+    assert (n_lab, n_unl) == (4, 2)
+    torch.manual_seed(0)
+    batches = list(dm.train_dataloader())
+    labeled = torch.cat([b["labeled"] for b in batches])
+    assert labeled.sum() == n_lab and (~labeled).sum() == 4  # ratio 0.5: as many unlabeled as labeled
+    for b in batches:
+        assert b["reference"].shape == b["color"].shape
+        assert b["reference"][~b["labeled"]].abs().sum() == 0
+        assert (b["reference"][b["labeled"]].flatten(1).abs().sum(1) > 0).all()
+        for s, lab in zip(b["sequence"], b["labeled"].tolist()):
+            assert s.startswith("unlabeled/") != lab
+    quarter = make(root, "data.use_unlabeled=true", "data.unlabeled_ratio=0.2")
+    quarter.setup("fit")
+    assert len(quarter.train_dataloader().sampler) == 4 + 1
+
+
+def test_worker_processes_and_cache(root, tmp_path):
+    """Two persistent workers over the cache: same pixels as decoding, each file decoded once."""
+    cache = tmp_path / "cache"
+    plain = make(root, "data.window=4", "data.crop=null", "data.batch_size=1")
+    cached = make(root, f"data.cache_dir={cache}", "data.num_workers=2", "data.persistent_workers=true",
+                  "data.window=4", "data.crop=null", "data.batch_size=1")
+    loader = cached.train_dataloader()
+    assert loader.num_workers == 2 and loader.persistent_workers
+    for _ in range(2):  # second epoch entirely from the cache
+        got = {b["sequence"][0]: b for b in loader}
+    want = {b["sequence"][0]: b for b in plain.train_dataloader()}
+    assert set(got) == {"train/t0", "train/t1"}
+    for s in got:
+        for k in ("color", "albedo", "normal", "depth", "motion", "reference"):
+            assert torch.equal(got[s][k], want[s][k]), (s, k)
+    entries = list(cache.rglob("*.npy"))
+    assert len(entries) == 2 * 4 * 6  # sequences x frames x buffers
+    assert not list(cache.rglob("*.tmp"))
+    assert np.load(entries[0], mmap_mode="r").dtype == np.float32
+
+
+def test_cache_decodes_once_and_notices_changes(tmp_path):
+    seq = tmp_path / "train" / "s"
+    written = write_synthetic_sequence(seq, frames=2, width=16, height=16)
+    layout = NativeLayout({"color": ["color.R", "color.G", "color.B"], "depth": ["depth.Z"]})
+    [src] = index_split(layout, tmp_path, "train")
+    reader = FrameReader(layout, tmp_path / "cache")
+    a = reader.read(src, 1, ["color", "depth"], crop=(2, 3, 8, 5))
+    assert reader.decoded == 1
+    b = reader.read(src, 1, ["color", "depth"], crop=(2, 3, 8, 5))
+    full = reader.read(src, 1, ["color"])
+    assert reader.decoded == 1  # every later read comes from the memmaps
+    np.testing.assert_array_equal(a["color"], b["color"])
+    np.testing.assert_array_equal(full["color"], written["color"][1].transpose(2, 0, 1))
+    np.testing.assert_array_equal(a["depth"], written["depth"][1][2:10, 3:8].transpose(2, 0, 1))
+    # rewriting the EXR (new size/mtime) makes a new key: the new pixels are read
+    hdr = np.full((16, 16, 3), 1e6, np.float32)  # far above float16's 65504: must survive the cache
+    exr.write_frame(seq / "frame_0001.exr", {**{k: v[1] for k, v in written.items()}, "color": hdr})
+    os.utime(seq / "frame_0001.exr", ns=(1, 10**18))
+    c = reader.read(src, 1, ["color"])
+    assert reader.decoded == 2 and (c["color"] == 1e6).all()
+    d = FrameReader(layout, tmp_path / "cache")
+    assert (d.read(src, 1, ["color"])["color"] == 1e6).all() and d.decoded == 0
+    # a damaged cache entry is a miss and gets rewritten
+    key = FrameCache.key(seq / "frame_0001.exr", "color", layout.spec_key("color"))
+    FrameCache(tmp_path / "cache").entry(key).write_bytes(b"garbage")
+    assert (d.read(src, 1, ["color"])["color"] == 1e6).all() and d.decoded == 1
+    off = FrameReader(layout, None)
+    off.read(src, 0, ["color"])
+    off.read(src, 0, ["color"])
+    assert off.decoded == 2
+
+
+def test_nonfinite_reported_once_per_file(tmp_path, caplog):
+    seq = tmp_path / "train" / "s"
+    written = write_synthetic_sequence(seq, frames=2, width=16, height=16)
+    color = written["color"][0].copy()
+    color[0, 0, 0], color[1, 1, 1], color[2, 2, 2] = np.nan, np.inf, -np.inf
+    exr.write_frame(seq / "frame_0000.exr", {**{k: v[0] for k, v in written.items()}, "color": color})
+    layout = NativeLayout({"color": ["color.R", "color.G", "color.B"]})
+    [src] = index_split(layout, tmp_path, "train")
+    reader = FrameReader(layout, None)
+    with caplog.at_level(logging.WARNING, logger="denoiser.data.reader"):
+        for _ in range(3):
+            out = reader.read(src, 0, ["color"])
+            reader.read(src, 1, ["color"])
+    msgs = [r.getMessage() for r in caplog.records if r.name == "denoiser.data.reader"]
+    assert len(msgs) == 1 and "frame_0000.exr" in msgs[0] and "replaced 3 NaN/Inf" in msgs[0]
+    assert np.isfinite(out["color"]).all() and out["color"][1, 1, 1] == exr.POS_INF_REPLACEMENT

@@ -1,0 +1,167 @@
+"""What the supervised and the distillation Lightning modules share.
+
+* :func:`network_inputs` picks the network's inputs out of a batch (never the reference);
+* :class:`DenoiserModule` builds the trained denoiser from its resolved net config (kept as
+  attribute ``net``; the config is saved in the hyperparameters under ``net``, see
+  docs/contracts.md), runs validation over whole sequences with
+  :class:`denoiser.metrics.MetricAccumulator` (PSNR, SSIM, tPSNR, SMAPE; the first
+  ``warmup_frames`` after a reset excluded; mean per sequence, then over sequences), logs
+  image panels (noisy | output | reference, tonemapped) to TensorBoard every
+  ``image_interval`` training steps and once per validation, and builds optimizers and
+  schedulers from ``_partial_: true`` configs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from denoiser.metrics import MetricAccumulator, tonemap
+
+#: Batch keys the network reads (docs/contracts.md); everything else (reference, labels) is not input.
+INPUT_KEYS = ("color", "albedo", "normal", "depth", "motion", "samples")
+#: Metrics computed in validation (names of denoiser.metrics.METRICS); logged as ``val/<name>``.
+VAL_METRICS = ("psnr", "ssim", "tpsnr", "smape")
+
+
+def plain(cfg: Any) -> Any:
+    """A resolved plain-Python copy of a config node (DictConfig/ListConfig), else ``cfg`` itself."""
+    if isinstance(cfg, (DictConfig,)) or OmegaConf.is_config(cfg):
+        return OmegaConf.to_container(cfg, resolve=True)
+    return cfg
+
+
+def network_inputs(batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+    """The network inputs of a batch: ``color [B,T,3,H,W]``, ``albedo``, ``normal``, ``depth [B,T,1,H,W]``,
+    ``motion [B,T,2,H,W]`` and, when present, ``samples [B,T,S,3,H,W]``."""
+    return {k: batch[k] for k in INPUT_KEYS if k in batch}
+
+
+def labeled_mask(batch: Mapping[str, Any]) -> torch.Tensor:
+    """bool ``[B]``: True for items with a reference (``labeled`` flag; all False without ``reference``)."""
+    b = batch["color"].shape[0]
+    device = batch["color"].device
+    if "reference" not in batch:
+        return torch.zeros(b, dtype=torch.bool, device=device)
+    if "labeled" in batch:
+        return torch.as_tensor(batch["labeled"], device=device).bool().reshape(b)
+    return torch.ones(b, dtype=torch.bool, device=device)
+
+
+def image_panel(*images: torch.Tensor) -> torch.Tensor:
+    """Side-by-side tonemapped panel: each ``[3, H, W]`` linear HDR -> ``[3, H, n*W]`` in [0, 1]."""
+    return torch.cat([tonemap(img.detach().float().cpu()) for img in images], dim=-1).clamp(0, 1)
+
+
+class DenoiserModule(pl.LightningModule):
+    """Base Lightning module holding ``net`` (a :class:`denoiser.nn.denoiser.Denoiser`).
+
+    Subclasses implement ``training_step``. Arguments shared by both modules:
+
+    * ``net``: resolved net config (dict with ``_target_``), instantiated here;
+    * ``optimizer``: callable ``params -> torch.optim.Optimizer`` (a ``_partial_: true`` config);
+    * ``scheduler``: callable ``optimizer -> LR scheduler`` or None, stepped every
+      ``scheduler_interval`` (``step`` or ``epoch``);
+    * ``detach_every``: truncated BPTT, the recurrent state is detached every k frames (0: never);
+    * ``warmup_frames``: frames after a reset excluded from validation metrics;
+    * ``image_interval``: training steps between image panels (0: never; validation panels
+      are logged once per validation run regardless).
+    """
+
+    def __init__(self, net: Mapping, optimizer: Callable | Mapping, scheduler: Callable | Mapping | None = None,
+                 scheduler_interval: str = "step", detach_every: int = 0, warmup_frames: int = 2,
+                 image_interval: int = 100, grad_clip: float = 0.0):
+        super().__init__()
+        self.net = instantiate(plain(net))
+        self._optimizer_factory = self._factory(optimizer)
+        self._scheduler_factory = self._factory(scheduler)
+        self.scheduler_interval = scheduler_interval
+        self.detach_every = int(detach_every)
+        self.warmup_frames = int(warmup_frames)
+        self.image_interval = int(image_interval)
+        self.grad_clip = float(grad_clip or 0.0)
+        self.val_metrics = MetricAccumulator(VAL_METRICS, warmup=self.warmup_frames)
+        self.val_input_metrics = MetricAccumulator(("psnr", "ssim"), warmup=self.warmup_frames)
+        #: last validation results ``{"val/psnr": ..}`` (train.py logs them with the hparams)
+        self.final_metrics: dict[str, float] = {}
+        #: global step of the last (non-sanity) validation, -1 before any
+        self.validated_step = -1
+
+    @staticmethod
+    def _factory(cfg: Callable | Mapping | None) -> Callable | None:
+        """A ``_partial_: true`` config (or an already built callable) -> callable, or None."""
+        if cfg is None or callable(cfg):
+            return cfg
+        return instantiate(plain(cfg))
+
+    # ----------------------------------------------------------------- running the net
+
+    def run_net(self, net: torch.nn.Module, batch: Mapping[str, Any], detach_every: int = 0):
+        """Unroll ``net`` over a window: -> ``(outputs [B,T,3,H,W], extras_list)`` (one extras dict per frame)."""
+        outputs, _, extras = net(network_inputs(batch), state=None, reset=batch["reset"], detach_every=detach_every)
+        return outputs, extras
+
+    # ----------------------------------------------------------------- optimizers
+
+    def build_optimizer(self, params, factory: Callable | None = None) -> dict:
+        """``{"optimizer": .., "lr_scheduler": ..}`` for Lightning from the configured factories."""
+        opt = (factory or self._optimizer_factory)(params)
+        out: dict = {"optimizer": opt}
+        if self._scheduler_factory is not None and factory is None:
+            out["lr_scheduler"] = {"scheduler": self._scheduler_factory(opt), "interval": self.scheduler_interval}
+        return out
+
+    # ----------------------------------------------------------------- images
+
+    def log_panel(self, tag: str, noisy: torch.Tensor, output: torch.Tensor, reference: torch.Tensor | None) -> None:
+        """Log ``noisy | output | reference`` (each ``[3, H, W]`` linear HDR) as one TensorBoard image."""
+        experiment = getattr(self.logger, "experiment", None) if self.logger is not None else None
+        if experiment is None or not hasattr(experiment, "add_image"):
+            return
+        images = [noisy, output] + ([reference] if reference is not None else [])
+        experiment.add_image(tag, image_panel(*images), global_step=self.global_step)
+
+    def maybe_log_train_panel(self, batch: Mapping[str, Any], outputs: torch.Tensor, target: torch.Tensor | None) -> None:
+        """Every ``image_interval`` steps: panel of the last frame of the first item."""
+        if self.image_interval <= 0 or self.global_step % self.image_interval != 0:
+            return
+        if self.trainer is not None and getattr(self.trainer, "sanity_checking", False):
+            return
+        ref = target[0, -1] if target is not None else None
+        self.log_panel("train/panel", batch["color"][0, -1], outputs[0, -1], ref)
+
+    # ----------------------------------------------------------------- validation
+
+    def on_validation_epoch_start(self) -> None:
+        self.val_metrics.reset()
+        self.val_input_metrics.reset()
+
+    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
+        """Whole sequences (or windows, in order): metrics of the output and of the noisy input."""
+        outputs, _ = self.run_net(self.net, batch)
+        reference = batch["reference"]
+        names = list(batch.get("sequence", [f"val/{batch_idx}_{i}" for i in range(outputs.shape[0])]))
+        kwargs = {"frame_index": batch.get("frame_index"), "reset": batch["reset"]}
+        self.val_metrics.update(outputs.float(), reference.float(), names, **kwargs)
+        self.val_input_metrics.update(batch["color"].float(), reference.float(), names, **kwargs)
+        if batch_idx == 0 and not getattr(self.trainer, "sanity_checking", False):
+            t = outputs.shape[1] // 2
+            self.log_panel("val/panel", batch["color"][0, t], outputs[0, t], reference[0, t])
+
+    def on_validation_epoch_end(self) -> None:
+        if len(self.val_metrics) == 0:
+            return
+        values = {f"val/{k}": v for k, v in self.val_metrics.compute().items()}
+        values.update({f"val/input_{k}": v for k, v in self.val_input_metrics.compute().items()})
+        values = {k: float(v) for k, v in values.items() if not math.isnan(v)}  # drop NaN (e.g. tPSNR on 1-frame sequences)
+        for k, v in values.items():
+            self.log(k, v, prog_bar=k in ("val/psnr", "val/ssim"), sync_dist=True)
+        if not getattr(self.trainer, "sanity_checking", False):
+            self.final_metrics = values
+            self.validated_step = int(self.global_step)

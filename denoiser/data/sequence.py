@@ -281,6 +281,18 @@ def _as_meta(meta: SequenceMeta | Mapping[str, Any], path: Path) -> SequenceMeta
     return parse_sequence_meta(data, path)
 
 
+def format_sequence_json(data: Mapping[str, Any]) -> str:
+    """JSON text with one top-level key per line and one camera per line (diff-friendly)."""
+    lines = []
+    for k, v in data.items():
+        if k == "cameras" and v:
+            body = ",\n".join(f"    {json.dumps(c)}" for c in v)
+            lines.append(f'  {json.dumps(k)}: [\n{body}\n  ]')
+        else:
+            lines.append(f"  {json.dumps(k)}: {json.dumps(v)}")
+    return "{\n" + ",\n".join(lines) + "\n}\n"
+
+
 def write_sequence_json(path: str | os.PathLike, meta: SequenceMeta | Mapping[str, Any]) -> SequenceMeta:
     """Validate ``meta`` (a :class:`SequenceMeta` or a plain dict) and write it atomically.
 
@@ -292,7 +304,7 @@ def write_sequence_json(path: str | os.PathLike, meta: SequenceMeta | Mapping[st
     if path.is_dir() or path.suffix != ".json":
         path = path / SEQUENCE_JSON
     parsed = _as_meta(meta, path)
-    text = json.dumps(parsed.to_json(), indent=1) + "\n"
+    text = format_sequence_json(parsed.to_json())
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:

@@ -190,3 +190,17 @@ def test_nonfinite_reported_once_per_file(tmp_path, caplog):
     msgs = [r.getMessage() for r in caplog.records if r.name == "denoiser.data.reader"]
     assert len(msgs) == 1 and "frame_0000.exr" in msgs[0] and "replaced 3 NaN/Inf" in msgs[0]
     assert np.isfinite(out["color"]).all() and out["color"][1, 1, 1] == exr.POS_INF_REPLACEMENT
+
+
+def test_precache_fills_the_cache_once(root, tmp_path):
+    dm = make(root, f"data.cache_dir={tmp_path / 'c'}", "data.precache=true", "data.use_unlabeled=true")
+    dm.prepare_data()
+    assert len(list((tmp_path / "c").rglob("*.npy"))) == 2 * 4 * 6 + 3 * 6 + 2 * 6 + 4 * 5
+    assert dm.fill_cache() == 0  # everything is already there
+    dm.setup("fit")
+    list(dm.train_dataloader())
+    list(dm.val_dataloader())
+    assert dm.train_set.reader.decoded == 0 and dm.unlabeled_set.reader.decoded == 0
+    assert dm.val_set.reader.decoded == 0
+    [v] = dm.sequences("val")
+    assert v.name == "val/v0" and v.meta.scene_name == "synthetic" and v.meta.renderer["name"] == "synthetic"

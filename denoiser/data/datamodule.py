@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from denoiser.data.augment import Augment
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
-from denoiser.data.layouts.base import Layout
+from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
 from denoiser.data.sampler import MixedSampler
 from denoiser.errors import ConfigError
@@ -113,6 +113,11 @@ class SequenceDataModule(L.LightningDataModule):
         sources = index_split(self.layout, self.root, split)
         return SequenceDataset(sources, self.layout, self.buffers, window=self.val_window, labeled=True,
                                samples=self.samples, cache_dir=self.cache_dir)
+
+    def sequences(self, split: str) -> list[SequenceSource]:
+        """The sequences of ``split`` (``train``/``val``/``test``/``unlabeled`` or a folder name),
+        with their metadata (``source.meta``: scene, effects, cameras, render_seconds, ...)."""
+        return index_split(self.layout, self.root, self.splits.get(split) or split)
 
     def prepare_data(self) -> None:
         if self.precache and self.cache_dir:

@@ -45,18 +45,22 @@ def build(node: Any, key: str, **kwargs: Any) -> Any:
     except OmegaConfBaseException as exc:
         raise ConfigError(f"{key}: {_first_line(exc)}") from None
     except InstantiationException as exc:
+        chain: list[BaseException] = []
         cause: BaseException | None = exc
-        while cause is not None:
+        while cause is not None and len(chain) < 20:
+            chain.append(cause)
+            cause = cause.__cause__ or cause.__context__
+        for cause in chain:
             if isinstance(cause, UserError):
                 raise cause from None
             if isinstance(cause, MissingMandatoryValue):
                 raise ConfigError(f"{_full_key(cause, key)}: missing mandatory value (give it on the command line)") \
                     from None
-            cause = cause.__cause__
-        inner = exc.__cause__
-        if isinstance(inner, (ImportError, AttributeError)) or (
-                isinstance(inner, TypeError) and "argument" in str(inner)):
-            raise ConfigError(f"{key}: {_first_line(inner)}") from None
+        for cause in chain:  # config mistakes: unknown _target_, misspelled argument
+            text = str(cause)
+            if "Error locating target" in text or isinstance(cause, (ImportError, AttributeError)) or (
+                    isinstance(cause, TypeError) and "argument" in text):
+                raise ConfigError(f"{key}: {_first_line(cause)}") from None
         raise
 
 

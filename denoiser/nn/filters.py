@@ -4,8 +4,8 @@ Both take the same ``kernel_sizes`` argument as the pyramid so that an ablation 
 swaps ``_target_`` (``conf/ablation/no_pyramid.yaml``, ``conf/ablation/direct.yaml``).
 
 * :class:`SingleKernelFilter` (``no_pyramid``): one full-resolution per-pixel kernel of size
-  ``max(kernel_sizes)``, normalised like the pyramid (``K[x, 1]`` divided by its last channel),
-  so every output pixel is still a convex combination of input pixels.
+  ``max(kernel_sizes)`` (softmax-normalised, so every output pixel is a convex combination of
+  input pixels).
 * :class:`DirectColor` (``direct``): the U-Net predicts the color itself, in the input's
   log space: ``output = expm1(min(softplus(h), MAX_LOG)) * scale`` with ``scale`` the color
   scale of :func:`~denoiser.nn.inputs.color_scale` and ``MAX_LOG = log1p(65504 / 1e-3)``, the
@@ -23,7 +23,7 @@ from torch import nn
 
 from denoiser.nn.inputs import COLOR_EPS, POSINF
 from denoiser.nn.kernels import apply_kernels
-from denoiser.nn.pyramid import check_kernel_sizes, normalize, with_ones
+from denoiser.nn.pyramid import check_kernel_sizes
 
 MAX_LOG = math.log1p(POSINF / COLOR_EPS)
 
@@ -41,7 +41,7 @@ class SingleKernelFilter(nn.Module):
                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """x: ``[B, 3, H, W]`` linear; heads[0]: ``[B, k*k, H, W]`` -> ``([B, 3, H, W], {})``."""
         with torch.autocast(device_type=x.device.type, enabled=False):
-            return normalize(apply_kernels(with_ones(x), heads[0])), {}
+            return apply_kernels(x.float(), heads[0]), {}
 
 
 class DirectColor(nn.Module):

@@ -2,11 +2,13 @@
 
 ``apply_kernels(x, logits)`` computes, for every pixel p,
 
-    out[b, c, p] = sum_{i,j} softmax_k(logits[b, :, p])[i*k + j] * x[b, c, p + (i - r, j - r)]
+    out[b, c, p] = sum_{i,j} softmax_k(logits[b, :, p] + border(p))[i*k + j] * x[b, c, p + (i - r, j - r)]
 
-with ``r = k // 2`` (i indexes rows/y, j columns/x) and zeros outside the image. The softmax
-runs in float32 even under autocast, so the weights are positive and sum to one: each output
-pixel is a convex combination of input pixels (zero-padded at the border).
+with ``r = k // 2`` (i indexes rows/y, j columns/x). ``border(p)`` is ``-inf`` for taps that
+fall outside the image and 0 otherwise, so the softmax runs over the in-image taps only (the
+centre tap always is): the kernel is renormalised at the border instead of reading zeros.
+The softmax runs in float32 even under autocast, so the weights are non-negative and sum to
+one: each output pixel is a convex combination of input pixels.
 
 Memory: the result is accumulated over the k*k shifted views of one zero-padded copy of x,
 so besides the weights ``[B, k*k, H, W]`` only O(C*H*W) is allocated (an ``unfold`` would
@@ -30,10 +32,33 @@ def kernel_size_of(logits: torch.Tensor) -> int:
     return k
 
 
+def border_bias(k: int, h: int, w: int, device: torch.device) -> torch.Tensor:
+    """``[1, k*k, h, w]`` float32: ``-inf`` where tap (i, j) at pixel (y, x) reads outside
+    the image (``y + i - r`` or ``x + j - r`` out of range), 0 elsewhere."""
+    r = k // 2
+    bias = torch.zeros(1, k, k, h, w, device=device)
+    for d in range(-r, r + 1):
+        if d < 0:
+            bias[:, d + r, :, : min(-d, h)] = float("-inf")
+            bias[:, :, d + r, :, : min(-d, w)] = float("-inf")
+        elif d > 0:
+            bias[:, d + r, :, max(h - d, 0):] = float("-inf")
+            bias[:, :, d + r, :, max(w - d, 0):] = float("-inf")
+    return bias.view(1, k * k, h, w)
+
+
 def kernel_weights(logits: torch.Tensor) -> torch.Tensor:
-    """Softmax over the kernel taps in float32: ``[B, k*k, H, W]`` -> same shape, float32."""
+    """Softmax over the in-image kernel taps in float32: ``[B, k*k, H, W]`` -> same shape, float32.
+
+    Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4) so the weights stay finite.
+    """
+    k = kernel_size_of(logits)
+    h, w = logits.shape[-2:]
     with torch.autocast(device_type=logits.device.type, enabled=False):
-        return torch.softmax(logits.float(), dim=1)
+        logits = torch.nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
+        if k > 1:
+            logits = logits + border_bias(k, h, w, logits.device)
+        return torch.softmax(logits, dim=1)
 
 
 def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
@@ -48,7 +73,7 @@ def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     with torch.autocast(device_type=x.device.type, enabled=False):
         x = x.float()
         h, w = x.shape[-2:]
-        xp = F.pad(x, (r, r, r, r)) if r > 0 else x
+        xp = F.pad(x, (r, r, r, r)) if r > 0 else x  # zeros, which get zero weight
         out = None
         for i in range(k):
             for j in range(k):

@@ -8,12 +8,13 @@ kernel logits. For linear radiance ``x`` ``[B, 3, H, W]``:
     p_i     = avg_pool_{2^i}(w_i * [x, 1])                        partition i, [B, 4, H/2^i, W/2^i]
     y_i     = apply_kernels(p_i, kernel logits of level i)        (softmax-normalised, float32)
     acc     = y_{L-1};  acc = up2_bilinear(acc) + y_i  for i = L-2 .. 0
-    output  = acc[:, :3] / acc[:, 3:]
+    output  = acc[:, :3] / acc[:, 3:]    (x itself where acc[:, 3:] <= NORM_EPS)
 
 The constant channel ``1`` travels through exactly the same non-negative linear operators as
 ``x``, and the division normalises the result: every output pixel is a convex combination of
-input pixels, whatever the predicted weights and even next to the border (zero padding in the
-kernels, clamping in the upsampling). This normalisation is our addition to the cited method
+input pixels, whatever the predicted weights and even next to the border (kernels renormalised
+over in-image taps, clamping in the upsampling). The normaliser is a sum of positive float32
+terms; only with extreme logits can it underflow, and there the input pixel is passed through. This normalisation is our addition to the cited method
 (there the partitions preserve the image's total energy but not per-pixel convexity); it costs
 one extra channel and guarantees the filter cannot create energy, NaN or overflow.
 """
@@ -29,9 +30,8 @@ from torch import nn
 from denoiser.errors import ConfigError
 from denoiser.nn.kernels import apply_kernels
 
-#: smallest normaliser; the normaliser is a sum of positive float32 weights, this only guards
-#: against underflow.
-NORM_EPS = 1e-20
+#: smallest normaliser used for division; below it the input pixel is passed through
+NORM_EPS = 1e-30
 
 
 def with_ones(x: torch.Tensor) -> torch.Tensor:
@@ -40,9 +40,11 @@ def with_ones(x: torch.Tensor) -> torch.Tensor:
     return torch.cat([x, torch.ones_like(x[:, :1])], dim=1)
 
 
-def normalize(acc: torch.Tensor) -> torch.Tensor:
-    """``[B, C + 1, H, W]`` filtered ``[x, 1]`` -> ``[B, C, H, W]`` = ``acc[:, :C] / acc[:, C]``."""
-    return acc[:, :-1] / acc[:, -1:].clamp_min(NORM_EPS)
+def normalize(acc: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
+    """``[B, C + 1, H, W]`` filtered ``[x, 1]`` -> ``[B, C, H, W]`` = ``acc[:, :C] / acc[:, C]``,
+    ``fallback [B, C, H, W]`` where ``acc[:, C] <= NORM_EPS``."""
+    den = acc[:, -1:]
+    return torch.where(den > NORM_EPS, acc[:, :-1] / den.clamp_min(NORM_EPS), fallback)
 
 
 def check_kernel_sizes(kernel_sizes: Sequence[int]) -> list[int]:
@@ -92,4 +94,4 @@ class PyramidFilter(nn.Module):
             for i in range(self.levels - 2, -1, -1):
                 acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",
                                     align_corners=False) + filtered[i]
-            return normalize(acc), {"partition": partition}
+            return normalize(acc, x1[:, :-1]), {"partition": partition}

@@ -1,0 +1,200 @@
+"""Denoiser.step / forward: any size, hard inputs, autocast, bounds, temporal history, resets."""
+
+import copy
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from denoiser.netstats import build_net, compose_net_config, frame_inputs
+from denoiser.nn.inputs import sanitize
+
+
+def make_net(*args, gain=1.0, seed=0):
+    torch.manual_seed(seed)
+    net = build_net(compose_net_config(["net=tiny", *args]))
+    if gain != 1.0:  # exaggerated weights make the heads produce extreme logits
+        with torch.no_grad():
+            for p in net.parameters():
+                p.mul_(gain)
+    return net
+
+
+@pytest.fixture(autouse=True, scope="module")
+def flush_denormals():
+    """Extreme logits give denormal softmax weights, which are very slow on CPUs."""
+    torch.set_flush_denormal(True)
+    yield
+    torch.set_flush_denormal(False)
+
+
+@pytest.fixture(scope="module")
+def net():
+    return make_net()
+
+
+@pytest.fixture(scope="module")
+def wild():
+    return make_net(gain=4.0, seed=1)
+
+
+def channel_range(*tensors):
+    lo = torch.stack([t.amin(dim=(2, 3)) for t in tensors]).amin(0)[..., None, None]
+    hi = torch.stack([t.amax(dim=(2, 3)) for t in tensors]).amax(0)[..., None, None]
+    return lo, hi
+
+
+def assert_within(out, lo, hi):
+    tol = 1e-5 * hi.abs().clamp_min(1.0)
+    assert (out >= lo - tol).all() and (out <= hi + tol).all()
+
+
+def hard_frame(kind, h, w, seed):
+    f = frame_inputs(2, h, w, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    if kind == "black":
+        f["color"].zero_()
+    elif kind == "hdr":
+        f["color"] = torch.rand(2, 3, h, w, generator=g) * 1e6
+    elif kind == "fireflies":
+        f["color"] = torch.rand(2, 3, h, w, generator=g) * 0.01
+        f["color"][:, :, h // 2, w // 2] = 1e6
+    elif kind == "nonfinite":
+        f["color"][:, 0, 0, 0] = float("nan")
+        f["color"][:, 1, -1, -1] = float("inf")
+        f["depth"][:, :, h // 2] = float("inf")
+        f["normal"][:, :, 0] = float("nan")
+        f["motion"][:, :, -1] = float("nan")
+    elif kind == "far_motion":
+        f["motion"] = torch.randn(2, 2, h, w, generator=g) * 1e7
+    return f
+
+
+KINDS = ["plain", "black", "hdr", "fireflies", "nonfinite", "far_motion"]
+SIZES = [(1, 1), (1, 9), (8, 3), (13, 21), (16, 16)]
+DTYPES = [torch.float32, torch.bfloat16, torch.float16]
+
+
+@settings(max_examples=12, deadline=None)
+@given(kind=st.sampled_from(KINDS), size=st.sampled_from(SIZES), dtype=st.sampled_from(DTYPES),
+       seed=st.integers(0, 2**16))
+def test_hard_inputs_finite_and_bounded(wild, kind, size, dtype, seed):
+    h, w = size
+    f0, f1 = hard_frame(kind, h, w, seed), hard_frame(kind, h, w, seed + 1)
+    f1["color"].requires_grad_(True)
+    with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
+        out0, state, _ = wild.step(f0, None)
+        out1, _, _ = wild.step(f1, state)
+    assert out0.shape == (2, 3, h, w) and out0.dtype == torch.float32
+    assert torch.isfinite(out0).all() and torch.isfinite(out1).all()
+    # no history: within the input's per-channel range
+    assert_within(out0, *channel_range(sanitize(f0["color"])))
+    # with history: within the range of the input and the (warped) history
+    assert_within(out1, *channel_range(sanitize(f1["color"]), state["output"], state["color"]))
+    # a training-style loss: SMAPE against a clean target, mean over pixels
+    target = torch.rand(2, 3, h, w)
+    loss = sum(((o - target).abs() / (o.abs() + target.abs() + 0.01)).mean() for o in (out0, out1))
+    loss.backward()
+    assert torch.isfinite(f1["color"].grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in wild.parameters() if p.grad is not None)
+    wild.zero_grad(set_to_none=True)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (37, 53), (16, 8)])
+def test_output_size_and_features(net, size):
+    h, w = size
+    out, state, extras = net.step(frame_inputs(1, h, w), None)
+    assert out.shape == (1, 3, h, w)
+    assert {k: v.shape[-2:] for k, v in state.items()} == {k: (h, w) for k in state}
+    feats = extras["features"]
+    assert [f.shape[1] for f in feats] == net.feature_channels
+    ph = -(-h // net.multiple) * net.multiple
+    assert [f.shape[-2] for f in feats] == [ph // 2**i for i in range(len(feats))]
+
+
+def test_forward_equals_repeated_step(net):
+    frames = {k: torch.stack([frame_inputs(1, 12, 10, seed=s)[k] for s in range(3)], 1)
+              for k in frame_inputs(1, 1, 1)}
+    outs, state, extras = net(frames)
+    s = None
+    for t in range(3):
+        out, s, _ = net.step({k: v[:, t] for k, v in frames.items()}, s)
+        assert torch.allclose(outs[:, t], out, atol=1e-6)
+    assert torch.allclose(state["output"], s["output"]) and len(extras) == 3
+
+
+def test_reset_forgets_previous_sequence(net):
+    a0, a1 = frame_inputs(2, 16, 16, seed=1), frame_inputs(2, 16, 16, seed=2)
+    x = frame_inputs(2, 16, 16, seed=3)
+    x["motion"].zero_()
+    _, state, _ = net.step(a0, None)
+    _, state, _ = net.step(a1, state)
+    fresh, _, _ = net.step(x, None)
+    out, _, extras = net.step(x, state, reset=torch.tensor([True, False]))
+    assert torch.equal(out[0], fresh[0])  # item 0 was reset: identical to a fresh start
+    assert not torch.allclose(out[1], fresh[1])  # item 1 kept its history
+    assert extras["weights"]["valid"][0].abs().max() == 0 and extras["weights"]["valid"][1].min() > 0
+    # a different previous sequence gives the same result after the reset
+    _, other, _ = net.step(frame_inputs(2, 16, 16, seed=9), None)
+    other = {k: v * 1e6 for k, v in other.items()}
+    out2, _, _ = net.step(x, other, reset=torch.tensor([True, True]))
+    assert torch.equal(out2, fresh)
+
+
+def test_reset_from_batch_in_forward(net):
+    frames = {k: torch.stack([frame_inputs(1, 8, 8, seed=s)[k] for s in (0, 1, 2)], 1)
+              for k in frame_inputs(1, 1, 1)}
+    frames["reset"] = torch.tensor([[True, False, True]])
+    outs, _, _ = net(frames)
+    fresh, _, _ = net.step({k: v[:, 2] for k, v in frames.items() if k != "reset"}, None)
+    assert torch.equal(outs[:, 2], fresh)
+
+
+def test_history_is_used_for_static_scene(net):
+    f = frame_inputs(1, 16, 16)
+    f["motion"].zero_()
+    out0, state, _ = net.step(f, None)
+    out1, _, extras = net.step(f, state)
+    assert extras["weights"]["history_in"].min() > 0 and extras["weights"]["history_out"].min() > 0
+    assert not torch.allclose(out0, out1)
+
+
+def test_truncated_bptt_detaches_state(net):
+    frames = {k: torch.stack([frame_inputs(1, 8, 8, seed=s)[k] for s in range(3)], 1)
+              for k in frame_inputs(1, 1, 1)}
+    for every, reaches_first in ((0, True), (1, False)):
+        frames["color"] = frames["color"].detach().requires_grad_(True)
+        outs, _, _ = net(frames, detach_every=every)
+        outs[:, -1].sum().backward()
+        grad_first = frames["color"].grad[:, 0].abs().sum().item()
+        assert (grad_first > 0) == reaches_first
+        net.zero_grad(set_to_none=True)
+
+
+def test_identical_samples_equal_per_pixel_path(net):
+    f = frame_inputs(1, 16, 16)
+    g = dict(f, samples=f["color"].unsqueeze(1).repeat(1, 4, 1, 1, 1))
+    assert torch.allclose(net.step(f, None)[0], net.step(g, None)[0], atol=1e-5)
+    h = dict(f, samples=torch.rand(1, 4, 3, 16, 16) * 2)
+    assert not torch.allclose(net.step(f, None)[0], net.step(h, None)[0])
+
+
+@pytest.mark.parametrize("ablation", ["no_pyramid", "direct", "no_temporal"])
+def test_ablations_run_and_stay_finite(ablation):
+    net = make_net(f"ablation={ablation}", gain=3.0)
+    f = hard_frame("fireflies", 13, 11, 0)
+    out0, state, extras = net.step(f, None)
+    out1, state, _ = net.step(f, state)
+    assert torch.isfinite(out1).all() and out1.shape == (2, 3, 13, 11)
+    assert len(extras["features"]) == len(net.feature_channels)
+    if ablation == "no_pyramid":
+        assert_within(out0, *channel_range(sanitize(f["color"])))
+    if ablation == "no_temporal":
+        assert state == {} and torch.equal(out0, out1)
+
+
+def test_copy_keeps_behaviour(net):
+    """Deep copies (used for EMA / teacher init by the training code) behave identically."""
+    f = frame_inputs(1, 8, 8)
+    assert torch.equal(copy.deepcopy(net).step(f, None)[0], net.step(f, None)[0])

@@ -1,0 +1,94 @@
+"""Kernel application: fast accumulation vs a plain-loop reference, softmax in float32."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from denoiser.nn.kernels import apply_kernels, apply_kernels_unfold, kernel_weights
+
+
+def reference_apply(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+    """Plain loops over pixels and taps, float64; softmax over the in-image taps only."""
+    b, c, h, w = x.shape
+    k = math.isqrt(logits.shape[1])
+    r = k // 2
+    xd, ld = x.double(), logits.double()
+    out = torch.zeros(b, c, h, w, dtype=torch.float64)
+    for y in range(h):
+        for xx in range(w):
+            taps = [(i, j) for i in range(k) for j in range(k)
+                    if 0 <= y + i - r < h and 0 <= xx + j - r < w]
+            weights = torch.softmax(torch.stack([ld[:, i * k + j, y, xx] for i, j in taps], 1), dim=1)
+            for t, (i, j) in enumerate(taps):
+                out[:, :, y, xx] += weights[:, t, None] * xd[:, :, y + i - r, xx + j - r]
+    return out
+
+
+def assert_close_rel(a, b, tol=1e-5):
+    scale = b.abs().amax().clamp_min(1.0)
+    assert (a.double() - b).abs().max().item() <= tol * scale.item()
+
+
+@settings(max_examples=12, deadline=None)
+@given(h=st.integers(1, 7), w=st.integers(1, 7), k=st.sampled_from([1, 3, 5, 7]), c=st.integers(1, 4),
+       magnitude=st.sampled_from([1.0, 1e3, 1e6]), logit_scale=st.sampled_from([0.1, 3.0, 60.0]),
+       seed=st.integers(0, 2**16))
+def test_fast_matches_plain_loop(h, w, k, c, magnitude, logit_scale, seed):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(2, c, h, w, generator=g) * magnitude
+    logits = torch.randn(2, k * k, h, w, generator=g) * logit_scale
+    ref = reference_apply(x, logits)
+    assert_close_rel(apply_kernels(x, logits), ref)
+    assert_close_rel(apply_kernels_unfold(x, logits), ref)
+
+
+def test_tap_order_is_row_major_offsets():
+    """Tap i*k + j reads the pixel at offset (dy, dx) = (i - r, j - r)."""
+    x = torch.arange(25.0).view(1, 1, 5, 5)
+    logits = torch.full((1, 9, 5, 5), -1e4)
+    logits[:, 2 * 3 + 1] = 0.0  # i=2, j=1 -> one row down, same column
+    logits[:, 1 * 3 + 1] = -40.0  # centre tap: wins only in the last row, where the other is outside
+    out = apply_kernels(x, logits)
+    assert torch.allclose(out[0, 0, :4], x[0, 0, 1:])
+    assert torch.allclose(out[0, 0, 4], x[0, 0, 4])
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_softmax_in_float32_under_autocast(dtype):
+    x = torch.rand(1, 3, 6, 6) * 1e5
+    logits = (torch.randn(1, 25, 6, 6) * 30).to(dtype)
+    with torch.autocast("cpu", dtype=dtype):
+        w = kernel_weights(logits)
+        out = apply_kernels(x, logits)
+    assert w.dtype == torch.float32 and out.dtype == torch.float32
+    assert torch.allclose(w.sum(1), torch.ones(1, 6, 6), atol=1e-6) and (w >= 0).all()
+    assert_close_rel(out, reference_apply(x, logits.float()))
+
+
+def test_no_unfold_of_the_image(monkeypatch):
+    """The fast path accumulates shifted views; it must not materialise an unfold."""
+    def forbidden(*args, **kwargs):
+        raise AssertionError("apply_kernels called F.unfold")
+
+    monkeypatch.setattr(F, "unfold", forbidden)
+    monkeypatch.setattr(torch.Tensor, "unfold", forbidden)
+    out = apply_kernels(torch.rand(1, 3, 8, 8), torch.randn(1, 25, 8, 8))
+    assert out.shape == (1, 3, 8, 8)
+
+
+def test_gradients_finite_with_extreme_logits():
+    x = (torch.rand(1, 3, 8, 8) * 1e6).requires_grad_(True)
+    logits = (torch.randn(1, 49, 8, 8) * 1e4).requires_grad_(True)
+    apply_kernels(x, logits).sum().backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(logits.grad).all()
+
+
+def test_kernels_renormalised_at_border():
+    """A constant image stays constant up to the border, for any logits."""
+    x = torch.full((1, 2, 4, 6), 5.0)
+    out = apply_kernels(x, torch.randn(1, 49, 4, 6) * 10)
+    assert torch.allclose(out, x, rtol=1e-6)

@@ -1,7 +1,9 @@
 """Augmentations that keep the meaning of every buffer (one draw per window, all frames alike).
 
-Works on an item of :class:`~denoiser.data.dataset.WindowDataset`: tensors ``[T, C, H, W]``
+Works on an item of :class:`~denoiser.data.dataset.WindowDataset`: arrays ``[T, C, H, W]``
 (``samples``: ``[T, S, 3, H, W]``); channel axis -3, image axes -2 (y, down) and -1 (x, right).
+Items may hold numpy arrays (the dataset augments before building tensors: flips and
+transposes are then free views and one copy follows) or torch tensors (same results).
 
 * horizontal flip (x -> W-1-x): ``motion.x`` and ``normal.x`` change sign;
 * vertical flip (y -> H-1-y): ``motion.y`` and ``normal.y`` change sign (motion y points down,
@@ -15,14 +17,16 @@ Works on an item of :class:`~denoiser.data.dataset.WindowDataset`: tensors ``[T,
   ``albedo`` and ``reference``.
 
 Depth is planar (unchanged by mirrors). Random draws use torch's generator (``generator``
-argument, else the global one, which DataLoader seeds per worker).
+argument, else the global one, which DataLoader seeds per worker). The pixel work is numpy:
+single-threaded, so it does not fight the training process for cores.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
+import numpy as np
 import torch
 
 #: Buffers that hold radiance (scaled by exposure).
@@ -32,68 +36,74 @@ RGB = ("color", "samples", "albedo", "reference")
 #: Image buffers (every spatial transform applies).
 IMAGES = ("color", "samples", "albedo", "normal", "depth", "motion", "reference")
 
+Arrays = dict[str, np.ndarray]
 
-def hflip(item: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+
+def _on_arrays(item: Mapping, fn: Callable[[Arrays], Arrays]) -> dict:
+    """Apply ``fn`` to the image buffers of ``item`` as numpy arrays; keep each buffer's type."""
+    out = dict(item)
+    arrays = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in item.items() if k in IMAGES}
+    for k, v in fn(arrays).items():
+        out[k] = torch.from_numpy(np.ascontiguousarray(v)) if isinstance(item[k], torch.Tensor) else v
+    return out
+
+
+def _signs(x: np.ndarray, signs: Sequence[float]) -> np.ndarray:
+    """Multiply the channels (axis -3) of ``x`` by ``signs``."""
+    return x * np.asarray(signs, dtype=x.dtype).reshape(-1, 1, 1)
+
+
+def hflip(item: Mapping) -> dict:
     """Mirror left-right: ``x -> W-1-x``; negates ``motion[..., 0]`` and ``normal[..., 0]``."""
-    out = dict(item)
-    for k in IMAGES:
-        if k in out:
-            out[k] = out[k].flip(-1)
-    for k in ("motion", "normal"):
-        if k in out:
-            out[k] = out[k].clone()
-            out[k][..., 0, :, :] *= -1
-    return out
+
+    def fn(a: Arrays) -> Arrays:
+        a = {k: v[..., ::-1] for k, v in a.items()}
+        if "motion" in a:
+            a["motion"] = _signs(a["motion"], (-1, 1))
+        if "normal" in a:
+            a["normal"] = _signs(a["normal"], (-1, 1, 1))
+        return a
+
+    return _on_arrays(item, fn)
 
 
-def vflip(item: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def vflip(item: Mapping) -> dict:
     """Mirror top-bottom: ``y -> H-1-y``; negates ``motion[..., 1]`` and ``normal[..., 1]``."""
-    out = dict(item)
-    for k in IMAGES:
-        if k in out:
-            out[k] = out[k].flip(-2)
-    for k in ("motion", "normal"):
-        if k in out:
-            out[k] = out[k].clone()
-            out[k][..., 1, :, :] *= -1
-    return out
+
+    def fn(a: Arrays) -> Arrays:
+        a = {k: v[..., ::-1, :] for k, v in a.items()}
+        if "motion" in a:
+            a["motion"] = _signs(a["motion"], (1, -1))
+        if "normal" in a:
+            a["normal"] = _signs(a["normal"], (1, -1, 1))
+        return a
+
+    return _on_arrays(item, fn)
 
 
-def transpose(item: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def transpose(item: Mapping) -> dict:
     """Swap image axes (pixel (x, y) -> (y, x)); motion ``(my, mx)``, normal ``(-ny, -nx, nz)``."""
-    out = dict(item)
-    for k in IMAGES:
-        if k in out:
-            out[k] = out[k].transpose(-1, -2)
-    if "motion" in out:
-        m = out["motion"]
-        out["motion"] = torch.stack([m[..., 1, :, :], m[..., 0, :, :]], dim=-3)
-    if "normal" in out:
-        n = out["normal"]
-        out["normal"] = torch.stack([-n[..., 1, :, :], -n[..., 0, :, :], n[..., 2, :, :]], dim=-3)
-    for k in IMAGES:
-        if k in out:
-            out[k] = out[k].contiguous()
-    return out
+
+    def fn(a: Arrays) -> Arrays:
+        a = {k: v.swapaxes(-1, -2) for k, v in a.items()}
+        if "motion" in a:
+            a["motion"] = a["motion"][..., [1, 0], :, :]
+        if "normal" in a:
+            a["normal"] = _signs(a["normal"][..., [1, 0, 2], :, :], (-1, -1, 1))
+        return a
+
+    return _on_arrays(item, fn)
 
 
-def scale_exposure(item: dict[str, torch.Tensor], factor: float) -> dict[str, torch.Tensor]:
+def scale_exposure(item: Mapping, factor: float) -> dict:
     """Multiply ``color``, ``samples`` and ``reference`` by ``factor``."""
-    out = dict(item)
-    for k in RADIANCE:
-        if k in out:
-            out[k] = out[k] * factor
-    return out
+    return _on_arrays(item, lambda a: {k: a[k] * np.float32(factor) for k in RADIANCE if k in a})
 
 
-def permute_channels(item: dict[str, torch.Tensor], perm: Sequence[int]) -> dict[str, torch.Tensor]:
+def permute_channels(item: Mapping, perm: Sequence[int]) -> dict:
     """Reorder R, G, B of ``color``, ``samples``, ``albedo``, ``reference`` by ``perm``."""
-    out = dict(item)
-    idx = torch.as_tensor(list(perm), dtype=torch.long)
-    for k in RGB:
-        if k in out:
-            out[k] = out[k].index_select(-3, idx)
-    return out
+    idx = list(perm)
+    return _on_arrays(item, lambda a: {k: a[k][..., idx, :, :] for k in RGB if k in a})
 
 
 class Augment:
@@ -118,7 +128,7 @@ class Augment:
         self.exposure = exposure
         self.permute = bool(permute_channels)
 
-    def __call__(self, item: Mapping[str, torch.Tensor], generator: torch.Generator | None = None) -> dict:
+    def __call__(self, item: Mapping, generator: torch.Generator | None = None) -> dict:
         out = dict(item)
 
         def coin() -> bool:

@@ -8,8 +8,8 @@ Hydra (root, cache and worker overrides) and times whole training epochs of the 
 ``SequenceDataModule.train_dataloader()`` (random crops, default augmentation):
 
 * ``cold``: ``cache_dir=null``, every frame read decodes its EXR;
-* ``fill``: first epoch with an empty cache (decode + write the float32 memmaps);
-* ``warm``: a later epoch, every frame read copies its crop out of the memmaps.
+* ``fill``: first epoch with an empty cache (decode + write the float32 .npy entries);
+* ``warm``: a later epoch, every frame read fetches only its crop's rows from the cache.
 
 frames/s counts frames delivered (windows x T). Each loader uses persistent workers; the
 timed epoch includes worker start-up only for its first epoch (``cold``, ``fill``).
@@ -70,7 +70,7 @@ def run(size: int, crop: int, window: int, sequences: int, frames: int, workers:
             n, s = epoch(loader)
             rows.append({"mode": "fill (decode + write cache)", "workers": w, "frames": n, "seconds": s})
             n, s = epoch(loader)
-            rows.append({"mode": "warm (memmap cache)", "workers": w, "frames": n, "seconds": s})
+            rows.append({"mode": "warm (from cache)", "workers": w, "frames": n, "seconds": s})
             for r in rows[-3:]:
                 r["speedup"] = (r["frames"] / r["seconds"]) / cold
             del loader

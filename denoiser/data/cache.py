@@ -1,9 +1,10 @@
-"""Decoded-frame cache on disk: each EXR buffer is decoded once, then read as a memory map.
+"""Decoded-frame cache on disk: each EXR buffer is decoded once, later reads fetch only a crop.
 
 Entry = one logical buffer of one file, stored as a float32 ``.npy`` array ``[C, H, W]``
-(channel planes, so a crop is ``C`` runs of contiguous rows and becomes a tensor without a
-transpose). Float32, not float16: HDR radiance above 65504 would overflow half precision and
-values are never clamped on load (DESIGN 3.2).
+(channel planes: a crop is ``C`` runs of contiguous rows, fetched with ``C`` plain file reads
+by :meth:`FrameCache.read`, and becomes a tensor without a transpose; :meth:`FrameCache.load`
+maps a whole entry). Float32, not float16: HDR radiance above 65504 would overflow half
+precision, and values are never clamped on load (DESIGN 3.2).
 
 Key: SHA-1 of (absolute path, file size, modification time in ns, buffer name, layout spec
 text). Changing or touching the EXR, or reading the buffer through different channels or a
@@ -35,7 +36,7 @@ class FrameCache:
     def identity(path: str | os.PathLike) -> str:
         """``"<absolute path>|<size>|<mtime ns>"`` of a file (changes when the file does)."""
         st = os.stat(path)
-        return f"{Path(path).resolve()}|{st.st_size}|{st.st_mtime_ns}"
+        return f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}"
 
     @staticmethod
     def digest(identity: str, buffer: str, spec: str) -> str:
@@ -56,6 +57,41 @@ class FrameCache:
             return np.load(p, mmap_mode="r")
         except (FileNotFoundError, ValueError, OSError, EOFError):
             return None  # missing, or unreadable (treated as a miss and rewritten)
+
+    def read(self, key: str, height: int, width: int, crop: tuple[int, int, int, int] | None = None
+             ) -> np.ndarray | None:
+        """Rows of the entry's planes: float32 ``[C, h, w]`` for ``crop = (top, left, h, w)``
+        (or the whole ``[C, H, W]``), or None on a miss (missing, damaged or another size).
+
+        Reads only the crop's rows of each plane with plain file reads (no memory map to set up,
+        no header to parse beyond its length), which is what makes warm reads cheap.
+        """
+        p = self.entry(key)
+        try:
+            with open(p, "rb", buffering=0) as fh:
+                head = fh.read(12)
+                if head[:6] != b"\x93NUMPY":
+                    return None
+                if head[6] == 1:
+                    offset = 10 + int.from_bytes(head[8:10], "little")
+                else:
+                    offset = 12 + int.from_bytes(head[8:12], "little")
+                header = fh.read(offset - len(head))
+                if b"'<f4'" not in head + header or b"'fortran_order': False" not in head + header:
+                    return None
+                plane = height * width * 4
+                channels, rest = divmod(os.fstat(fh.fileno()).st_size - offset, plane)
+                if rest or channels < 1:
+                    return None
+                top, left, h, w = crop if crop is not None else (0, 0, height, width)
+                rows = np.empty((channels, h, width), np.float32)
+                for c in range(channels):
+                    fh.seek(offset + c * plane + top * width * 4)
+                    if fh.readinto(memoryview(rows[c]).cast("B")) != h * width * 4:
+                        return None
+        except (FileNotFoundError, OSError):
+            return None
+        return rows if (left, w) == (0, width) else np.ascontiguousarray(rows[:, :, left:left + w])
 
     def store(self, key: str, planes: np.ndarray) -> None:
         """Write ``planes`` (float32 ``[C, H, W]``) atomically under ``key``."""

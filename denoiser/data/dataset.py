@@ -106,22 +106,36 @@ class _Frames(Dataset):
                             f"{sorted(counts)}; they cannot share a batch")
         self.reader = FrameReader(layout, cache_dir)
 
-    def load(self, source: SequenceSource, start: int, length: int, crop: Crop | None) -> dict:
-        """Frames ``start .. start+length-1`` of ``source``: the item dict (tensors ``[T, ...]``)."""
+    def arrays(self, source: SequenceSource, start: int, length: int, crop: Crop | None) -> dict:
+        """Frames ``start .. start+length-1`` of ``source`` as the item dict with numpy buffers.
+
+        Buffers are float32 ``[T, C, h, w]`` (``samples`` ``[T, S, 3, h, w]``); ``reset``,
+        ``labeled``, ``sequence`` and ``frame_index`` are already tensors / strings.
+        """
         frames = [self.reader.read(source, start + i, self.buffers, crop) for i in range(length)]
         item: dict = {}
         for b in self.buffers:
             arr = np.stack([f[b] for f in frames])  # [T, C, h, w]
             if b == "samples":
                 arr = arr.reshape(length, source.sample_count, 3, *arr.shape[-2:])
-            item[b] = torch.from_numpy(arr)
+            item[b] = arr
         if not self.labeled and self.fill_reference:
-            item["reference"] = torch.zeros_like(item["color"])
+            item["reference"] = np.zeros_like(item["color"])
         item["reset"] = torch.from_numpy(reset_flags(start, length, source.cuts))
         item["labeled"] = torch.tensor(self.labeled)
         item["sequence"] = source.name
         item["frame_index"] = torch.arange(start, start + length, dtype=torch.int64)
         return item
+
+    @staticmethod
+    def to_tensors(item: dict) -> dict:
+        """Numpy buffers of an item -> contiguous float32 tensors (one copy at most)."""
+        return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) if isinstance(v, np.ndarray) else v
+                for k, v in item.items()}
+
+    def load(self, source: SequenceSource, start: int, length: int, crop: Crop | None) -> dict:
+        """Frames ``start .. start+length-1`` of ``source``: the item dict (tensors ``[T, ...]``)."""
+        return self.to_tensors(self.arrays(source, start, length, crop))
 
 
 class WindowDataset(_Frames):
@@ -165,8 +179,10 @@ class WindowDataset(_Frames):
     def __getitem__(self, index: int) -> dict:
         seq, start = self.windows[index]
         source = self.sources[seq]
-        item = self.load(source, start, self.window, self.random_crop(source))
-        return self.augment(item) if self.augment is not None else item
+        item = self.arrays(source, start, self.window, self.random_crop(source))
+        if self.augment is not None:
+            item = self.augment(item)  # numpy views where possible; one copy below
+        return self.to_tensors(item)
 
 
 class SequenceDataset(_Frames):

@@ -2,8 +2,8 @@
 
 ``FrameReader.read(source, index, buffers, crop)`` returns ``{buffer: float32 [C, h, w]}``
 (channel planes; ``samples`` as ``[3*S, h, w]``). With a cache directory each buffer of each
-file is decoded once (:mod:`denoiser.data.cache`) and later reads copy only the crop out of a
-memory map; without one (``cache_dir=None``) every read decodes the whole EXR.
+file is decoded once (:mod:`denoiser.data.cache`) and later reads fetch only the crop's rows
+from the cached float32 planes; without one (``cache_dir=None``) every read decodes the whole EXR.
 
 NaN/Inf are replaced by the EXR reader (:func:`denoiser.data.exr.read_frame`); the count is
 reported by one warning per file and process (logger ``denoiser.data.reader``) at decode
@@ -57,21 +57,19 @@ class FrameReader:
         for path, bs in by_file.items():
             if self.cache is None:
                 planes = self._decode(path, bs, source)
-            else:
-                planes = self._cached(path, bs, source)
+                for b in bs:
+                    out[b] = np.ascontiguousarray(planes[b][sl], dtype=np.float32)
+                continue
+            ident = FrameCache.identity(path)
+            keys = {b: FrameCache.digest(ident, b, self.layout.spec_key(b)) for b in bs}
             for b in bs:
-                out[b] = np.ascontiguousarray(planes[b][sl], dtype=np.float32)
+                hit = self.cache.read(keys[b], source.height, source.width, crop)
+                if hit is not None:
+                    out[b] = hit
+            missing = [b for b in bs if b not in out]
+            if missing:
+                planes = self._decode(path, missing, source)
+                for b in missing:
+                    self.cache.store(keys[b], planes[b])
+                    out[b] = np.ascontiguousarray(planes[b][sl], dtype=np.float32)
         return out
-
-    def _cached(self, path: Path, buffers: Sequence[str], source: SequenceSource) -> dict[str, np.ndarray]:
-        assert self.cache is not None
-        ident = FrameCache.identity(path)
-        keys = {b: FrameCache.digest(ident, b, self.layout.spec_key(b)) for b in buffers}
-        planes = {b: self.cache.load(k) for b, k in keys.items()}
-        missing = [b for b, p in planes.items() if p is None]
-        if missing:
-            decoded = self._decode(path, missing, source)
-            for b in missing:
-                self.cache.store(keys[b], decoded[b])
-                planes[b] = decoded[b]
-        return planes

@@ -21,12 +21,15 @@ Rule (ours; the paper only names "parameter transfer from teacher to student"):
 Consequence (tested): if the teacher's discarded channels are dead (zero filters), the student
 computes exactly the teacher's function.
 
-The traces of teacher and student are matched operation by operation, so both must be
-instances of the same architecture (only widths may differ); otherwise a ConfigError.
+The traces of teacher and student are aligned operation by operation (longest matching blocks;
+a convolution is identified by its parameter name), so kernel-size variants (k3, k7, the
+teacher's 5/7/9 against the student's 5/5/5) transfer too; every student convolution must find
+the teacher convolution of the same name, otherwise a ConfigError (another architecture).
 """
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -114,10 +117,35 @@ class TransferPlan:
     convs: dict[str, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
 
 
+def _op_key(call: _Call, names: dict[int, str]) -> str:
+    """Alignment key of a recorded operation: the parameter name for a convolution, else the function name."""
+    if _is_conv(call.func) and len(call.args) > 1:
+        return "conv:" + names.get(id(call.args[1]), "?")
+    return getattr(call.func, "__name__", repr(call.func))
+
+
+def aligned_calls(calls_t: list[_Call], calls_s: list[_Call], names_t: dict[int, str],
+                  names_s: dict[int, str]) -> list[tuple[_Call, _Call]]:
+    """Pairs of corresponding teacher/student operations (longest matching blocks of the two traces).
+
+    Identical architectures give identical traces; kernel-size variants differ only in the number
+    of filter taps applied after the U-Net, which stay unpaired.
+    """
+    keys_t = [_op_key(c, names_t) for c in calls_t]
+    keys_s = [_op_key(c, names_s) for c in calls_s]
+    matcher = difflib.SequenceMatcher(None, keys_t, keys_s, autojunk=False)
+    return [(calls_t[b.a + i], calls_s[b.b + i]) for b in matcher.get_matching_blocks() for i in range(b.size)]
+
+
 def plan_transfer(teacher: nn.Module, student: nn.Module, frame: dict[str, torch.Tensor] | None = None) -> TransferPlan:
-    """Follow the data flow of teacher and student side by side and choose channels (rules 1-3)."""
+    """Follow the data flow of teacher and student side by side and choose channels (rules 1-3).
+
+    Raises ConfigError when a student convolution has no counterpart of the same name in the
+    teacher's data flow (the two are not the same architecture).
+    """
     frame = frame if frame is not None else probe_frame()
     names_t = {id(p): n for n, p in teacher.named_parameters()}
+    names_s = {id(p): n for n, p in student.named_parameters()}
     params_s = dict(student.named_parameters())
     traces_t, traces_s = trace_steps(teacher, frame), trace_steps(student, frame)
     plan = TransferPlan()
@@ -132,10 +160,7 @@ def plan_transfer(teacher: nn.Module, student: nn.Module, frame: dict[str, torch
         return torch.arange(n_s if n_s is not None else 0)  # identity / first-k fallback (rule 3)
 
     for calls_t, calls_s in zip(traces_t, traces_s):
-        if len(calls_t) != len(calls_s) or any(a.func is not b.func for a, b in zip(calls_t, calls_s)):
-            raise ConfigError("model.param_transfer: teacher and student are not the same architecture "
-                              "(their operations differ); set model.param_transfer=null")
-        for ct, cs in zip(calls_t, calls_s):
+        for ct, cs in aligned_calls(calls_t, calls_s, names_t, names_s):
             out = None
             if _is_conv(ct.func):
                 x_t, w_t = ct.args[0], ct.args[1]
@@ -146,12 +171,12 @@ def plan_transfer(teacher: nn.Module, student: nn.Module, frame: dict[str, torch
                 importance = w_t.detach().abs().flatten(1).sum(dim=1)
                 out = torch.sort(torch.topk(importance, k_out).indices).values if k_out < w_t.shape[0] \
                     else torch.arange(k_out)
-                if name is not None and name in params_s:
+                if name is not None and name == names_s.get(id(w_s)) and name in params_s:
                     plan.convs[name] = (out, in_idx)
             elif _is_cat(ct.func):
                 dim = ct.kwargs.get("dim", ct.args[1] if len(ct.args) > 1 else 0)
                 parts_t, parts_s = ct.args[0], cs.args[0]
-                if ct.result.dim() == 4 and dim in (1, -3):
+                if ct.result.dim() == 4 and dim in (1, -3) and len(parts_t) == len(parts_s):
                     offset, pieces = 0, []
                     for pt, ps in zip(parts_t, parts_s):
                         pieces.append(sel_of(pt, ps) + offset)
@@ -165,6 +190,10 @@ def plan_transfer(teacher: nn.Module, student: nn.Module, frame: dict[str, torch
                     out = selection[id(x_t)]
             if out is not None and _channel_count(cs.result) == len(out):
                 selection[id(ct.result)] = out
+    missing = [n for n, p in params_s.items() if p.dim() == 4 and n not in plan.convs]
+    if missing:
+        raise ConfigError(f"model.param_transfer: teacher and student are not the same architecture (student "
+                          f"layer {missing[0]} has no counterpart in the teacher); set model.param_transfer=null")
     return plan
 
 

@@ -73,8 +73,28 @@ def test_student_computes_the_teacher_function_when_discarded_channels_are_dead(
         assert not torch.allclose(build_net(student_cfg).eval()(frames)[0], out_t, atol=1e-3)
 
 
+def test_kernel_size_and_architecture_variants_transfer_by_name(nets):
+    teacher = build_net(compose_net_config("tiny", kernel="teacher"))  # kernels 5, 7, 9
+    for overrides in ([], ["net.temporal=null"], ["net.filter._target_=denoiser.nn.filters.SingleKernelFilter"]):
+        student = build_net(compose_net_config("tiny", overrides=STUDENT + overrides))
+        report = transfer_parameters(teacher, student)
+        convs = [n for n, p in student.named_parameters() if p.dim() == 4]
+        assert all(report[n] == "selected" for n in convs), overrides
+
+
+class Wrapped(torch.nn.Module):
+    """The same network under other parameter names (``inner.*``)."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner = inner
+
+    def step(self, frame, state=None, reset=None):
+        return self.inner.step(frame, state, reset)
+
+
 def test_other_architectures_are_refused():
     teacher = build_net(compose_net_config("tiny"))
-    other = build_net(compose_net_config("tiny", overrides=["net.temporal=null"]))
+    other = Wrapped(build_net(compose_net_config("tiny", overrides=STUDENT)))
     with pytest.raises(ConfigError, match="param_transfer"):
         plan_transfer(teacher, other)

@@ -24,7 +24,7 @@ class FinalCheckpoint(pl.Callback):
         if trainer.sanity_checking or getattr(trainer, "fast_dev_run", False):
             return
         tmp = self.path.with_name(f".{self.path.name}.tmp")
-        trainer.save_checkpoint(str(tmp))
+        trainer.save_checkpoint(str(tmp), weights_only=False)
         if trainer.is_global_zero:
             os.replace(tmp, self.path)
         trainer.strategy.barrier("final_checkpoint")

@@ -19,9 +19,10 @@ AUX_SENSOR = "aux_sensor"
 
 
 def integrator(spec: SceneSpec) -> dict:
-    """Unidirectional path tracer; ``max_depth`` from :func:`denoiser.render.effects.path_depth`."""
+    """Unidirectional path tracer; ``max_depth`` from :func:`denoiser.render.effects.path_depth`
+    (Russian roulette from depth 5, Mitsuba's default)."""
     depth = path_depth(spec.effects)
-    return {"type": "path", "max_depth": depth, "rr_depth": max(depth, 5)}
+    return {"type": "path", "max_depth": depth}
 
 
 def _film(width: int, height: int) -> dict:

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from denoiser.cli import hydra_command
 from denoiser.errors import ConfigError
+from denoiser.render.build import scene_dict
 from denoiser.render.catalog import load_scene_config
 from denoiser.render.job import RenderSettings, render_sequence
 from denoiser.render.seeds import sequence_seed
@@ -99,6 +100,8 @@ def run(cfg: DictConfig) -> None:
     # Build every scene first: configuration mistakes surface before any rendering.
     specs = [build_scene(j.scene_config, sequence_seed(cfg.seed, j.scene_name, j.split, j.index)) for j in jobs]
     mi = activate(cfg.variant)
+    for spec in specs:  # materials, textures, lights and shapes are checked by building them once
+        scene_dict(mi, spec, 0.0, 8, 8)
     root = Path(cfg.root)
     total = sum(j.settings.frames for j in jobs)
     skipped = 0

@@ -1,0 +1,133 @@
+"""Cost of each simulated effect: ``python -m denoiser.render.bench``.
+
+One Cornell-room scene; effects are switched on one at a time, cumulatively, in the order of
+``LADDER``. For every step the second frame is timed (the first compiles Mitsuba's kernels
+and is reported separately as ``frame 0``): seconds per frame of the noisy pass (``spp``),
+the auxiliary buffers + motion vectors, and the reference pass (``ref_spp``); ``frame 0``
+is the whole first frame including kernel compilation (Dr.Jit caches kernels, so only a
+process's first frame of a scene structure pays it). The reference's
+own noise is measured too: two references with different seeds give ``PSNR(ref_a, ref_b)``
+on tonemapped values ``x / (1 + x)``; each one's PSNR to the converged image is about 3 dB
+higher (independent errors add), reported as ``ref PSNR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from denoiser.render.motion import backward_motion
+from denoiser.render.passes import FrameRenderer
+from denoiser.render.spec import build_scene
+
+LADDER = ["area_light", "indirect", "textures", "glossy", "transmission", "env_light", "camera_motion",
+          "object_motion", "dof", "motion_blur"]
+
+
+def bench_scene(effects: list[str]) -> dict:
+    """The benchmark scene with exactly ``effects`` declared (and used)."""
+    on = set(effects)
+    tex = {"texture": "checker", "tiles": 8, "color0": [0.8, 0.8, 0.8], "color1": [0.2, 0.2, 0.25]}
+    floor = {"type": "diffuse", "color": tex if "textures" in on else [0.7, 0.7, 0.7]}
+    ball = ({"type": "conductor", "metal": "Au", "roughness": 0.15} if "glossy" in on
+            else {"type": "diffuse", "color": [0.7, 0.5, 0.2]})
+    camera = {"origin": [0, 1, 3.6], "target": [0, 0.8, 0], "fov": 40}
+    if "camera_motion" in on:
+        camera["orbit"] = 2.0
+    if "dof" in on:
+        camera.update(aperture=0.08, focus_distance=3.2)
+    if "motion_blur" in on:
+        camera["shutter"] = 0.5
+    objects = [
+        {"name": "room", "shape": "room", "params": {"floor": floor}},
+        {"name": "ball", "shape": "sphere", "position": [-0.4, 0.35, -0.2], "scale": 0.35, "material": ball,
+         **({"velocity": [0.05, 0, 0], "spin": {"degrees": 5}} if "object_motion" in on else {})},
+        {"name": "box", "shape": "cube", "position": [0.45, 0.3, -0.3], "rotation": [0, 25, 0], "scale": 0.3},
+    ]
+    if "transmission" in on:
+        objects.append({"name": "glass", "shape": "sphere", "position": [0.2, 0.25, 0.45], "scale": 0.25,
+                        "material": {"type": "glass"}})
+    lights = [{"type": "area", "position": [0, 1.99, 0], "target": [0, 0, 0], "size": [0.5, 0.5],
+               "radiance": [15, 13, 10]}]
+    if "env_light" in on:
+        objects[0]["params"]["ceiling"] = None  # keep the room closed; the sky shows through the open front
+        objects[0]["params"].pop("ceiling")
+        lights.append({"type": "sky", "strength": 0.5})
+    return {"name": "bench", "effects": list(effects), "camera": camera, "objects": objects, "lights": lights}
+
+
+def _tonemap(x: np.ndarray) -> np.ndarray:
+    x = np.maximum(x, 0)
+    return x / (1 + x)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((_tonemap(a) - _tonemap(b)) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def measure(mi, effects: list[str], width: int, height: int, spp: int, ref_spp: int) -> dict:
+    spec = build_scene(bench_scene(effects), seed=0)
+    fr = FrameRenderer(mi, spec, width, height)
+    tic = time.perf_counter()
+    fr.radiance(0, spp, 1)
+    fr.aux(0)
+    fr.reference(0, ref_spp, 2)
+    warm = time.perf_counter() - tic
+    tic = time.perf_counter()
+    noisy = fr.radiance(1, spp, 3)
+    t_noisy = time.perf_counter() - tic
+    tic = time.perf_counter()
+    aux = fr.aux(1)
+    backward_motion(spec, aux, 1, width, height)
+    t_aux = time.perf_counter() - tic
+    tic = time.perf_counter()
+    ref_a = fr.reference(1, ref_spp, 4)
+    t_ref = time.perf_counter() - tic
+    ref_b = fr.reference(1, ref_spp, 5)
+    pair = psnr(ref_a, ref_b)
+    from denoiser.render.effects import path_depth
+
+    return {"effect": f"+{effects[-1]}", "depth": path_depth(spec.effects), "warm": warm, "noisy": t_noisy,
+            "aux": t_aux, "ref": t_ref, "ref_psnr": pair + 10 * np.log10(2), "noisy_psnr": psnr(noisy, ref_a)}
+
+
+def table(rows: list[dict], args) -> str:
+    head = (f"| effect added | max_depth | noisy s/frame ({args.spp} spp) | aux+motion s/frame | "
+            f"reference s/frame ({args.ref_spp} spp) | ref cost x base | ref PSNR dB | noisy PSNR dB | frame 0 s |")
+    lines = [head, "|" + "---|" * 9]
+    base = rows[0]["ref"]
+    for r in rows:
+        lines.append(f"| {r['effect']} | {r['depth']} | {r['noisy']:.3f} | {r['aux']:.3f} | {r['ref']:.2f} | "
+                     f"{r['ref'] / base:.2f} | {r['ref_psnr']:.1f} | {r['noisy_psnr']:.1f} | {r['warm']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--width", type=int, default=128)
+    ap.add_argument("--height", type=int, default=128)
+    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--ref-spp", type=int, default=256)
+    ap.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | scalar_rgb")
+    ap.add_argument("--effects", default=",".join(LADDER), help="comma-separated ladder (first must be a light)")
+    args = ap.parse_args(argv)
+    from tqdm import tqdm
+
+    from denoiser.render.variant import activate
+
+    mi = activate(args.variant)
+    ladder = [e for e in args.effects.split(",") if e]
+    rows = [measure(mi, ladder[: i + 1], args.width, args.height, args.spp, args.ref_spp)
+            for i in tqdm(range(len(ladder)), desc="bench", unit="step")]
+    from denoiser.render.variant import active_variant
+
+    print(f"Mitsuba {mi.__version__} variant {active_variant()}, {args.width}x{args.height}, effects added "
+          f"cumulatively (seconds of frame 1; frame 0 includes JIT compilation)")
+    print(table(rows, args))
+
+
+if __name__ == "__main__":
+    main()

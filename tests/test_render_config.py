@@ -1,0 +1,156 @@
+"""Scene configs, effect checks and effect-driven scene building (no rendering beyond tiny loads)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+from denoiser.cli import CONF_DIR
+from denoiser.errors import ConfigError, UserError
+from denoiser.render import build
+from denoiser.render.bench import LADDER, bench_scene
+from denoiser.render.catalog import available_scenes, load_scene_config
+from denoiser.render.effects import parse_effects, path_depth
+from denoiser.render.spec import build_scene
+
+
+@pytest.fixture(scope="module")
+def mi():
+    from denoiser.render.variant import activate
+
+    return activate("auto", quiet=True)
+
+
+def _scene(**changes) -> dict:
+    cfg = bench_scene(["area_light"])
+    cfg.update(changes)
+    return cfg
+
+
+def _load(mi, cfg, seed=0):
+    spec = build_scene(cfg, seed)
+    return spec, mi.load_dict(build.scene_dict(mi, spec, 0.0, 8, 8))
+
+
+def test_unknown_effect_is_one_line_config_error():
+    with pytest.raises(ConfigError, match=r"scene 'bench': unknown effect 'caustics'") as exc:
+        build_scene(_scene(effects=["area_light", "caustics"]), 0)
+    assert "\n" not in str(exc.value)
+
+
+def test_unknown_material_and_shape_are_errors(mi):
+    cfg = _scene()
+    cfg["objects"][1]["material"] = {"type": "velvet"}
+    with pytest.raises(ConfigError, match=r"scene 'bench'.*unknown material type 'velvet'"):
+        _load(mi, cfg)
+    cfg = _scene()
+    cfg["objects"][1]["shape"] = "teapot"
+    with pytest.raises(ConfigError, match=r"unknown shape 'teapot'"):
+        _load(mi, cfg)
+
+
+@pytest.mark.parametrize("mutate, missing", [
+    (lambda c: c["objects"][1].update(material={"type": "glass"}), "transmission"),
+    (lambda c: c["objects"][1].update(material={"type": "conductor"}), "glossy"),
+    (lambda c: c["objects"][1].update(velocity=[0.1, 0, 0]), "object_motion"),
+    (lambda c: c["objects"][1].update(spin={"degrees": 3}), "object_motion"),
+    (lambda c: c["camera"].update(orbit=1.0), "camera_motion"),
+    (lambda c: c["camera"].update(aperture=0.1), "dof"),
+    (lambda c: c["camera"].update(shutter=0.5), "motion_blur"),
+    (lambda c: c["objects"][0]["params"].update(floor={"type": "diffuse", "color": {"texture": "checker"}}),
+     "textures"),
+    (lambda c: c["lights"].append({"type": "sky"}), "env_light"),
+])
+def test_undeclared_effect_is_an_error_naming_scene_and_effect(mi, mutate, missing):
+    cfg = copy.deepcopy(_scene())
+    mutate(cfg)
+    with pytest.raises(ConfigError) as exc:
+        _load(mi, cfg)
+    msg = str(exc.value)
+    assert "scene 'bench'" in msg and f"effect '{missing}'" in msg and "\n" not in msg
+
+
+def test_area_light_needs_its_effect(mi):
+    with pytest.raises(ConfigError, match="effect 'area_light'"):
+        _load(mi, _scene(effects=["env_light"]))
+
+
+def test_integrator_depth_follows_declared_transport():
+    def depth(effects):
+        return build.integrator(build_scene(bench_scene(effects), 0))["max_depth"]
+
+    assert depth(["area_light"]) == 2  # direct light only
+    assert depth(["area_light", "indirect"]) == 5
+    assert depth(["area_light", "indirect", "textures"]) == 5  # textures cost no depth
+    assert depth(["area_light", "indirect", "textures", "glossy"]) == 7
+    assert depth(["area_light", "indirect", "textures", "glossy", "transmission"]) == 11
+    assert path_depth(parse_effects("x", ["area_light", {"indirect": 1}])) == 3
+
+
+def test_pinhole_without_dof_thin_lens_with_dof(mi):
+    _, scene = _load(mi, bench_scene(["area_light"]))
+    main = next(s for s in scene.sensors() if s.id() == build.MAIN_SENSOR)
+    assert main.class_name() == "PerspectiveCamera"
+    _, scene = _load(mi, bench_scene(["area_light", "dof"]))
+    main = next(s for s in scene.sensors() if s.id() == build.MAIN_SENSOR)
+    aux = next(s for s in scene.sensors() if s.id() == build.AUX_SENSOR)
+    assert main.class_name() == "ThinLensCamera"
+    assert aux.class_name() == "PerspectiveCamera"  # auxiliary buffers stay sharp pixel-centre samples
+
+
+def test_every_ladder_step_builds_and_loads(mi):
+    for i in range(len(LADDER)):
+        _load(mi, bench_scene(LADDER[: i + 1]))
+
+
+def test_randomization_is_seeded():
+    cfg = load_scene_config("cornell")
+    a, b, c = build_scene(cfg, 1), build_scene(cfg, 1), build_scene(cfg, 2)
+    assert a.params == b.params
+    assert a.params != c.params
+    assert np.allclose(a.camera.to_world(3), b.camera.to_world(3))
+
+
+def test_repository_scenes_build_for_several_seeds(mi):
+    names = available_scenes()
+    assert len(names) >= 6
+    for name in names:
+        cfg = load_scene_config(name)
+        for seed in (0, 1):
+            spec, scene = _load(mi, cfg, seed)
+            assert len(scene.shapes()) >= 2
+            assert set(spec.effects.names()) <= set(LADDER)
+    test_only = [n for n in names if load_scene_config(n).get("test_only")]
+    assert len(test_only) >= 2
+
+
+def _compose(overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="render", overrides=overrides)
+
+
+def test_demo_preset_keeps_test_only_scenes_out_of_training():
+    from denoiser.render.cli import plan
+
+    cfg = _compose(["dataset=demo"])
+    assert cfg.name == "demo" and cfg.root.endswith("data/demo")
+    jobs = plan(cfg)
+    splits = {j.split for j in jobs}
+    assert splits == {"train", "val", "test", "unlabeled"}
+    for j in jobs:
+        assert bool(j.scene_config.get("test_only")) == (j.split == "test"), j.directory
+        assert (j.settings.width, j.settings.height) == (128, 128)
+        assert j.settings.labeled == (j.split != "unlabeled")
+    assert len({j.directory for j in jobs}) == len(jobs)
+
+
+def test_test_only_scene_refused_for_training():
+    from denoiser.render.cli import plan
+
+    with pytest.raises(UserError, match="test_only"):
+        plan(_compose(["scene=gallery", "split=train"]))
+    assert plan(_compose(["scene=gallery", "split=test"]))
+    assert plan(_compose(["scene=gallery", "split=train", "allow_test_only=true"]))

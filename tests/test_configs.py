@@ -1,0 +1,122 @@
+"""Every option of every config group of train.py composes (Hydra compose API) and means what it says."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from denoiser.cli import CONF_DIR
+
+GROUPS = ["data", "data/layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
+          "experiment", "debug"]
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+
+
+def compose_train(*overrides: str, hydra_cfg: bool = False):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("train", overrides=["output_dir=/tmp/denoiser-test-configs", *overrides],
+                       return_hydra_config=hydra_cfg)
+
+
+def resolved(cfg) -> dict:
+    cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+
+
+def test_every_group_has_options():
+    for group in GROUPS + ["hydra/launcher"]:
+        assert options(group), group
+
+
+@pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
+def test_every_option_composes_and_resolves(group, option):
+    cfg = compose_train(f"{group}={option}")
+    plain = resolved(cfg)
+    assert plain["model"]["_target_"].startswith("denoiser.lit.")
+    assert plain["net"]["_target_"] == "denoiser.nn.denoiser.Denoiser"
+    assert plain["net"]["filter"]["kernel_sizes"] == plain["kernel"]["sizes"] or group == "ablation"
+
+
+@pytest.mark.parametrize("launcher", options("hydra/launcher"))
+def test_launcher_presets_compose(launcher):
+    cfg = compose_train(f"hydra/launcher={launcher}", hydra_cfg=True)
+    assert cfg.hydra.launcher._target_.startswith("hydra_plugins.")
+    assert cfg.hydra.launcher.get("n_jobs", 2) == 2  # our preset, not the plugin's default (-1)
+
+
+@pytest.mark.parametrize("model,encoder,kernels", [("teacher", [128, 256, 512], [5, 7, 9]),
+                                                   ("student", [32, 64, 128], [5, 5, 5]),
+                                                   ("distill", [32, 64, 128], [5, 5, 5])])
+def test_model_selects_its_network_unless_overridden(model, encoder, kernels):
+    cfg = compose_train(f"model={model}")
+    assert list(cfg.net.unet.encoder) == encoder and list(cfg.net.filter.kernel_sizes) == kernels
+    cfg = compose_train(f"model={model}", "net=tiny", "kernel=k3")
+    assert list(cfg.net.unet.encoder) == [8, 12, 16] and list(cfg.net.filter.kernel_sizes) == [3, 3, 3]
+
+
+def test_paper_experiments_hold_the_design_widths():
+    teacher = compose_train("experiment=paper_teacher")
+    assert teacher.net.embed.hidden == 256 and list(teacher.net.unet.encoder) == [128, 256, 512]
+    assert teacher.net.unet.bottleneck == 512 and list(teacher.net.unet.decoder) == [512, 256]
+    assert list(teacher.net.filter.kernel_sizes) == [5, 7, 9] and teacher.trainer.accelerator == "gpu"
+    for exp in ("paper_student", "paper_distill"):
+        student = compose_train(f"experiment={exp}")
+        assert student.net.embed.hidden == 32 and list(student.net.unet.encoder) == [32, 64, 128]
+        assert student.net.unet.bottleneck == 128 and list(student.net.unet.decoder) == [64, 32]
+        assert list(student.net.filter.kernel_sizes) == [5, 5, 5]
+    assert compose_train("experiment=paper_distill").model._target_.endswith("DistillationModule")
+
+
+def test_demo_experiments():
+    teacher = compose_train("experiment=demo_teacher")
+    assert teacher.model._target_.endswith("SupervisedModule") and teacher.net.embed.hidden == 64
+    assert list(teacher.net.filter.kernel_sizes) == [5, 7, 9] and teacher.data.crop == 64
+    distill = compose_train("experiment=demo_distill", "model.teacher_ckpt=x.ckpt")
+    assert distill.model._target_.endswith("DistillationModule") and distill.net.embed.hidden == 16
+    assert distill.data.use_unlabeled is True and distill.trainer.max_time
+    sweep = compose_train("experiment=ablations", hydra_cfg=True)
+    assert {"none", "no_kd", "no_pyramid", "no_temporal"} <= set(sweep.hydra.sweeper.params.ablation.split(","))
+
+
+def test_distillation_ablations_switch_off_their_parts():
+    base = compose_train("model=distill")
+    assert base.model.loss.adversarial_weight > 0 and base.model.param_transfer is not None
+    assert compose_train("model=distill", "ablation=no_adversarial").model.loss.adversarial_weight == 0
+    assert compose_train("model=distill", "ablation=no_param_transfer").model.param_transfer is None
+    assert compose_train("experiment=demo_distill", "ablation=no_unlabeled").data.use_unlabeled is False
+    no_kd = compose_train("experiment=demo_distill", "ablation=no_kd")
+    assert (no_kd.model.loss.kd_weight, no_kd.model.loss.feature_weight, no_kd.model.loss.adversarial_weight) == (0, 0, 0)
+    assert no_kd.model.param_transfer is None and no_kd.data.use_unlabeled is False and no_kd.model.loss.gt_weight > 0
+
+
+@pytest.mark.parametrize("ablation", options("ablation"))
+def test_every_ablation_builds_a_network(ablation):
+    cfg = compose_train("net=tiny", f"ablation={ablation}")
+    net = instantiate(cfg.net)
+    assert net.num_parameters() > 0
+
+
+@pytest.mark.parametrize("trainer", options("trainer"))
+def test_trainer_presets(trainer):
+    cfg = compose_train(f"trainer={trainer}")
+    assert cfg.trainer._target_ == "lightning.pytorch.Trainer" and cfg.trainer.max_steps > 0
+    if trainer == "ddp":  # spawn: never re-executes train.py (safe inside Hydra multiruns)
+        assert cfg.trainer.strategy.start_method == "spawn"
+    if trainer == "cpu":
+        assert instantiate(cfg.trainer, logger=False, enable_checkpointing=False).max_steps == cfg.trainer.max_steps
+
+
+def test_logger_and_callbacks_instantiate(tmp_path):
+    cfg = compose_train(f"output_dir={tmp_path}")
+    logger = instantiate(cfg.logger)
+    assert Path(logger.log_dir) == tmp_path / "tb"
+    callbacks = {name: instantiate(c) for name, c in cfg.callbacks.items()}
+    assert callbacks["last"].save_last and callbacks["best"].monitor == "val/psnr"
+    assert {"best", "last", "final", "lr_monitor", "progress"} <= set(callbacks)

@@ -1,0 +1,172 @@
+"""Rendering sequences to disk: buffers, sequence.json, resume, unlabeled split, samples, CLI."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from denoiser.data.exr import list_channels, read_frame, read_samples
+from denoiser.data.sequence import load_sequence_json
+from denoiser.render import job as job_module
+from denoiser.render.job import RenderSettings, frame_path, render_sequence
+from denoiser.render.passes import NO_HIT_DEPTH
+from denoiser.render.spec import build_scene
+
+NATIVE = {"color": ("color.R", "color.G", "color.B"), "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+          "normal": ("normal.X", "normal.Y", "normal.Z"), "depth": ("depth.Z",), "motion": ("motion.X", "motion.Y"),
+          "reference": ("reference.R", "reference.G", "reference.B")}
+TINY = RenderSettings(frames=2, spp=2, ref_spp=8, width=32, height=32)
+
+
+def static_scene() -> dict:
+    """A rough gold sphere (albedo AOV > 1 before clamping) and a cube over a constant sky."""
+    return {
+        "name": "static_probe", "effects": ["env_light", "area_light", "glossy"],
+        "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 45},
+        "objects": [
+            {"name": "ball", "shape": "sphere", "position": [-0.5, 0, 0], "scale": 0.6,
+             "material": {"type": "conductor", "metal": "Au", "roughness": 0.4}},
+            {"name": "box", "shape": "cube", "position": [0.7, 0, -0.5], "rotation": [20, 30, 0], "scale": 0.4},
+        ],
+        "lights": [{"type": "constant", "radiance": 0.5},
+                   {"type": "area", "position": [0, 2, 2], "target": [0, 0, 0], "size": [1, 1], "radiance": 5}],
+    }
+
+
+@pytest.fixture(scope="module")
+def mi():
+    from denoiser.render.variant import activate
+
+    return activate("auto", quiet=True)
+
+
+@pytest.fixture(scope="module")
+def static_seq(mi, tmp_path_factory):
+    out = tmp_path_factory.mktemp("render") / "train" / "static_probe_000"
+    spec = build_scene(static_scene(), 0)
+    meta = render_sequence(mi, spec, out, TINY, seq_seed=1234)
+    return out, meta
+
+
+def test_static_scene_buffers(static_seq):
+    out, _ = static_seq
+    for t in range(TINY.frames):
+        buf, bad = read_frame(frame_path(out, t), NATIVE)
+        assert bad == 0
+        assert buf["color"].shape == (32, 32, 3)
+        assert np.array_equal(buf["motion"], np.zeros((32, 32, 2), np.float32))  # exact zeros
+        assert buf["albedo"].min() >= 0 and buf["albedo"].max() <= 1
+        hit = buf["depth"][..., 0] < NO_HIT_DEPTH
+        assert 0.1 < hit.mean() < 0.9  # objects and sky both visible
+        assert np.all(buf["depth"][~hit] == np.float32(NO_HIT_DEPTH))
+        n = np.linalg.norm(buf["normal"], axis=-1)
+        assert np.allclose(n[hit], 1, atol=1e-3) and np.all(n[~hit] == 0)
+        # sphere centre faces the camera: normal ~ (0, 0, -1) in camera space (z into the scene)
+        h, w = 32, 32
+        cx = round(w / 2 - 0.5 / (4 * np.tan(np.radians(22.5))) * w / 2)
+        assert buf["normal"][h // 2, cx, 2] < -0.9
+        assert np.all(buf["depth"][hit] > 2.5) and np.all(buf["depth"][hit] < 6)
+
+
+def test_sequence_json_complete(static_seq, mi):
+    out, _ = static_seq
+    parsed = load_sequence_json(out)  # validates the schema
+    assert (parsed.width, parsed.height, parsed.frames, parsed.spp) == (32, 32, 2, 2)
+    assert list(parsed.buffers) == ["color", "albedo", "normal", "depth", "motion", "reference"]
+    assert len(parsed.cameras) == 2 and parsed.cameras[0].fov == 45
+    assert np.allclose(np.array(parsed.cameras[0].to_world)[:3, 3], [0, 0, 4])
+    assert parsed.cuts == ()
+    assert parsed.scene["name"] == "static_probe"
+    assert parsed.scene["effects"] == ["env_light", "area_light", "glossy"]
+    assert "params" in parsed.scene
+    assert parsed.renderer["name"] == "mitsuba" and parsed.renderer["version"] == mi.__version__
+    assert parsed.renderer["variant"] in ("llvm_ad_rgb", "scalar_rgb")
+    seeds = parsed.seeds
+    assert seeds["sequence"] == 1234
+    all_seeds = seeds["noisy"] + seeds["reference"]
+    assert len(set(all_seeds)) == 4  # distinct per frame and per pass
+    assert set(parsed.render_seconds) == {"color", "aux", "motion", "reference"}
+    assert all(v >= 0 for v in parsed.render_seconds.values())
+    assert parsed.extra["ref_spp"] == 8
+    assert {"motion", "normal", "depth", "camera"} <= set(parsed.extra["conventions"])
+    assert len(parsed.extra["frame_seconds"]) == 2
+
+
+def test_resume_skips_finished_frames(static_seq, mi, monkeypatch):
+    out, meta = static_seq
+    calls = []
+    real = job_module.render_frame
+
+    def counting(*args, **kwargs):
+        calls.append(args[2])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(job_module, "render_frame", counting)
+    spec = build_scene(static_scene(), 0)
+    mtimes = [os.stat(frame_path(out, t)).st_mtime_ns for t in range(2)]
+    again = render_sequence(mi, spec, out, TINY, seq_seed=1234)
+    assert calls == []
+    assert [os.stat(frame_path(out, t)).st_mtime_ns for t in range(2)] == mtimes
+    assert again["render_seconds"] == meta["render_seconds"]
+    frame_path(out, 1).write_bytes(b"truncated")  # a damaged frame is rendered again
+    render_sequence(mi, spec, out, TINY, seq_seed=1234)
+    assert calls == [1]
+    assert os.stat(frame_path(out, 0)).st_mtime_ns == mtimes[0]
+
+
+def test_changed_settings_refuse_to_mix(static_seq, mi):
+    out, _ = static_seq
+    from denoiser.errors import UserError
+
+    spec = build_scene(static_scene(), 0)
+    with pytest.raises(UserError, match="different settings"):
+        render_sequence(mi, spec, out, RenderSettings(frames=2, spp=4, ref_spp=8, width=32, height=32), 1234)
+
+
+def test_unlabeled_split_has_no_reference(mi, tmp_path):
+    settings = RenderSettings(frames=1, spp=2, ref_spp=8, width=16, height=16, labeled=False)
+    render_sequence(mi, build_scene(static_scene(), 0), tmp_path, settings, seq_seed=5)
+    chans = list_channels(frame_path(tmp_path, 0))
+    assert not any(c.startswith("reference") for c in chans)
+    assert "color.R" in chans and "motion.X" in chans
+    meta = load_sequence_json(tmp_path)
+    assert "reference" not in meta.buffers and "reference" not in meta.seeds
+    assert "reference" not in meta.render_seconds
+
+
+def test_samples_are_written_and_average_to_color(mi, tmp_path):
+    settings = RenderSettings(frames=1, spp=3, ref_spp=4, width=16, height=16, save_samples=True)
+    render_sequence(mi, build_scene(static_scene(), 0), tmp_path, settings, seq_seed=9)
+    path = frame_path(tmp_path, 0)
+    samples = read_samples(path)
+    assert samples.shape == (3, 16, 16, 3)
+    assert not np.allclose(samples[0], samples[1])  # different seeds per sample
+    color, _ = read_frame(path, {"color": NATIVE["color"]})
+    assert np.allclose(samples.mean(0), color["color"], atol=1e-5)
+    meta = load_sequence_json(tmp_path)
+    assert meta.sample_count == 3 and len(set(meta.seeds["samples"])) == 3
+
+
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-c", "from denoiser.render.cli import main; main()", *args],
+                          cwd=cwd, capture_output=True, text=True, timeout=300, check=False)
+
+
+@pytest.mark.slow
+def test_cli_renders_and_reports_user_errors(tmp_path):
+    ok = _cli("scene=cornell", "frames=1", "width=16", "height=16", "spp=1", "ref_spp=2", "sequences=2",
+              f"root={tmp_path}/ds", cwd=tmp_path)
+    assert ok.returncode == 0, ok.stderr
+    for k in range(2):
+        assert (tmp_path / "ds" / "train" / f"cornell_{k:03d}" / "frame_0000.exr").exists()
+    a = load_sequence_json(tmp_path / "ds" / "train" / "cornell_000")
+    b = load_sequence_json(tmp_path / "ds" / "train" / "cornell_001")
+    assert a.scene["params"] != b.scene["params"]  # one config, different draws
+    bad = _cli("split=training", f"root={tmp_path}/ds", cwd=tmp_path)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines()[-1].startswith("error: render: key 'split'")
+    assert "Traceback" not in bad.stderr

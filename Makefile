@@ -21,5 +21,10 @@ setup: $(VENV)/.installed
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
+# The whole pipeline on the simulated demo dataset (render, teacher, distilled and no-KD
+# students, evaluation, benchmark): reports/demo/. About 30 minutes on 2 CPU cores.
+demo: setup
+	VENV=$(VENV) bash scripts/demo.sh
+
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests train.py

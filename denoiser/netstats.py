@@ -19,6 +19,9 @@ from collections.abc import Sequence
 
 from denoiser.errors import ConfigError
 
+#: frame size (square) of the FLOP count printed by ``main``
+FLOPS_SIZE = 256
+
 #: config groups composed for a network, in composition order
 NET_GROUPS = {"net": "student", "kernel": "student", "ablation": "none"}
 
@@ -53,10 +56,23 @@ def compose_net_config(args: Sequence[str] = ()):
 
 
 def build_net(cfg):
-    """Instantiate ``cfg.net`` (a composed config) -> :class:`~denoiser.nn.denoiser.Denoiser`."""
+    """Instantiate ``cfg.net`` (a composed config) -> :class:`~denoiser.nn.denoiser.Denoiser`.
+
+    A :class:`~denoiser.errors.UserError` raised by a constructor (e.g. a bad ``kernel.sizes``)
+    comes out as itself, not wrapped in Hydra's ``InstantiationException``.
+    """
+    from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    return instantiate(cfg.net)
+    from denoiser.errors import UserError
+
+    try:
+        return instantiate(cfg.net)
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        if isinstance(cause, UserError):
+            raise cause from None
+        raise ConfigError(f"net: {str(exc).splitlines()[0]}") from exc
 
 
 def frame_inputs(batch: int, height: int, width: int, samples: int = 0, seed: int = 0) -> dict:
@@ -95,7 +111,8 @@ def describe(net) -> list[tuple[str, str]]:
         rows.append((f"  {name}", f"{sum(p.numel() for p in getattr(net, name).parameters()):,}"))
     rows.append(("feature_channels", str(net.feature_channels)))
     rows.append(("pad multiple", str(net.multiple)))
-    rows.append(("GFLOP per 256x256 frame", f"{count_flops(net, 256, 256) / 1e9:.2f}"))
+    rows.append((f"GFLOP per {FLOPS_SIZE}x{FLOPS_SIZE} frame",
+                 f"{count_flops(net, FLOPS_SIZE, FLOPS_SIZE) / 1e9:.3f}"))
     return rows
 
 

@@ -1,0 +1,89 @@
+"""Tests of denoiser-export: ONNX opset 17 with dynamic size and explicit recurrent state."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.errors import UserError
+from denoiser.export import OnnxStep, StepGraph, check_export, example_frame, export_onnx
+
+VENV_BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("export")
+    cfg = compose_net_config("tiny", "student")
+    torch.manual_seed(0)
+    net = build_net(cfg).eval()
+    ckpt = save_checkpoint(root / "tiny.ckpt", net, cfg)
+    onnx_path = export_onnx(net, root / "tiny.onnx")
+    return root, net, ckpt, onnx_path
+
+
+def test_graph_interface(tiny):
+    _, net, _, path = tiny
+    model = onnx.load(str(path))
+    assert model.opset_import[0].version == 17
+    inputs = {i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim] for i in model.graph.input}
+    assert list(inputs) == StepGraph(net).input_names()
+    assert inputs["color"] == [1, 3, "height", "width"] and inputs["reset"] == [1]
+    assert inputs["state_features"] == [1, net.temporal.state_features, "height", "width"]
+    outputs = [o.name for o in model.graph.output]
+    assert outputs == ["output", "next_state_output", "next_state_color", "next_state_features", "next_state_guide"]
+    assert {p.key: p.value for p in model.metadata_props}["state_keys"] == "output,color,features,guide"
+
+
+@pytest.mark.parametrize("size", [(24, 40), (33, 17)])
+def test_onnx_matches_pytorch_at_other_sizes(tiny, size):
+    _, net, _, path = tiny
+    errors = check_export(net, path, size=size, steps=3)
+    assert set(errors) >= {"output", "next_state_color"}
+    assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
+
+
+def test_state_carries_history(tiny):
+    """The second step depends on the state: feeding a reset or another state changes the output."""
+    _, _, _, path = tiny
+    runner = OnnxStep(path)
+    f0, f1 = example_frame(1, 16, 16, seed=1), example_frame(1, 16, 16, seed=2)
+    for f in (f0, f1):
+        f["motion"].zero_()
+    _, state = runner.step(f0, None, reset=True)
+    with_history, _ = runner.step(f1, state, reset=False)
+    after_reset, _ = runner.step(f1, state, reset=True)
+    fresh, _ = runner.step(f1, None, reset=True)
+    assert not np.allclose(with_history, after_reset)
+    assert np.allclose(after_reset, fresh, atol=1e-6)
+
+
+def test_export_command(tiny, tmp_path):
+    _, _, ckpt, _ = tiny
+    out = tmp_path / "cmd.onnx"
+    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", "check_size=[20,28]",
+                           f"hydra.run.dir={tmp_path / 'h'}"], capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "max abs error" in proc.stdout and "trtexec --onnx=" in proc.stdout and out.exists()
+
+
+def test_export_config_errors(tiny, tmp_path):
+    from omegaconf import OmegaConf
+
+    from denoiser.export import run
+
+    _, _, ckpt, _ = tiny
+    base = {"ckpt": str(ckpt), "out": str(tmp_path / "x.onnx"), "opset": 17, "batch": 1, "trace_size": [37, 61],
+            "check_size": [37, 61], "tolerance": 1e-4, "threads": None}
+    with pytest.raises(UserError, match="check_size must differ"):
+        run(OmegaConf.create(base))
+    with pytest.raises(UserError, match="should end in .onnx"):
+        run(OmegaConf.create({**base, "out": str(tmp_path / "x.txt")}))
+    with pytest.raises(UserError, match="none.ckpt: checkpoint file does not exist"):
+        run(OmegaConf.create({**base, "ckpt": str(tmp_path / "none.ckpt")}))

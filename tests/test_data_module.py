@@ -206,3 +206,13 @@ def test_precache_fills_the_cache_once(root, tmp_path):
     assert dm.val_set.reader.decoded == 0
     [v] = dm.sequences("val")
     assert v.name == "val/v0" and v.meta.scene_name == "synthetic" and v.meta.renderer["name"] == "synthetic"
+
+
+def test_benchmark_runs_small():
+    from denoiser.data import bench
+
+    rows = bench.run(size=32, crop=16, window=2, sequences=1, frames=3, workers=[0], batch=2, repeat=1)
+    assert [r["mode"].split()[0] for r in rows] == ["cold", "fill", "warm"]
+    assert all(r["frames"] == 2 * 2 and r["seconds"] > 0 for r in rows)
+    assert "| warm (from cache, median of 1) | 0 | 4 |" in bench.table(rows, type("A", (), {
+        "sequences": 1, "frames": 3, "size": 32, "window": 2, "crop": 16, "batch": 2})())

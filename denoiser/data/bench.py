@@ -27,8 +27,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from tqdm.auto import tqdm
 
-from denoiser.cli import CONF_DIR
+from denoiser.cli import CONF_DIR, report_user_error
 from denoiser.data.synthetic import write_synthetic_sequence
+from denoiser.errors import UserError
 
 
 def make_dataset(root: Path, sequences: int, frames: int, size: int) -> None:
@@ -101,7 +102,10 @@ def main(argv=None) -> None:
     p.add_argument("--workers", type=int, nargs="+", default=[0, 2])
     p.add_argument("--repeat", type=int, default=3, help="warm epochs timed (the median is shown)")
     args = p.parse_args(argv)
-    rows = run(args.size, args.crop, args.window, args.sequences, args.frames, args.workers, args.batch, args.repeat)
+    try:
+        rows = run(args.size, args.crop, args.window, args.sequences, args.frames, args.workers, args.batch, args.repeat)
+    except UserError as exc:
+        report_user_error(exc)
     print(table(rows, args))
 
 

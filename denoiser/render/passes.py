@@ -10,7 +10,10 @@ All arrays are numpy float32, ``[H, W, C]`` (samples ``[S, H, W, 3]``).
 * auxiliary buffers: one ray through each pixel centre at ``tau = t`` (pinhole, also with dof;
   Mitsuba's ``aov`` integrator): albedo (clamped to [0, 1]; Mitsuba's exceeds 1 on rough
   conductors), camera-space shading normal, planar depth (no hit: ``NO_HIT_DEPTH``), the world
-  position and the object hit (index into ``spec.objects``, -1 = none or a light);
+  position and the object hit (index into ``spec.objects``, -1 = none or a light). With dof or
+  an open shutter, albedo and normal are instead averaged over ``BLURRED_AUX_SPP`` samples
+  through the lens and over the shutter, like the colour (as Cycles' denoising passes are), so
+  they blur where the image blurs; depth, position and motion stay pixel-centre values;
 * reference: ``ref_spp`` samples with its own seed, same sensor as the noisy colour.
 """
 
@@ -27,7 +30,9 @@ from denoiser.render.spec import SceneSpec
 
 NO_HIT_DEPTH = 1e10
 MAX_TIME_SAMPLES = 16  # sub-frame instants for a motion-blurred reference
+BLURRED_AUX_SPP = 16   # lens/shutter samples of albedo and normal with dof or motion blur
 AOVS = "albedo:albedo,nn:sh_normal,pos:position,dd:depth,sid:shape_index"
+BLURRED_AOVS = "albedo:albedo,nn:sh_normal"
 
 
 @dataclass
@@ -119,10 +124,37 @@ class FrameRenderer:
         normal = np.where(hit[..., None] & (length > 0), normal / np.maximum(length, 1e-12), 0.0)
         depth = tf.camera_space(cam, pos.astype(np.float64))[..., 2]
         depth = np.where(hit, depth, NO_HIT_DEPTH)
+        albedo = np.where(hit[..., None], albedo, 0.0)
+        if self.blurred:
+            albedo, normal = self._blurred_albedo_normal(t, cam)
         return AuxBuffers(
-            albedo=np.where(hit[..., None], np.clip(albedo, 0.0, 1.0), 0.0).astype(np.float32),
+            albedo=np.clip(albedo, 0.0, 1.0).astype(np.float32),
             normal=normal.astype(np.float32), depth=depth[..., None].astype(np.float32),
             position=pos.astype(np.float64), hit=hit, object=self._object_ids(scene, sid, hit))
+
+    @property
+    def blurred(self) -> bool:
+        """True when the camera blurs the image (dof or an open shutter)."""
+        cam = self.spec.camera
+        return ("dof" in self.spec.effects and cam.aperture > 0) or cam.shutter > 0
+
+    def _blurred_albedo_normal(self, t: int, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Albedo ``[H,W,3]`` and unit camera-space normal ``[H,W,3]`` averaged over lens and shutter
+        samples (misses count as 0; the mean normal is renormalized, 0 where nothing was hit)."""
+        mi = self.mi
+        integrator = mi.load_dict({"type": "aov", "aovs": BLURRED_AOVS})
+        n = BLURRED_AUX_SPP // 2 if self.spec.camera.shutter > 0 else 1
+        acc = np.zeros((self.height, self.width, 6), np.float64)
+        for k, tau in enumerate(self._instants(t, n, seed=t)):
+            scene = self.scene(tau)
+            img = mi.render(scene, sensor=self._sensor(scene, MAIN_SENSOR), integrator=integrator,
+                            spp=BLURRED_AUX_SPP // n, seed=104729 + k)
+            acc += np.array(img, dtype=np.float64)[..., :6]
+        acc /= n
+        normal = tf.apply_vector(np.linalg.inv(cam), acc[..., 3:6]) * np.array([-1.0, 1.0, 1.0])
+        length = np.linalg.norm(normal, axis=-1, keepdims=True)
+        normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-12), 0.0)
+        return acc[..., 0:3], normal
 
     def _object_ids(self, scene, sid: np.ndarray, hit: np.ndarray) -> np.ndarray:
         """Map Mitsuba's per-pixel shape index to object indices: one probe ray per distinct shape."""

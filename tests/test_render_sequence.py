@@ -170,3 +170,20 @@ def test_cli_renders_and_reports_user_errors(tmp_path):
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines()[-1].startswith("error: render: key 'split'")
     assert "Traceback" not in bad.stderr
+
+
+def test_dof_blurs_albedo_but_depth_and_motion_stay_pixel_centre(mi):
+    from denoiser.render.bench import bench_scene
+    from denoiser.render.motion import backward_motion
+    from denoiser.render.passes import FrameRenderer
+
+    sharp = FrameRenderer(mi, build_scene(bench_scene(["area_light"]), 0), 24, 24).aux(0)
+    cfg = bench_scene(["area_light", "dof"])
+    cfg["camera"].update(aperture=0.2, focus_distance=1.5)
+    spec = build_scene(cfg, 0)
+    blurred = FrameRenderer(mi, spec, 24, 24).aux(0)
+    assert np.array_equal(sharp.depth, blurred.depth)
+    assert np.abs(sharp.albedo - blurred.albedo).max() > 0.1
+    n = np.linalg.norm(blurred.normal, axis=-1)
+    assert np.allclose(n[n > 0], 1, atol=1e-4)
+    assert not backward_motion(spec, blurred, 0, 24, 24).any()

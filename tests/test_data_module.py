@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ from denoiser.data.dataset import index_split
 from denoiser.data.layouts import NativeLayout
 from denoiser.data.reader import FrameReader
 from denoiser.data.synthetic import write_synthetic_sequence
+from denoiser.errors import UserError
 
 DATA_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data").glob("*.yaml"))
 LAYOUT_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data" / "layout").glob("*.yaml"))
@@ -216,3 +218,11 @@ def test_benchmark_runs_small():
     assert all(r["frames"] == 2 * 2 and r["seconds"] > 0 for r in rows)
     assert "| warm (from cache, median of 1) | 0 | 4 |" in bench.table(rows, type("A", (), {
         "sequences": 1, "frames": 3, "size": 32, "window": 2, "crop": 16, "batch": 2})())
+
+
+def test_whole_frames_of_different_sizes_cannot_batch(root):
+    dm = make(root, "data.crop=null", "data.train_split=mixed_sizes")
+    shutil.copytree(root / "train" / "t0", root / "mixed_sizes" / "a", dirs_exist_ok=True)
+    shutil.copytree(root / "val" / "v0", root / "mixed_sizes" / "b", dirs_exist_ok=True)
+    with pytest.raises(UserError, match=r"data.crop: null .* batch_size 2 needs one frame size, .* 32x24, 32x32"):
+        dm.setup("fit")

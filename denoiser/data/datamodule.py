@@ -105,6 +105,10 @@ class SequenceDataModule(L.LightningDataModule):
     # ------------------------------------------------------------------ datasets
     def _windows(self, split: str, labeled: bool) -> WindowDataset:
         sources = index_split(self.layout, self.root, split)
+        sizes = sorted({(s.width, s.height) for s in sources})
+        if self.crop is None and self.batch_size > 1 and len(sizes) > 1:
+            raise ConfigError(f"data.crop: null (whole frames) with batch_size {self.batch_size} needs one frame "
+                              f"size, but {self.root}/{split} has {', '.join(f'{w}x{h}' for w, h in sizes)}")
         return WindowDataset(sources, self.layout, self.buffers, self.window, stride=self.stride, crop=self.crop,
                              augment=self.augment, labeled=labeled, samples=self.samples,
                              cache_dir=self.cache_dir, fill_reference=self.use_unlabeled)

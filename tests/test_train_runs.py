@@ -213,3 +213,20 @@ def test_distillation_without_teacher_is_a_one_line_error(data_root, tmp_path, c
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: model.teacher_ckpt") and "Traceback" not in err[0]
+
+
+def test_validation_carries_the_state_across_sequence_pieces(data_root, teacher_run):
+    """Whole validation sequences and the same sequences in 2-frame pieces give the same metrics."""
+    results = []
+    for window in ("null", "2"):
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            cfg = compose("train", overrides=[*FAST, f"data.root={data_root}", "output_dir=/tmp/unused",
+                                              "model=teacher", f"data.val_window={window}"])
+        model = train_script.build(cfg.model, "model")
+        state = torch.load(teacher_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+        model.load_state_dict(state["state_dict"])
+        trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                             enable_model_summary=False)
+        results.append(trainer.validate(model, datamodule=train_script.build(cfg.data, "data"), verbose=False)[0])
+    assert results[0]["val/psnr"] == pytest.approx(results[1]["val/psnr"], abs=1e-4)
+    assert results[0]["val/tpsnr"] == pytest.approx(results[1]["val/tpsnr"], abs=1e-4)

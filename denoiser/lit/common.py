@@ -92,6 +92,7 @@ class DenoiserModule(pl.LightningModule):
         self.final_metrics: dict[str, float] = {}
         #: global step of the last (non-sanity) validation, -1 before any
         self.validated_step = -1
+        self._val_carry: tuple[list[str], dict] | None = None  # (sequence names, state) of the last val batch
 
     @staticmethod
     def _factory(cfg: Callable | Mapping | None) -> Callable | None:
@@ -139,14 +140,19 @@ class DenoiserModule(pl.LightningModule):
     # ----------------------------------------------------------------- validation
 
     def on_validation_epoch_start(self) -> None:
+        self._val_carry = None
         self.val_metrics.reset()
         self.val_input_metrics.reset()
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        """Whole sequences (or windows, in order): metrics of the output and of the noisy input."""
-        outputs, _ = self.run_net(self.net, batch)
+        """Whole sequences, or their pieces in order (``data.val_window``, batch size 1: the state is
+        carried from piece to piece unless the piece starts with a reset): metrics of the output and
+        of the noisy input."""
+        names = list(batch.get("sequence", [f"val/{batch_idx}_{i}" for i in range(batch["color"].shape[0])]))
+        carried = self._val_carry[1] if self._val_carry is not None and self._val_carry[0] == names else None
+        outputs, state, _ = self.net(network_inputs(batch), state=carried, reset=batch["reset"])
+        self._val_carry = (names, state) if len(names) == 1 else None
         reference = batch["reference"]
-        names = list(batch.get("sequence", [f"val/{batch_idx}_{i}" for i in range(outputs.shape[0])]))
         kwargs = {"frame_index": batch.get("frame_index"), "reset": batch["reset"]}
         self.val_metrics.update(outputs.float(), reference.float(), names, **kwargs)
         self.val_input_metrics.update(batch["color"].float(), reference.float(), names, **kwargs)

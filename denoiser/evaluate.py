@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shutil
 import time
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -290,17 +291,24 @@ def run(cfg: DictConfig) -> dict:
     max_frames = cfg.get("max_frames")
     lengths = [min(s.frames, int(max_frames)) if max_frames else s.frames for s in sources]
     ev = Evaluation(methods, metrics, int(cfg.warmup))
-    exr_dir = out_dir / "exr" if cfg.get("save_exr") else None
-    with tqdm(total=sum(lengths), desc="eval", unit="frame") as progress:
-        for source, frames in zip(sources, lengths):
-            progress.set_postfix_str(source.name)
-            image_frame = _image_frame(cfg.images, frames)
-            panels = ev.run_sequence(dataset, source, frames, image_frame, cfg.images, exr_dir, progress)
-            if panels is not None:
-                top, left, h, w = panels["box"]
-                save_crops(out_dir / "images" / f"{source.name.replace('/', '_')}.png", panels["panels"],
-                           panels["notes"], title=f"{source.name} frame {image_frame}, crop {w}x{h} at "
-                           f"(x={left}, y={top}); PSNR of the whole frame")
+    # images and EXRs go to a staging directory first and move into out_dir only when every
+    # sequence succeeded: a bad frame in a later sequence leaves no partial output behind
+    staging = out_dir / f".eval-{os.getpid()}.partial"
+    exr_dir = staging / "exr" if cfg.get("save_exr") else None
+    try:
+        with tqdm(total=sum(lengths), desc="eval", unit="frame") as progress:
+            for source, frames in zip(sources, lengths):
+                progress.set_postfix_str(source.name)
+                image_frame = _image_frame(cfg.images, frames)
+                panels = ev.run_sequence(dataset, source, frames, image_frame, cfg.images, exr_dir, progress)
+                if panels is not None:
+                    top, left, h, w = panels["box"]
+                    save_crops(staging / "images" / f"{source.name.replace('/', '_')}.png", panels["panels"],
+                               panels["notes"], title=f"{source.name} frame {image_frame}, crop {w}x{h} at "
+                               f"(x={left}, y={top}); PSNR of the whole frame")
+        _move_tree(staging, out_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     rows = ev.sequence_rows()
     write_csv(out_dir / "metrics.csv", rows, ["method", "scene", "sequence", "frames", *metrics, "ms_per_frame"])
     write_csv(out_dir / "frames.csv", ev.frame_rows(), ["method", "sequence", "frame", "warmup", *metrics])
@@ -316,6 +324,15 @@ def run(cfg: DictConfig) -> dict:
                          METRIC_FORMATS, METRIC_HEADERS))
     print(f"wrote {out_dir / 'metrics.csv'}, {out_dir / 'metrics.md'} and {out_dir / 'images'}")
     return overall
+
+
+def _move_tree(src: Path, dest: Path) -> None:
+    """Move every file under ``src`` to the same relative path under ``dest`` (replacing files)."""
+    for path in sorted(src.rglob("*")):
+        if path.is_file():
+            target = dest / path.relative_to(src)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
 
 
 def _image_frame(images_cfg, frames: int) -> int | None:

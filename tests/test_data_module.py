@@ -226,3 +226,20 @@ def test_whole_frames_of_different_sizes_cannot_batch(root):
     shutil.copytree(root / "val" / "v0", root / "mixed_sizes" / "b", dirs_exist_ok=True)
     with pytest.raises(UserError, match=r"data.crop: null .* batch_size 2 needs one frame size, .* 32x24, 32x32"):
         dm.setup("fit")
+
+
+def test_collate_matches_default_and_rejects_mixed_keys():
+    from torch.utils.data._utils.collate import default_collate
+
+    from denoiser.data.collate import collate_items
+
+    items = [{"color": torch.rand(2, 3, 4, 4), "reset": torch.tensor([True, False]), "labeled": torch.tensor(True),
+              "sequence": f"train/s{i}", "frame_index": torch.arange(2)} for i in range(3)]
+    got, want = collate_items(items), default_collate(items)
+    assert got.keys() == want.keys() and got["sequence"] == want["sequence"]
+    for k in ("color", "reset", "labeled", "frame_index"):
+        assert torch.equal(got[k], want[k]) and got[k].dtype == want[k].dtype, k
+    items[1] = {**items[1], "reference": torch.zeros(2, 3, 4, 4)}
+    with pytest.raises(UserError, match=r"batch mixes items of train/s0 and train/s1 with different buffers "
+                                        r"\(reference\)"):
+        collate_items(items)

@@ -26,6 +26,7 @@ from torch.utils.data import ConcatDataset, DataLoader
 from tqdm.auto import tqdm
 
 from denoiser.data.augment import Augment
+from denoiser.data.collate import collate_items
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
 from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
@@ -158,7 +159,7 @@ class SequenceDataModule(L.LightningDataModule):
     def _loader(self, dataset, batch_size: int, shuffle: bool = False, sampler=None) -> DataLoader:
         return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, sampler=sampler,
                           num_workers=self.num_workers, persistent_workers=self.persistent_workers,
-                          pin_memory=self.pin_memory)
+                          pin_memory=self.pin_memory, collate_fn=collate_items)
 
     def train_dataloader(self) -> DataLoader:
         if self.train_set is None:

@@ -114,6 +114,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     pl.seed_everything(int(cfg.seed), workers=True)
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), cfg.output_dir)
     datamodule = build(cfg.data, "data")
+    if hasattr(datamodule, "setup"):  # index and validate the data before any log or checkpoint is written
+        datamodule.setup("fit")
     model = build(cfg.model, "model")
     callbacks = [build(c, f"callbacks.{name}") for name, c in (cfg.get("callbacks") or {}).items() if c is not None]
     logger = build(cfg.logger, "logger") if cfg.get("logger") else False

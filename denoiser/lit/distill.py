@@ -101,9 +101,15 @@ class DistillationModule(DenoiserModule):
             if critic is None or adversarial is None or critic_optimizer is None:
                 raise ConfigError("model.critic / model.adversarial / model.critic_optimizer: all needed when "
                                   "model.loss.adversarial_weight > 0")
-            self.critic = self._factory(critic)
+            self._critic_cfg = plain(critic)  # built in configure_model (see there)
             self.adversarial = self._factory(adversarial)
             self._critic_optimizer_factory = self._factory(critic_optimizer)
+
+    def configure_model(self) -> None:
+        """Build the critic here, in the process that trains: its spectral-norm parametrizations
+        cannot be pickled, which DDP's spawn start method would need. Runs before checkpoint restore."""
+        if self.weights["adversarial"] > 0 and self.critic is None:
+            self.critic = self._factory(self._critic_cfg)
 
     def train(self, mode: bool = True):
         """Switch modes, keeping the teacher in eval mode whatever Lightning asks."""

@@ -187,3 +187,23 @@ def test_dof_blurs_albedo_but_depth_and_motion_stay_pixel_centre(mi):
     n = np.linalg.norm(blurred.normal, axis=-1)
     assert np.allclose(n[n > 0], 1, atol=1e-4)
     assert not backward_motion(spec, blurred, 0, 24, 24).any()
+
+
+def test_motion_blur_smears_a_moving_object_only_when_declared(mi):
+    from denoiser.render.passes import FrameRenderer
+
+    def scene(blur: bool) -> dict:
+        cfg = {"name": "smear", "effects": ["env_light", "object_motion"] + (["motion_blur"] if blur else []),
+               "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "shutter": 1.0 if blur else 0.0},
+               "objects": [{"name": "ball", "shape": "sphere", "scale": 0.3, "velocity": [0.8, 0, 0],
+                            "material": {"type": "diffuse", "color": [0.05, 0.05, 0.05]}}],
+               "lights": [{"type": "constant", "radiance": 1.0}]}
+        return cfg
+
+    def partial_pixels(blur: bool) -> int:
+        fr = FrameRenderer(mi, build_scene(scene(blur), 0), 24, 24)
+        row = fr.reference(1, 64, 7)[12, :, 0]  # background 1, dark ball ~0.05
+        return int(((row < 0.9) & (row > 0.15)).sum())
+
+    sharp, blurred = partial_pixels(False), partial_pixels(True)
+    assert blurred >= sharp + 4  # the ball sweeps ~0.8 units (several pixels) during the open shutter

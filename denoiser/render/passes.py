@@ -80,10 +80,15 @@ class FrameRenderer:
         img = self.mi.render(scene, sensor=self._sensor(scene, MAIN_SENSOR), spp=int(spp), seed=int(seed) & 0xFFFFFFFF)
         return np.array(img, dtype=np.float32)[..., :3]
 
+    @property
+    def shutter_open(self) -> bool:
+        """True when the shutter is open and something moves (a static scene needs no sub-frames)."""
+        return self.spec.camera.shutter > 0 and not self.spec.is_static
+
     def _instants(self, t: int, count: int, seed: int) -> list[float]:
         """``count`` stratified instants over the shutter interval of frame ``t`` (just ``t`` if closed)."""
         shutter = self.spec.camera.shutter
-        if shutter <= 0:
+        if not self.shutter_open:
             return [float(t)] * count
         u = np.random.default_rng(seed).random(count)
         return [float(t + shutter * ((k + u[k]) / count - 0.5)) for k in range(count)]
@@ -91,7 +96,7 @@ class FrameRenderer:
     # -- passes
     def radiance(self, t: int, spp: int, seed: int, time_samples: int | None = None) -> np.ndarray:
         """Mean radiance ``[H,W,3]`` of ``spp`` samples (spread over sub-frame instants if blurred)."""
-        if self.spec.camera.shutter <= 0:
+        if not self.shutter_open:
             return self._render(float(t), spp, seed)
         n = min(spp, time_samples or spp)
         counts = [spp // n + (1 if k < spp % n else 0) for k in range(n)]
@@ -136,14 +141,14 @@ class FrameRenderer:
     def blurred(self) -> bool:
         """True when the camera blurs the image (dof or an open shutter)."""
         cam = self.spec.camera
-        return ("dof" in self.spec.effects and cam.aperture > 0) or cam.shutter > 0
+        return ("dof" in self.spec.effects and cam.aperture > 0) or self.shutter_open
 
     def _blurred_albedo_normal(self, t: int, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Albedo ``[H,W,3]`` and unit camera-space normal ``[H,W,3]`` averaged over lens and shutter
         samples (misses count as 0; the mean normal is renormalized, 0 where nothing was hit)."""
         mi = self.mi
         integrator = mi.load_dict({"type": "aov", "aovs": BLURRED_AOVS})
-        n = BLURRED_AUX_SPP // 2 if self.spec.camera.shutter > 0 else 1
+        n = BLURRED_AUX_SPP // 2 if self.shutter_open else 1
         acc = np.zeros((self.height, self.width, 6), np.float64)
         for k, tau in enumerate(self._instants(t, n, seed=t)):
             scene = self.scene(tau)

@@ -1,0 +1,65 @@
+"""Crash safety of ``train.py``: SIGKILL after the first checkpoint appeared, rerun, continue.
+
+The run is killed (SIGKILL: no exception handler, no final checkpoint) as soon as
+``checkpoints/last.ckpt`` exists. Every checkpoint under a final name must then load, and the
+same command with ``ckpt_path=last`` in the same run directory must continue from the saved
+``global_step`` (its TensorBoard steps start there, not at 0) up to ``max_steps``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_crash_render import kill_when
+
+REPO = Path(__file__).resolve().parents[1]
+MAX_STEPS = 24
+TRAIN = ["data=tiny", "net=tiny", "threads=1", "trainer.enable_progress_bar=false", "callbacks.progress=null",
+         "trainer.enable_model_summary=false", f"trainer.max_steps={MAX_STEPS}", "trainer.val_check_interval=12",
+         "trainer.limit_val_batches=1", "trainer.log_every_n_steps=1", "model.image_interval=0",
+         "callbacks.last.every_n_train_steps=4", "final_validation=false"]
+
+
+def train_argv(data: Path, run: Path, *extra: str) -> list[str]:
+    return [sys.executable, str(REPO / "train.py"), *TRAIN, f"data.root={data}", f"hydra.run.dir={run}", *extra]
+
+
+def loss_steps(path: Path) -> list[int]:
+    acc = EventAccumulator(str(path), size_guidance={"scalars": 0})
+    acc.Reload()
+    return sorted({e.step for e in acc.Scalars("train/loss")}) if "train/loss" in acc.Tags()["scalars"] else []
+
+
+def test_training_killed_resumes_from_last_checkpoint(tmp_path):
+    from denoiser.data.synthetic import write_synthetic_sequence
+
+    data = tmp_path / "data"
+    for split, seed in (("train", 1), ("val", 2)):
+        write_synthetic_sequence(data / split / "seq0", frames=4, width=32, height=32, seed=seed)
+    run = tmp_path / "run"
+    last = run / "checkpoints" / "last.ckpt"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+
+    assert kill_when(train_argv(data, run), last.exists, env=env)
+    for ckpt in (run / "checkpoints").glob("*.ckpt"):  # nothing broken under a final name
+        torch.load(ckpt, map_location="cpu", weights_only=False)
+    saved = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
+    assert 0 < saved < MAX_STEPS, saved
+    first_events = set((run / "tb").glob("events.out.tfevents.*"))
+
+    proc = subprocess.run(train_argv(data, run, "ckpt_path=last"), check=False, capture_output=True, text=True,
+                          env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == MAX_STEPS
+    resumed = [f for f in (run / "tb").glob("events.out.tfevents.*") if f not in first_events]
+    assert resumed  # (the final hparams/metrics may go to a second event file of the same process)
+    steps = sorted({s for f in resumed for s in loss_steps(f)})
+    # Lightning logs train/loss at global_step - 1 of the step that produced it
+    assert steps and steps[0] == saved and steps[-1] == MAX_STEPS - 1, (saved, steps[:3], steps[-3:])

@@ -154,3 +154,18 @@ def test_test_only_scene_refused_for_training():
         plan(_compose(["scene=gallery", "split=train"]))
     assert plan(_compose(["scene=gallery", "split=test"]))
     assert plan(_compose(["scene=gallery", "split=train", "allow_test_only=true"]))
+
+
+def test_unknown_light_keys_and_shape_params_are_errors(mi):
+    cfg = _scene()
+    cfg["lights"][0]["radiunce"] = [1, 1, 1]
+    with pytest.raises(ConfigError, match=r"light 'light0': unknown key\(s\) radiunce"):
+        _load(mi, cfg)
+    cfg = _scene()
+    cfg["objects"][1]["params"] = {"radius": 2}
+    with pytest.raises(ConfigError, match="object 'ball': a sphere takes no params"):
+        _load(mi, cfg)
+    cfg = _scene()
+    cfg["camera"]["fob"] = 30
+    with pytest.raises(ConfigError, match=r"camera: unknown key\(s\) fob"):
+        _load(mi, cfg)

@@ -34,10 +34,17 @@ def _rgb(value, where: str) -> list[float]:
     return arr.tolist()
 
 
+AREA_KEYS = {"position", "target", "size", "radiance", "shape", "radius"}
+
+
 def area(mi, light: LightSpec, effects: Effects) -> dict:
     where = f"scene '{effects.scene}': light '{light.name}'"
     effects.require("area_light", f"light '{light.name}' (area)")
     p = light.params
+    unknown = set(p) - AREA_KEYS
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}; allowed: "
+                          f"{', '.join(sorted(AREA_KEYS))}")
     emitter = {"type": "area", "radiance": {"type": "rgb", "value": _rgb(p.get("radiance", [10, 10, 10]),
                                                                            f"{where}.radiance")}}
     pos = np.asarray(p.get("position", [0, 1.98, 0]), dtype=float)
@@ -89,6 +96,8 @@ def sky(mi, light: LightSpec, effects: Effects) -> dict:
 def constant(mi, light: LightSpec, effects: Effects) -> dict:
     effects.require("env_light", f"light '{light.name}' (constant)")
     where = f"scene '{effects.scene}': light '{light.name}'.radiance"
+    if set(light.params) - {"radiance"}:
+        raise ConfigError(f"scene '{effects.scene}': light '{light.name}': a constant light takes only 'radiance'")
     return {f"light__{light.name}": {"type": "constant", "radiance": {
         "type": "rgb", "value": _rgb(light.params.get("radiance", 1.0), where)}}}
 

@@ -8,7 +8,8 @@ Kinds (``shape:``), all in object space before position/rotation/scale:
   ``wave`` (a rippled square in the xz plane, ``params: {amplitude, frequency, segments}``);
 * ``room``: an open-front Cornell room (x, z in [-1, 1], y in [0, 2]) made of five walls
   with materials ``params: {walls, left, right, floor, ceiling, back}`` (each a material;
-  ``floor``/``ceiling``/``back`` default to ``walls``).
+  ``floor``/``ceiling``/``back`` default to ``walls``, which defaults to the object's
+  ``material`` or light grey).
 
 Shape ids in the Mitsuba scene are ``<object>`` or ``<object>__<part>``, so every hit can be
 traced back to its object (for motion vectors).
@@ -36,6 +37,9 @@ def _xf(mi, m: np.ndarray):
 
 def _primitive(kind: str):
     def build(mi, obj: ObjectSpec, m: np.ndarray, effects: Effects) -> dict:
+        if obj.params:
+            raise ConfigError(f"scene '{effects.scene}': object '{obj.name}': a {kind} takes no params "
+                              f"(got {', '.join(sorted(obj.params))})")
         return {obj.name: {"type": kind, "to_world": _xf(mi, m),
                            "bsdf": build_bsdf(mi, obj.material, effects, f"object '{obj.name}'")}}
     return build
@@ -60,7 +64,7 @@ ROOM_DEFAULTS = {"walls": {"type": "diffuse", "color": [0.73, 0.73, 0.73]},
 
 
 def _room(mi, obj: ObjectSpec, m: np.ndarray, effects: Effects) -> dict:
-    p = {**ROOM_DEFAULTS, **obj.params}
+    p = {**ROOM_DEFAULTS, **({"walls": obj.material} if obj.material else {}), **obj.params}
     unknown = set(p) - {"walls", "left", "right", "floor", "ceiling", "back"}
     if unknown:
         raise ConfigError(f"scene '{effects.scene}': object '{obj.name}': unknown room params "

@@ -1,0 +1,156 @@
+"""Tests of denoiser-denoise: native and Blender input, recurrent state, resume, errors."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_eval_data import write_sequence
+
+from denoiser.checkpoint import build_net, compose_net_config, load_denoiser, save_checkpoint
+from denoiser.data.exr import list_channels, read_channels, write_channels
+from denoiser.errors import UserError
+
+VENV_BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("denoise")
+    seq = write_sequence(root / "shot", frames=5, size=(24, 32), cuts=(3,), seed=4)
+    cfg = compose_net_config("tiny", "student")
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(root / "tiny.ckpt", build_net(cfg), cfg)
+    return root, seq, ckpt
+
+
+def compose_denoise(overrides):
+    from hydra import compose, initialize_config_dir
+
+    from denoiser.cli import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("denoise", overrides=[*overrides, "threads=1"])
+
+
+def denoise(overrides):
+    from denoiser.denoise import run
+
+    return run(compose_denoise(overrides))
+
+
+def expected_outputs(ckpt, seq, frames=5, cuts=(3,)):
+    """Denoiser.forward over the whole sequence (state carried, reset at 0 and at the cuts)."""
+    from denoiser.data.exr import read_frame
+
+    names = {"color": ("color.R", "color.G", "color.B"), "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+             "normal": ("normal.X", "normal.Y", "normal.Z"), "depth": ("depth.Z",), "motion": ("motion.X", "motion.Y")}
+    items = [read_frame(seq / f"frame_{t:04d}.exr", names)[0] for t in range(frames)]
+    batch = {k: torch.stack([torch.from_numpy(it[k]).permute(2, 0, 1) for it in items])[None] for k in names}
+    reset = torch.tensor([[t == 0 or t in cuts for t in range(frames)]])
+    with torch.no_grad():
+        out, _, _ = load_denoiser(ckpt)(batch, reset=reset)
+    return out[0]
+
+
+def denoised(path):
+    ch = read_channels(path)
+    return np.stack([ch["denoised.R"], ch["denoised.G"], ch["denoised.B"]])
+
+
+def test_console_script_denoises_with_state_carried(setup, tmp_path):
+    _root, seq, ckpt = setup
+    out = tmp_path / "out"
+    proc = subprocess.run([str(VENV_BIN / "denoiser-denoise"), f"ckpt={ckpt}", f"input={seq}", f"output={out}",
+                           "threads=1", f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "denoised 5 frame(s)" in proc.stdout
+    expected = expected_outputs(ckpt, seq)
+    for t in range(5):
+        f = out / f"frame_{t:04d}.exr"
+        assert set(list_channels(seq / f.name)) < set(list_channels(f))  # input channels preserved
+        assert np.allclose(denoised(f), expected[t].numpy(), atol=1e-5), t
+        orig, new = read_channels(seq / f.name), read_channels(f)
+        assert all(np.array_equal(orig[k], new[k]) for k in orig)
+    assert not list(out.glob(".*"))  # no temporary files left
+
+
+@pytest.mark.parametrize("delete, replay, replayed", [((1, 2, 3, 4), None, 1), ((3, 4), None, 0), ((2, 4), None, 2),
+                                                       ((2, 3, 4), 1, 1)])
+def test_resume_is_exact(setup, tmp_path, delete, replay, replayed):
+    _root, seq, ckpt = setup
+    out = tmp_path / "out"
+    denoise([f"ckpt={ckpt}", f"input={seq}", f"output={out}"])
+    full = {t: denoised(out / f"frame_{t:04d}.exr") for t in range(5)}
+    for t in delete:
+        (out / f"frame_{t:04d}.exr").unlink()
+    counts = denoise([f"ckpt={ckpt}", f"input={seq}", f"output={out}", f"replay_frames={'null' if replay is None else replay}"])
+    assert counts["written"] == len(delete) and counts["replayed"] == replayed
+    for t in range(5):
+        got = denoised(out / f"frame_{t:04d}.exr")
+        if replay is None or t >= 3:  # exact replay, or after the cut at 3 where history resets anyway
+            assert np.array_equal(got, full[t]), t
+    assert denoise([f"ckpt={ckpt}", f"input={seq}", f"output={out}"])["written"] == 0
+
+
+def test_rgb_output(setup, tmp_path):
+    _, seq, ckpt = setup
+    out = tmp_path / "rgb"
+    denoise([f"ckpt={ckpt}", f"input={seq}", f"output={out}", "write=rgb", "half=true"])
+    assert sorted(list_channels(out / "frame_0004.exr")) == ["B", "G", "R"]
+
+
+def test_missing_buffer_lists_channels_and_writes_nothing(setup, tmp_path):
+    _, seq, ckpt = setup
+    src = tmp_path / "nonormal"
+    src.mkdir()
+    for t in range(2):
+        ch = read_channels(seq / f"frame_{t:04d}.exr")
+        write_channels(src / f"frame_{t:04d}.exr", {k: v for k, v in ch.items() if not k.startswith("normal.")})
+    with pytest.raises(UserError, match=r"frame_0000.exr: missing buffer\(s\) normal.*present channels: albedo.B"):
+        denoise([f"ckpt={ckpt}", f"input={src}", f"output={tmp_path / 'o'}"])
+    assert not (tmp_path / "o").exists()
+
+
+def test_damaged_frame_leaves_no_output(setup, tmp_path):
+    _, seq, ckpt = setup
+    src = tmp_path / "damaged"
+    src.mkdir()
+    for t in range(3):
+        data = (seq / f"frame_{t:04d}.exr").read_bytes()
+        (src / f"frame_{t:04d}.exr").write_bytes(data if t != 2 else data[: len(data) // 2])
+    with pytest.raises(UserError, match="frame_0002.exr"):
+        denoise([f"ckpt={ckpt}", f"input={src}", f"output={tmp_path / 'o'}"])
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(UserError, match="input directory"):
+        denoise([f"ckpt={ckpt}", f"input={src}", f"output={src}"])
+
+
+def test_blender_layout(setup, tmp_path):
+    """Cycles multilayer names; Vector (X, Y) with +Y up becomes motion (X, -Y)."""
+    _, seq, ckpt = setup
+    src = tmp_path / "blender"
+    for t in range(3):
+        ch = read_channels(seq / f"frame_{t:04d}.exr")
+        layer = {"ViewLayer.Combined." + c: ch[f"color.{c}"] for c in "RGB"}
+        layer["ViewLayer.Combined.A"] = np.ones_like(ch["color.R"])
+        layer.update({"ViewLayer.Denoising Albedo." + c: ch[f"albedo.{c}"] for c in "RGB"})
+        layer.update({"ViewLayer.Denoising Normal." + c: ch[f"normal.{c}"] for c in "XYZ"})
+        layer["ViewLayer.Depth.Z"] = ch["depth.Z"]
+        layer["ViewLayer.Vector.X"] = ch["motion.X"]
+        layer["ViewLayer.Vector.Y"] = -ch["motion.Y"]
+        layer["ViewLayer.Vector.Z"] = layer["ViewLayer.Vector.W"] = np.zeros_like(ch["motion.X"])
+        write_channels(src / "noisy" / f"{t + 1:04d}.exr", layer)
+    out = tmp_path / "out"
+    denoise([f"ckpt={ckpt}", f"input={src}", f"output={out}", "layout=blender"])
+    expected = expected_outputs(ckpt, seq, frames=3, cuts=())
+    assert sorted(p.name for p in out.iterdir()) == ["0001.exr", "0002.exr", "0003.exr"]
+    for t in range(3):
+        f = out / f"{t + 1:04d}.exr"
+        assert "ViewLayer.Vector.W" in list_channels(f)
+        assert np.allclose(denoised(f), expected[t].numpy(), atol=1e-5), t

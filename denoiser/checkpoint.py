@@ -187,6 +187,7 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
     plain dict that ``build_net`` instantiates and checkpoints store under ``hyper_parameters['net']``.
     """
     from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
@@ -194,9 +195,13 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
 
     if kernel is None:
         kernel = net if (Path(CONF_DIR) / "kernel" / f"{net}.yaml").exists() else "student"
+    overrides = [f"+net={net}", f"+kernel={kernel}", *overrides]
     try:
-        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            cfg = compose(overrides=[f"+net={net}", f"+kernel={kernel}", *overrides])
+        if GlobalHydra.instance().is_initialized():  # inside a Hydra app (same conf/ directory)
+            cfg = compose(overrides=overrides)
+        else:
+            with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+                cfg = compose(overrides=overrides)
     except HydraException as exc:
         raise UserError(f"net={net} kernel={kernel}: {_first_line(exc)}") from None
     return OmegaConf.to_container(cfg.net, resolve=True)

@@ -1,0 +1,535 @@
+"""``denoiser-bench``: what accuracy costs in time, networks and OIDN timed on the same frames.
+
+::
+
+    denoiser-bench 'ckpt={teacher: t.ckpt, student: s.ckpt}' eval_csv=eval/metrics.csv data=demo
+    denoiser-bench ckpt=[s.ckpt] sizes=[[256,256]] repeats=5 use_backends=[eager,onnxruntime]
+
+For every method (OIDN fast/balanced/high from ``baselines``, each checkpoint of ``ckpt`` and
+each untrained config variant of ``variants``), every size of ``sizes`` ``[H, W]`` and, for
+networks, every backend of ``use_backends`` (Hydra ``_target_`` entries of ``backends``:
+PyTorch eager fp32, channels_last, bfloat16 autocast, ``torch.compile``, ONNX Runtime; and
+CUDA backends that run only where a GPU is present), the benchmark measures:
+
+* the **median ms per frame** of ``repeats`` recurrent steps after ``warmup`` steps (state
+  carried, as in real use), with one thread count for everyone (``threads``; torch, OIDN's
+  ``numThreads`` and ONNX Runtime's intra-op threads);
+* **GFLOP** per frame (convolutions and matrix products, ``torch.utils.flop_counter``) and
+  the achieved GFLOP/s as a fraction of this machine's fp32 matmul peak, measured at start;
+* **parameters** and **peak memory**: the peak resident set size above the level before the
+  run, sampled every 2 ms (CPU), or ``torch.cuda.max_memory_allocated`` (CUDA).
+
+Frames: ``frames`` consecutive frames of one test sequence (``sequence``, default the
+first), resampled to each size (bilinear; normals re-normalised, motion scaled): the cost of
+these networks and of OIDN does not depend on the content, and every method sees the same
+frames. Sizes can be skipped per method (``skip``), since a teacher at 1080p on 2 cores takes
+minutes.
+
+The quality of each method is read from ``denoiser-eval``'s ``metrics.csv`` (``eval_csv``,
+the ``mean`` rows) and joined by method name. Outputs in ``out_dir``: ``bench.csv`` (one row
+per method, backend, device and size), ``report.md`` (machine, the table, the student vs
+OIDN-fast ratio at every size) and ``accuracy_vs_time.png`` (PSNR against ms per frame at
+``plot_size`` on a log axis; see :mod:`denoiser.plot_tradeoff`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+import os
+import platform
+import statistics
+import tempfile
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from denoiser.errors import ConfigError, UserError
+from denoiser.report import atomic_write_text, markdown_table, read_csv, write_csv
+
+# ----------------------------------------------------------------------------- frames
+
+
+def resize_frame(frame: Mapping[str, torch.Tensor], height: int, width: int) -> dict[str, torch.Tensor]:
+    """Resample a frame ``{buffer: [1, C, h, w]}`` to ``height`` x ``width``.
+
+    Bilinear for every buffer; normals are re-normalised (zero stays zero), motion vectors are
+    scaled with the image. Used to put the same content at every benchmark size.
+    """
+    h, w = frame["color"].shape[-2:]
+    out = {}
+    for k, v in frame.items():
+        r = v if (h, w) == (height, width) else F.interpolate(v.float(), size=(height, width), mode="bilinear",
+                                                                align_corners=False)
+        if k == "normal":
+            r = F.normalize(r, dim=1) * (v.abs().amax(dim=1, keepdim=True).amax() > 0)
+        elif k == "motion":
+            r = r * torch.tensor([width / w, height / h]).view(1, 2, 1, 1)
+        out[k] = r.contiguous()
+    return out
+
+
+def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: int) -> tuple[str, list[dict]]:
+    """``count`` consecutive frames ``{buffer: [1, C, H, W]}`` of one test sequence (cycled if short)."""
+    from denoiser.evaluate import INPUT_BUFFERS, open_test_split, read_frame
+
+    _, sources, dataset = open_test_split(data_cfg, split, [sequence] if sequence else None)
+    source = sources[0]
+    frames = [read_frame(dataset, source, i % source.frames)[0] for i in range(count)]
+    return source.name, [{k: f[k] for k in INPUT_BUFFERS} for f in frames]
+
+
+# ----------------------------------------------------------------------------- backends
+
+
+class Stepper:
+    """A prepared network: ``step(frame, state, reset) -> (output, state)``; ``sync()`` waits."""
+
+    def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None, note: str = ""):
+        self.step = step
+        self.sync = sync
+        self.note = note
+
+
+class TorchBackend:
+    """PyTorch eager ``Denoiser.step`` on ``device``.
+
+    Args:
+        label: backend name in tables.
+        device: ``cpu`` or ``cuda``.
+        channels_last: weights and inputs in NHWC memory format.
+        autocast: None, ``bfloat16`` or ``float16`` (``torch.autocast``; filtering stays fp32).
+    """
+
+    def __init__(self, label: str = "eager fp32", device: str = "cpu", channels_last: bool = False,
+                 autocast: str | None = None):
+        self.label = label
+        self.device = device
+        self.channels_last = bool(channels_last)
+        self.autocast = getattr(torch, autocast) if autocast else None
+
+    def available(self) -> str | None:
+        """None when usable here, else the reason it is skipped."""
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            return "no CUDA device"
+        return None
+
+    def _move(self, frame):
+        fmt = torch.channels_last if self.channels_last else torch.contiguous_format
+        return {k: v.to(self.device, non_blocking=True).contiguous(memory_format=fmt) for k, v in frame.items()}
+
+    def _context(self):
+        if self.autocast is None:
+            return contextlib.nullcontext()
+        return torch.autocast(device_type=torch.device(self.device).type, dtype=self.autocast)
+
+    def prepare(self, net: torch.nn.Module, example: Mapping[str, torch.Tensor], threads: int) -> Stepper:
+        net = copy.deepcopy(net).to(self.device).eval()  # .to() is in place: keep the caller's net as it is
+        if self.channels_last:
+            net = net.to(memory_format=torch.channels_last)
+        inner = self.wrap(net)
+
+        def step(frame, state, reset):
+            with torch.inference_mode(), self._context():
+                out, new_state, _ = inner(self._move(frame), None if reset else state)
+            return out, new_state
+
+        sync = torch.cuda.synchronize if self.device.startswith("cuda") else (lambda: None)
+        return Stepper(step, sync)
+
+    def wrap(self, net):
+        """The callable ``(frame, state) -> (output, state, extras)`` to time."""
+        return net.step
+
+
+class CompileBackend(TorchBackend):
+    """``torch.compile`` of ``Denoiser.step`` (inductor). ``mode``: e.g. ``reduce-overhead`` on
+    CUDA (CUDA graphs). Compilation happens in the warm-up steps and is not timed."""
+
+    def __init__(self, label: str = "torch.compile", device: str = "cpu", mode: str | None = None,
+                 autocast: str | None = None):
+        super().__init__(label, device, channels_last=False, autocast=autocast)
+        self.mode = mode
+
+    def wrap(self, net):
+        return torch.compile(net.step, mode=self.mode, dynamic=False)
+
+
+class OnnxRuntimeBackend:
+    """The exported ONNX step graph (:mod:`denoiser.export`) in ONNX Runtime.
+
+    ``provider``: an ONNX Runtime execution provider (``CPUExecutionProvider``,
+    ``CUDAExecutionProvider``); the export happens once per network, untimed.
+    """
+
+    def __init__(self, label: str = "onnxruntime", provider: str = "CPUExecutionProvider"):
+        self.label = label
+        self.provider = provider
+        self.device = "cuda" if provider.startswith("CUDA") else "cpu"
+        self._exported: dict[int, str] = {}
+        self._tmp = tempfile.TemporaryDirectory(prefix="denoiser-bench-onnx-")
+
+    def available(self) -> str | None:
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            return "onnxruntime is not installed"
+        if self.provider not in ort.get_available_providers():
+            return f"{self.provider} not available"
+        return None
+
+    def prepare(self, net, example, threads: int) -> Stepper:
+        from denoiser.export import OnnxStep, export_onnx
+
+        key = id(net)
+        if key not in self._exported:
+            path = Path(self._tmp.name) / f"net{len(self._exported)}.onnx"
+            export_onnx(net, path)
+            self._exported[key] = str(path)
+        runner = OnnxStep(self._exported[key], threads, providers=(self.provider,))
+
+        def step(frame, state, reset):
+            out, new_state = runner.step(frame, None if reset else state, reset)
+            return out, new_state
+
+        return Stepper(step)
+
+
+# ----------------------------------------------------------------------------- measuring
+
+
+class PeakRss:
+    """Peak resident set size above the starting level, sampled every ``interval`` seconds."""
+
+    def __init__(self, interval: float = 0.002):
+        self.interval = interval
+        self.page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+        self.peak = 0
+        self._stop = threading.Event()
+
+    def _rss(self) -> int:
+        try:
+            with open("/proc/self/statm") as fh:
+                return int(fh.read().split()[1]) * self.page
+        except OSError:  # not Linux: resource's max RSS is the best we have
+            import resource
+
+            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._rss())
+            time.sleep(self.interval)
+
+    def __enter__(self):
+        self.base = self._rss()
+        self.peak = self.base
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, self._rss())
+
+    @property
+    def megabytes(self) -> float:
+        return (self.peak - self.base) / 2**20
+
+
+def time_steps(stepper: Stepper, frames: list[dict], warmup: int, repeats: int) -> list[float]:
+    """Seconds of each of ``repeats`` recurrent steps after ``warmup`` steps (state carried)."""
+    state = None
+    times = []
+    for i in range(warmup + repeats):
+        frame = frames[i % len(frames)]
+        start = time.perf_counter()
+        _, state = stepper.step(frame, state, i == 0)
+        stepper.sync()
+        if i >= warmup:
+            times.append(time.perf_counter() - start)
+    return times
+
+
+def measure_matmul_peak(threads: int, size: int = 1024, repeats: int = 5) -> float:
+    """fp32 GFLOP/s of a ``size`` x ``size`` matrix product on the CPU (best of ``repeats``)."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    torch.mm(a, b)
+    best = min(_timed(lambda: torch.mm(a, b)) for _ in range(repeats))
+    return 2 * size**3 / best / 1e9
+
+
+def _timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def count_gflop(net: torch.nn.Module, frame: Mapping[str, torch.Tensor]) -> float:
+    """GFLOP of one recurrent step (with history) of ``net`` on ``frame`` (conv and matmul)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    net = net.to("cpu").float().to(memory_format=torch.contiguous_format)
+    with torch.inference_mode():
+        _, state, _ = net.step(dict(frame), None)
+        with FlopCounterMode(display=False) as counter:
+            net.step(dict(frame), state)
+    return counter.get_total_flops() / 1e9
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
+    """``{label: {"net": module, "kind": "checkpoint"|"variant"}}`` from ``ckpt`` and ``variants``."""
+    from denoiser.checkpoint import build_net, compose_net_config, load_denoiser
+    from denoiser.evaluate import checkpoint_paths
+
+    out: OrderedDict[str, dict] = OrderedDict()
+    for name, path in checkpoint_paths(cfg.get("ckpt")).items():
+        out[name] = {"net": load_denoiser(path), "kind": "checkpoint"}
+    for name, spec in (cfg.get("variants") or {}).items():
+        if name in out:
+            raise ConfigError(f"variants.{name}: the name is already used by a checkpoint")
+        net_cfg = compose_net_config(spec.get("net", "student"), spec.get("kernel"), list(spec.get("overrides") or []))
+        torch.manual_seed(0)
+        out[str(name)] = {"net": build_net(net_cfg, f"variants.{name}").eval(), "kind": "variant (untrained)"}
+    return out
+
+
+def quality_from_eval(path: str | os.PathLike | None) -> dict[str, dict]:
+    """``{method: {"psnr": ..., ...}}`` from the ``mean`` rows of ``denoiser-eval``'s metrics.csv."""
+    if not path:
+        return {}
+    rows = read_csv(path)
+    if rows and ("method" not in rows[0] or "sequence" not in rows[0]):
+        raise UserError(f"{path}: not a denoiser-eval metrics.csv (needs columns method and sequence)")
+    return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}
+
+
+def skipped(skip_cfg, label: str, size: tuple[int, int]) -> bool:
+    """True when ``skip[label]`` lists ``[H, W]`` = ``size``."""
+    entries = (skip_cfg or {}).get(label) or []
+    return any(tuple(int(v) for v in e) == size for e in entries)
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def bench_row(method: str, backend: str, device: str, size, times: list[float] | None, **extra) -> dict:
+    row = {"method": method, "backend": backend, "device": device, "height": size[0], "width": size[1],
+           "ms_median": float("nan"), "ms_min": float("nan"), "repeats": 0}
+    if times:
+        row.update(ms_median=1000 * statistics.median(times), ms_min=1000 * min(times), repeats=len(times))
+    row.update(extra)
+    return row
+
+
+def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops: float) -> list[dict]:
+    """Time every method, backend and size; returns the table rows."""
+    from hydra.utils import instantiate
+
+    sizes = [tuple(int(v) for v in s) for s in cfg.sizes]
+    nets = network_methods(cfg)
+    baselines = OrderedDict()
+    for key, node in (cfg.get("baselines") or {}).items():
+        if node is not None:
+            m = instantiate(node)
+            baselines[m.label] = m
+    backends = OrderedDict()
+    for key in cfg.use_backends:
+        if key not in cfg.backends:
+            raise ConfigError(f"use_backends: {key!r} is not in backends ({', '.join(cfg.backends)})")
+        backends[key] = instantiate(cfg.backends[key])
+    warmup, repeats = int(cfg.warmup), int(cfg.repeats)
+    if repeats < 1 or warmup < 0:
+        raise ConfigError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")
+    jobs = [(size, label) for size in sizes for label in [*baselines, *nets] if not skipped(cfg.get("skip"), label, size)]
+    rows = []
+    with tqdm(jobs, desc="bench", unit="job") as progress:
+        for size, label in progress:
+            progress.set_postfix_str(f"{label} {size[1]}x{size[0]}")
+            sized = [resize_frame(f, *size) for f in frames]
+            if label in baselines:
+                method = baselines[label]
+                with PeakRss() as mem:
+                    times = time_steps(Stepper(lambda f, s, r, m=method: (m(f, r), None)), sized, warmup, repeats)
+                rows.append(bench_row(label, "OIDN (pyoidn)", "cpu", size, times, threads=threads,
+                                      peak_mb=mem.megabytes, kind="baseline"))
+                continue
+            net, kind = nets[label]["net"], nets[label]["kind"]
+            gflop = count_gflop(net, sized[0])
+            for key, backend in backends.items():
+                reason = backend.available()
+                base = {"threads": threads if backend.device == "cpu" else "", "gflop": gflop,
+                        "params": net.num_parameters(), "kind": kind}
+                if reason:
+                    rows.append(bench_row(label, backend.label, backend.device, size, None, status=f"skipped: {reason}",
+                                          **base))
+                    continue
+                try:
+                    if backend.device.startswith("cuda"):
+                        torch.cuda.reset_peak_memory_stats()
+                    with PeakRss() as mem:
+                        stepper = backend.prepare(net, sized[0], threads)
+                        times = time_steps(stepper, sized, warmup, repeats)
+                except Exception as exc:  # noqa: BLE001 - a backend that fails here is reported, not fatal
+                    rows.append(bench_row(label, backend.label, backend.device, size, None,
+                                          status=f"failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
+                                          if str(exc) else f"failed: {type(exc).__name__}", **base))
+                    continue
+                peak = (torch.cuda.max_memory_allocated() / 2**20 if backend.device.startswith("cuda")
+                        else mem.megabytes)
+                row = bench_row(label, backend.label, backend.device, size, times, peak_mb=peak, **base)
+                row["gflops_per_s"] = gflop / (row["ms_median"] / 1000)
+                if backend.device == "cpu":
+                    row["peak_fraction"] = row["gflops_per_s"] / peak_gflops
+                rows.append(row)
+    for m in baselines.values():
+        close = getattr(m, "close", None)
+        if close:
+            close()
+    return rows
+
+
+# ----------------------------------------------------------------------------- report
+
+COLUMNS = ["method", "backend", "device", "height", "width", "ms_median", "ms_min", "repeats", "gflop", "params",
+           "peak_mb", "gflops_per_s", "peak_fraction", "psnr", "kind", "threads", "status"]
+FORMATS = {"ms_median": ".1f", "ms_min": ".1f", "gflop": ".2f", "peak_mb": ".0f", "gflops_per_s": ".1f",
+           "peak_fraction": ".1%", "psnr": ".2f", "ratio": ".2f", "psnr_gain": "+.2f", "student_ms": ".1f",
+           "baseline_ms": ".1f"}
+HEADERS = {"ms_median": "ms/frame (median)", "ms_min": "ms min", "gflop": "GFLOP", "peak_mb": "peak MB",
+           "gflops_per_s": "GFLOP/s", "peak_fraction": "of matmul peak", "psnr": "PSNR dB"}
+
+
+def best_rows(rows: list[dict], size, device: str = "cpu") -> dict[str, dict]:
+    """Per method, its fastest timed row at ``size`` on ``device``."""
+    best: dict[str, dict] = {}
+    for r in rows:
+        if (r["height"], r["width"]) != tuple(size) or r["device"] != device or math.isnan(r["ms_median"]):
+            continue
+        if r["method"] not in best or r["ms_median"] < best[r["method"]]["ms_median"]:
+            best[r["method"]] = r
+    return best
+
+
+def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dict]:
+    """Student vs baseline (e.g. OIDN-fast) at each size: best CPU backend and eager fp32."""
+    out = []
+    for size in sizes:
+        size = tuple(int(v) for v in size)
+        b = best_rows(rows, size).get(baseline)
+        s_best = best_rows(rows, size).get(student)
+        s_eager = next((r for r in rows if r["method"] == student and r["backend"] == "eager fp32" and r["device"] == "cpu"
+                        and (r["height"], r["width"]) == size and not math.isnan(r["ms_median"])), None)
+        for which, s in (("fastest backend", s_best), ("eager fp32", s_eager)):
+            if b is None or s is None:
+                continue
+            out.append({"size": f"{size[1]}x{size[0]}", "student": f"{student} ({s['backend']})", "student_ms": s["ms_median"],
+                        "baseline": baseline, "baseline_ms": b["ms_median"], "ratio": b["ms_median"] / s["ms_median"],
+                        "psnr_gain": s.get("psnr", float("nan")) - b.get("psnr", float("nan")), "compare": which})
+    return out
+
+
+def machine_description(threads: int, peak_gflops: float) -> str:
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    return (f"CPU: {cpu}, {os.cpu_count()} logical cores, {threads} thread(s) for every method; "
+            f"fp32 matmul peak {peak_gflops:.1f} GFLOP/s (1024x1024 torch.mm); GPU: {gpu}; "
+            f"torch {torch.__version__}")
+
+
+def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: str, cfg: DictConfig,
+                 plot: Path | None) -> str:
+    parts = ["# Accuracy vs time\n", machine + "\n",
+             f"Median of {cfg.repeats} recurrent steps after {cfg.warmup} warm-up step(s), same frames for every "
+             "method (resampled to each size). GFLOP counts convolutions and matrix products of one step. "
+             "PSNR (tonemapped, dB) from denoiser-eval's metrics.csv"
+             + (f" ({cfg.eval_csv})" if cfg.get("eval_csv") else " (not given: no quality column)") + ".\n"]
+    if ratios:
+        parts += ["## Student vs " + ratios[0]["baseline"] + " (same frames, same run)\n",
+                  markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline_ms", "ratio", "psnr_gain"],
+                                 FORMATS, {"student_ms": "student ms", "baseline_ms": f"{ratios[0]['baseline']} ms",
+                                           "ratio": "speed-up (x)", "psnr_gain": "PSNR gain dB"}), ""]
+    parts += ["## All measurements\n", markdown_table(rows, [c for c in COLUMNS if c not in ("kind",)], FORMATS, HEADERS)]
+    if plot is not None:
+        parts += ["", f"![accuracy vs time]({plot.name})", ""]
+    text = "\n".join(parts)
+    atomic_write_text(out_dir / "report.md", text)
+    return text
+
+
+def run(cfg: DictConfig) -> list[dict]:
+    """The ``denoiser-bench`` task; returns the table rows."""
+    threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
+    torch.set_num_threads(threads)
+    out_dir = Path(cfg.out_dir)
+    quality = quality_from_eval(cfg.get("eval_csv"))
+    seq_name, frames = load_frames(cfg.data, cfg.split, cfg.get("sequence"), int(cfg.warmup) + int(cfg.repeats))
+    peak = measure_matmul_peak(threads)
+    rows = run_benchmark(cfg, frames, threads, peak)
+    for r in rows:
+        q = quality.get(r["method"])
+        r["psnr"] = float(q["psnr"]) if q and "psnr" in q else float("nan")
+        r.setdefault("status", "ok")
+    write_csv(out_dir / "bench.csv", rows, COLUMNS)
+    plot_path = None
+    if quality:
+        from denoiser.plot_tradeoff import plot_accuracy_vs_time
+
+        plot_size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
+        noisy = quality.get(cfg.get("noisy_label", "noisy input"))
+        plot_path = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", rows, plot_size,
+                                          curves=_plain(cfg.get("curves")),
+                                          noisy_psnr=float(noisy["psnr"]) if noisy else None,
+                                          title=f"{seq_name} frames at {plot_size[1]}x{plot_size[0]}, {threads} CPU thread(s)")
+    student = cfg.compare.student or next(iter(network_labels(rows)), None)
+    ratios = ratio_rows(rows, student, cfg.compare.baseline, cfg.sizes) if student else []
+    machine = machine_description(threads, peak)
+    write_report(out_dir, rows, ratios, machine, cfg, plot_path)
+    print(machine)
+    print(markdown_table(rows, ["method", "backend", "device", "height", "width", "ms_median", "gflop", "params",
+                                "peak_mb", "peak_fraction", "psnr", "status"], FORMATS, HEADERS))
+    if ratios:
+        print(markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline", "baseline_ms", "ratio",
+                                      "psnr_gain"], FORMATS, {"ratio": "speed-up (x)"}))
+    print(f"wrote {out_dir / 'bench.csv'}, {out_dir / 'report.md'}" + (f" and {plot_path}" if plot_path else ""))
+    return rows
+
+
+def _plain(node) -> dict:
+    """A config node (or None) as a plain dict."""
+    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
+def network_labels(rows: list[dict]) -> list[str]:
+    seen = []
+    for r in rows:
+        if r.get("kind") != "baseline" and r["method"] not in seen:
+            seen.append(r["method"])
+    return seen
+
+
+def main() -> None:
+    from denoiser.cli import hydra_command
+
+    hydra_command(run, "bench")()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,107 @@
+"""The accuracy-vs-time plot of ``denoiser-bench``: PSNR against ms per frame (log axis).
+
+One point per method at one frame size, timed with its fastest CPU backend (the backend is
+written next to the point): networks as circles, OIDN as squares; the untrained-variant and
+checkpoint families named in ``curves`` (e.g. kernel sizes, widths) are joined by a line in
+the given order; the Pareto front (no other method is both faster and better) is drawn as a
+dashed staircase with its points ringed; the noisy input, which costs nothing, is a dotted
+horizontal line.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from denoiser.report import atomic_path
+
+
+def pareto_front(points: Mapping[str, tuple[float, float]]) -> list[str]:
+    """Labels of the points ``{label: (ms, psnr)}`` that no other point dominates, fastest first.
+
+    A point is dominated when another is at least as fast and at least as good, and strictly
+    better in one of the two.
+    """
+    front = []
+    for a, (ta, qa) in points.items():
+        dominated = any((tb <= ta and qb >= qa) and (tb < ta or qb > qa) for b, (tb, qb) in points.items() if b != a)
+        if not dominated:
+            front.append(a)
+    return sorted(front, key=lambda k: points[k][0])
+
+
+def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size: tuple[int, int],
+                          curves: Mapping[str, Sequence[str]] | None = None, noisy_psnr: float | None = None,
+                          title: str = "") -> Path | None:
+    """Write the plot for frames of ``size`` ``(H, W)``; None when no method has time and PSNR."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    best: dict[str, Mapping] = {}
+    for r in rows:
+        if (int(r["height"]), int(r["width"])) != tuple(size) or r["device"] != "cpu":
+            continue
+        if math.isnan(r["ms_median"]) or math.isnan(r.get("psnr", float("nan"))):
+            continue
+        if r["method"] not in best or r["ms_median"] < best[r["method"]]["ms_median"]:
+            best[r["method"]] = r
+    if not best:
+        return None
+    points = {k: (float(r["ms_median"]), float(r["psnr"])) for k, r in best.items()}
+    fig, ax = plt.subplots(figsize=(8, 5.5), dpi=120)
+    cmap = plt.get_cmap("tab10")
+    for i, (name, members) in enumerate((curves or {}).items()):
+        pts = [points[m] for m in members if m in points]
+        if len(pts) >= 2:
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "-", color=cmap(i + 2), lw=1.5, alpha=0.8,
+                    label=f"{name} (curve)", zorder=1)
+    offsets = [(8, 4), (8, -16), (8, 14), (8, -26)]  # alternate label positions of neighbouring points
+    for rank, k in enumerate(sorted(best, key=lambda m: points[m][0])):
+        r = best[k]
+        baseline = r.get("kind") == "baseline"
+        ax.scatter(*points[k], marker="s" if baseline else "o", s=55, zorder=3,
+                   color=cmap(0) if baseline else cmap(1), edgecolor="black", linewidth=0.6)
+        text = k if baseline else f"{k} ({r['backend']})"
+        ax.annotate(text, points[k], textcoords="offset points", xytext=offsets[rank % len(offsets)], fontsize=7.5)
+    front = pareto_front(points)
+    xs, ys = [], []
+    for k in front:
+        t, q = points[k]
+        if xs:
+            xs.append(t)
+            ys.append(ys[-1])
+        xs.append(t)
+        ys.append(q)
+    ax.plot(xs, ys, "--", color="black", lw=1, zorder=2, label="Pareto front")
+    ax.scatter([points[k][0] for k in front], [points[k][1] for k in front], s=170, facecolor="none",
+               edgecolor="black", linewidth=1.0, zorder=2)
+    ax.scatter([], [], marker="s", color=cmap(0), edgecolor="black", label="OIDN (pyoidn)")
+    ax.scatter([], [], marker="o", color=cmap(1), edgecolor="black", label="our networks (fastest backend)")
+    if noisy_psnr is not None and not math.isnan(noisy_psnr):
+        ax.axhline(noisy_psnr, color="gray", ls=":", lw=1.2, label=f"noisy input ({noisy_psnr:.2f} dB, 0 ms)")
+    ax.set_xscale("log")
+    from matplotlib.ticker import FuncFormatter
+
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    ax.xaxis.set_major_formatter(plain)
+    ax.xaxis.set_minor_formatter(plain)
+    ax.tick_params(axis="x", which="minor", labelsize=7)
+    times = [p[0] for p in points.values()]
+    ax.set_xlim(min(times) / 2, max(times) * 3)
+    quals = [p[1] for p in points.values()] + ([noisy_psnr] if noisy_psnr is not None else [])
+    pad = max(0.5, 0.08 * (max(quals) - min(quals)))
+    ax.set_ylim(min(quals) - pad, max(quals) + pad)
+    ax.set_xlabel(f"time per frame at {size[1]}x{size[0]} (ms, log scale)")
+    ax.set_ylabel("PSNR (dB, ACES + sRGB tonemapped), higher is better")
+    ax.set_title(title or "accuracy vs time", fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    with atomic_path(path, ".png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path)

@@ -169,3 +169,13 @@ def test_unknown_light_keys_and_shape_params_are_errors(mi):
     cfg["camera"]["fob"] = 30
     with pytest.raises(ConfigError, match=r"camera: unknown key\(s\) fob"):
         _load(mi, cfg)
+
+
+def test_bench_prints_one_row_per_effect(mi, capsys):
+    from denoiser.render.bench import main
+
+    main(["--width", "16", "--height", "16", "--spp", "1", "--ref-spp", "4", "--effects", "area_light,indirect,glossy"])
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| +")]
+    assert [r.split("|")[1].strip() for r in rows] == ["+area_light", "+indirect", "+glossy"]
+    assert [int(r.split("|")[2]) for r in rows] == [2, 5, 7]

@@ -125,6 +125,23 @@ def table(rows: list[dict], args) -> str:
     return "\n".join(lines)
 
 
+def scene_noise(mi, names: list[str], width: int, height: int, spp: int, ref_spp: int) -> str:
+    """Table: per repository scene, reference noise (two seeds) and the noisy input's PSNR."""
+    from denoiser.render.catalog import load_scene_config
+
+    lines = [f"| scene | reference s | reference CPU s | ref PSNR dB ({ref_spp} spp) | noisy PSNR dB ({spp} spp) |",
+             "|---|---|---|---|---|"]
+    for name in names:
+        fr = FrameRenderer(mi, build_scene(load_scene_config(name), seed=0), width, height)
+        noisy = fr.radiance(1, spp, 1)
+        with _Clock() as c:
+            ref_a = fr.reference(1, ref_spp, 2)
+        ref_b = fr.reference(1, ref_spp, 3)
+        lines.append(f"| {name} | {c.wall:.2f} | {c.cpu:.2f} | {psnr(ref_a, ref_b) + 10 * np.log10(2):.1f} | "
+                     f"{psnr(noisy, ref_a):.1f} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--width", type=int, default=128)
@@ -133,6 +150,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--ref-spp", type=int, default=256)
     ap.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | scalar_rgb")
     ap.add_argument("--effects", default=",".join(LADDER), help="comma-separated ladder (first must be a light)")
+    ap.add_argument("--scenes", default="", help="also measure reference noise of these repository scenes "
+                    "(comma-separated, or 'all')")
     args = ap.parse_args(argv)
     from tqdm import tqdm
 
@@ -147,6 +166,12 @@ def main(argv: list[str] | None = None) -> None:
     print(f"Mitsuba {mi.__version__} variant {active_variant()}, {args.width}x{args.height}, effects added "
           f"cumulatively (frame 0 includes JIT compilation)")
     print(table(rows, args))
+    if args.scenes:
+        from denoiser.render.catalog import available_scenes
+
+        names = available_scenes() if args.scenes == "all" else args.scenes.split(",")
+        print(f"\nReference noise of the repository scenes (seed 0, frame 1, {args.width}x{args.height}):")
+        print(scene_noise(mi, names, args.width, args.height, args.spp, args.ref_spp))
 
 
 if __name__ == "__main__":

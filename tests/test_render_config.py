@@ -171,6 +171,7 @@ def test_unknown_light_keys_and_shape_params_are_errors(mi):
         _load(mi, cfg)
 
 
+@pytest.mark.slow
 def test_bench_prints_one_row_per_effect(mi, capsys):
     from denoiser.render.bench import main
 

@@ -93,12 +93,17 @@ def frame_inputs(batch: int, height: int, width: int, samples: int = 0, seed: in
 
 
 def count_flops(net, height: int, width: int) -> int:
-    """FLOPs of one ``step`` on a ``1 x height x width`` frame with history (FlopCounterMode)."""
+    """FLOPs of one ``step`` on a ``1 x height x width`` frame with history.
+
+    Counted by ``torch.utils.flop_counter.FlopCounterMode`` on fake tensors
+    (``FakeTensorMode``: shapes only, no arithmetic), so even 1080p counts in about a second.
+    """
     import torch
+    from torch._subclasses.fake_tensor import FakeTensorMode
     from torch.utils.flop_counter import FlopCounterMode
 
-    frame = frame_inputs(1, height, width)
-    with torch.inference_mode():
+    with FakeTensorMode(allow_non_fake_inputs=True) as mode, torch.inference_mode():
+        frame = {k: mode.from_tensor(v) for k, v in frame_inputs(1, height, width).items()}
         _, state, _ = net.step(frame, None)
         with FlopCounterMode(display=False) as counter:
             net.step(frame, state)

@@ -29,11 +29,11 @@ class EmbedNet(nn.Module):
         self.out_channels = out_channels or hidden
         self.layers = nn.Sequential(
             nn.Conv2d(in_channels, hidden, 1),
-            nn.LeakyReLU(negative_slope),
+            nn.LeakyReLU(negative_slope, inplace=True),
             nn.Conv2d(hidden, hidden, 1),
-            nn.LeakyReLU(negative_slope),
+            nn.LeakyReLU(negative_slope, inplace=True),
             nn.Conv2d(hidden, self.out_channels, 1),
-            nn.LeakyReLU(negative_slope),
+            nn.LeakyReLU(negative_slope, inplace=True),
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

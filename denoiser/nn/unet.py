@@ -32,9 +32,9 @@ def conv_block(cin: int, cout: int, negative_slope: float) -> nn.Sequential:
     """``conv3x3 LReLU conv3x3 LReLU``: ``[B, cin, H, W] -> [B, cout, H, W]``."""
     return nn.Sequential(
         nn.Conv2d(cin, cout, 3, padding=1),
-        nn.LeakyReLU(negative_slope),
+        nn.LeakyReLU(negative_slope, inplace=True),
         nn.Conv2d(cout, cout, 3, padding=1),
-        nn.LeakyReLU(negative_slope),
+        nn.LeakyReLU(negative_slope, inplace=True),
     )
 
 

@@ -23,7 +23,7 @@ Frames: ``frames`` consecutive frames of one test sequence (``sequence``, defaul
 first), resampled to each size (bilinear; normals re-normalised, motion scaled): the cost of
 these networks and of OIDN does not depend on the content, and every method sees the same
 frames. Sizes can be skipped per method (``skip``), since a teacher at 1080p on 2 cores takes
-minutes.
+minutes, and a method's backends restricted (``method_backends``).
 
 The quality of each method is read from ``denoiser-eval``'s ``metrics.csv`` (``eval_csv``,
 the ``mean`` rows) and joined by method name. Outputs in ``out_dir``: ``bench.csv`` (one row
@@ -368,7 +368,10 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
                 continue
             net, kind = nets[label]["net"], nets[label]["kind"]
             gflop = count_gflop(net, sized[0])
+            allowed = (cfg.get("method_backends") or {}).get(label)
             for key, backend in backends.items():
+                if allowed is not None and key not in allowed:
+                    continue
                 reason = backend.available()
                 base = {"threads": threads if backend.device == "cpu" else "", "gflop": gflop,
                         "params": net.num_parameters(), "kind": kind}
@@ -468,7 +471,12 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
                                            "ratio": "speed-up (x)", "psnr_gain": "PSNR gain dB"}), ""]
     parts += ["## All measurements\n", markdown_table(rows, [c for c in COLUMNS if c not in ("kind",)], FORMATS, HEADERS)]
     if plot is not None:
-        parts += ["", f"![accuracy vs time]({plot.name})", ""]
+        from denoiser.plot_tradeoff import pareto_front_of_rows
+
+        size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
+        front = pareto_front_of_rows(rows, size)
+        parts += ["", f"Pareto front at {size[1]}x{size[0]} (fastest first): {', '.join(front)}.", "",
+                  f"![accuracy vs time]({plot.name})", ""]
     text = "\n".join(parts)
     atomic_write_text(out_dir / "report.md", text)
     return text

@@ -32,6 +32,24 @@ def pareto_front(points: Mapping[str, tuple[float, float]]) -> list[str]:
     return sorted(front, key=lambda k: points[k][0])
 
 
+def fastest_rows(rows: Sequence[Mapping], size: tuple[int, int], device: str = "cpu") -> dict[str, Mapping]:
+    """Per method, its fastest row at ``size`` ``(H, W)`` on ``device`` with a time and a PSNR."""
+    best: dict[str, Mapping] = {}
+    for r in rows:
+        if (int(r["height"]), int(r["width"])) != tuple(size) or r["device"] != device:
+            continue
+        if math.isnan(float(r["ms_median"])) or math.isnan(float(r.get("psnr", float("nan")))):
+            continue
+        if r["method"] not in best or r["ms_median"] < best[r["method"]]["ms_median"]:
+            best[r["method"]] = r
+    return best
+
+
+def pareto_front_of_rows(rows: Sequence[Mapping], size: tuple[int, int]) -> list[str]:
+    """The Pareto front (fastest first) of the methods' fastest CPU rows at ``size``."""
+    return pareto_front({k: (float(r["ms_median"]), float(r["psnr"])) for k, r in fastest_rows(rows, size).items()})
+
+
 def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size: tuple[int, int],
                           curves: Mapping[str, Sequence[str]] | None = None, noisy_psnr: float | None = None,
                           title: str = "") -> Path | None:
@@ -41,14 +59,7 @@ def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    best: dict[str, Mapping] = {}
-    for r in rows:
-        if (int(r["height"]), int(r["width"])) != tuple(size) or r["device"] != "cpu":
-            continue
-        if math.isnan(r["ms_median"]) or math.isnan(r.get("psnr", float("nan"))):
-            continue
-        if r["method"] not in best or r["ms_median"] < best[r["method"]]["ms_median"]:
-            best[r["method"]] = r
+    best = fastest_rows(rows, size)
     if not best:
         return None
     points = {k: (float(r["ms_median"]), float(r["psnr"])) for k, r in best.items()}

@@ -1,0 +1,117 @@
+"""Tests of denoiser-bench: timing rows, FLOPs, memory, quality join, ratio table and plot."""
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_eval_data import write_dataset
+
+from denoiser.bench import PeakRss, Stepper, resize_frame, time_steps
+from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
+from denoiser.report import read_csv
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    write_dataset(root / "data", sequences=1, frames=3, size=24)
+    cfg = compose_net_config("tiny", "student")
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(root / "student.ckpt", build_net(cfg), cfg)
+    return root, ckpt
+
+
+def compose(name, overrides):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from denoiser.cli import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return hydra_compose(name, overrides=overrides)
+
+
+def test_bench_end_to_end(setup, tmp_path):
+    from denoiser.bench import run as bench
+    from denoiser.evaluate import run as evaluate
+
+    root, ckpt = setup
+    data = ["data=tiny", f"data.root={root / 'data'}", "threads=1"]
+    evaluate(compose("eval", [*data, f"ckpt=[{ckpt}]", "~baselines.oidn_balanced", "~baselines.oidn_high",
+                              "metrics=[psnr]", "images.frame=null", f"out_dir={tmp_path / 'eval'}"]))
+    out = tmp_path / "bench"
+    wide = '{wide: {net: tiny, overrides: ["net.unet.encoder=[12,16,20]","net.unet.bottleneck=20"]}}'
+    rows = bench(compose("bench", [*data, f"ckpt=[{ckpt}]", f"variants={wide}", "curves={width: [student, wide]}",
+                                   f"eval_csv={tmp_path / 'eval' / 'metrics.csv'}", "sizes=[[16,16],[24,40]]",
+                                   "repeats=2", "warmup=1", "use_backends=[eager,channels_last,onnxruntime,cuda_fp16]",
+                                   "~baselines.oidn_balanced", "~baselines.oidn_high", "skip={wide: [[24,40]]}",
+                                   "method_backends={wide: [eager]}",
+                                   f"out_dir={out}"]))
+    table = read_csv(out / "bench.csv")
+    assert len(table) == len(rows)
+    timed = {(r["method"], r["backend"], r["height"]): r for r in table if r["status"] == "ok"}
+    for size in (16, 24):
+        for key in (("student", "eager fp32", size), ("student", "onnxruntime", size), ("OIDN-fast", "OIDN (pyoidn)", size)):
+            assert timed[key]["ms_median"] > 0 and timed[key]["repeats"] == 2, key
+    assert ("wide", "eager fp32", 16) in timed and not any(r["method"] == "wide" and r["height"] == 24 for r in table)
+    assert [r["backend"] for r in table if r["method"] == "wide"] == ["eager fp32"]
+    s16, s24 = timed[("student", "eager fp32", 16)], timed[("student", "eager fp32", 24)]
+    # conv FLOPs scale with the padded pixel count: 16x16 -> 24x40 (pads to 24x40) is 3.75x
+    assert 3.0 < s24["gflop"] / s16["gflop"] < 4.5
+    assert s16["params"] == build_net(compose_net_config("tiny", "student")).num_parameters()
+    assert timed[("wide", "eager fp32", 16)]["params"] > s16["params"]
+    if not torch.cuda.is_available():
+        assert any(r["device"] == "cuda" and r["status"] == "skipped: no CUDA device" for r in table)
+    eval_rows = {r["method"]: r for r in read_csv(tmp_path / "eval" / "metrics.csv") if r["sequence"] == "mean"}
+    assert math.isclose(s16["psnr"], eval_rows["student"]["psnr"], rel_tol=1e-9)
+    assert math.isnan(timed[("wide", "eager fp32", 16)]["psnr"])  # untrained variant: no quality
+    report = (out / "report.md").read_text()
+    assert "## Student vs OIDN-fast" in report and "| 40x24 | fastest backend |" in report
+    assert "matmul peak" in report and "accuracy_vs_time.png" in report
+    assert (out / "accuracy_vs_time.png").read_bytes()[:4] == b"\x89PNG"
+    front = pareto_front_of_rows(table, (24, 40))
+    assert front and set(front) <= {"student", "OIDN-fast"}
+
+
+def test_pareto_front():
+    pts = {"a": (1.0, 20.0), "b": (2.0, 25.0), "c": (3.0, 24.0), "d": (0.5, 10.0), "e": (2.0, 25.0)}
+    assert pareto_front(pts) == ["d", "a", "b", "e"]
+    assert pareto_front({"x": (1.0, 1.0)}) == ["x"]
+
+
+def test_resize_frame_scales_motion_and_keeps_unit_normals():
+    g = torch.Generator().manual_seed(0)
+    frame = {"color": torch.rand(1, 3, 8, 10, generator=g), "motion": torch.ones(1, 2, 8, 10),
+             "normal": torch.nn.functional.normalize(torch.randn(1, 3, 8, 10, generator=g), dim=1)}
+    out = resize_frame(frame, 16, 30)
+    assert out["color"].shape == (1, 3, 16, 30)
+    assert torch.allclose(out["motion"][:, 0], torch.full((1, 16, 30), 3.0))
+    assert torch.allclose(out["motion"][:, 1], torch.full((1, 16, 30), 2.0))
+    assert torch.allclose(out["normal"].norm(dim=1), torch.ones(1, 16, 30), atol=1e-5)
+
+
+def test_time_steps_carries_state_and_resets_once():
+    calls = []
+
+    def step(frame, state, reset):
+        calls.append((reset, state))
+        return frame, (0 if reset else state + 1)
+
+    times = time_steps(Stepper(step), [{"i": 0}, {"i": 1}], warmup=2, repeats=3)
+    assert len(times) == 3 and all(t >= 0 for t in times)
+    assert [c[0] for c in calls] == [True, False, False, False, False]
+    assert [c[1] for c in calls[1:]] == [0, 1, 2, 3]
+
+
+def test_peak_rss_sees_an_allocation():
+    with PeakRss() as mem:
+        block = np.ones(64 * 2**20 // 8)  # 64 MiB, touched
+        block += 1
+    del block
+    assert mem.megabytes > 40

@@ -16,7 +16,10 @@ Variants (how a network is prepared and run; ``VARIANTS``):
 * ``channels_last``: float32, weights and inputs in channels-last (NHWC) memory format;
 * ``channels_last_bf16``: channels-last and ``torch.autocast("cpu", bfloat16)`` for the U-Net
   (uses AMX/AVX512-BF16 through oneDNN where the CPU has it); inputs, softmax and filtering stay
-  float32 (see ``denoiser/nn``), so the output keeps its HDR range.
+  float32 (see ``denoiser/nn``), so the output keeps its HDR range;
+* ``channels_last_bf16_weights``: channels-last with the network's weights converted to
+  bfloat16 (no autocast: no per-call weight casts); the Denoiser feeds the U-Net in its weights'
+  dtype and still filters in float32.
 
 Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant.
 
@@ -62,8 +65,16 @@ def _channels_last_bf16(net, frame):
     return net, frame, lambda: torch.autocast("cpu", dtype=torch.bfloat16)
 
 
+def _channels_last_bf16_weights(net, frame):
+    import torch
+
+    net, frame, _ = _channels_last(net, frame)
+    return net.to(torch.bfloat16), frame, nullcontext
+
+
 #: variant name -> prepare(net, frame) -> (net, frame, context factory)
-VARIANTS = {"eager": _eager, "channels_last": _channels_last, "channels_last_bf16": _channels_last_bf16}
+VARIANTS = {"eager": _eager, "channels_last": _channels_last, "channels_last_bf16": _channels_last_bf16,
+            "channels_last_bf16_weights": _channels_last_bf16_weights}
 
 
 def _status_mb(key: str) -> float:
@@ -123,16 +134,17 @@ def run_net(job: dict) -> dict:
     frame = frame_inputs(1, job["height"], job["width"])
     net, frame, context = VARIANTS[job["variant"]](net, frame)
     base = start_peak()
-    times = []
+    times, cpu = [], []
     with torch.inference_mode(), context():
         _, state, _ = net.step(frame, None)
         for _ in range(job["warmup"] - 1):
             _, state, _ = net.step(frame, state)
         for _ in range(job["repeats"]):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             _, state, _ = net.step(frame, state)
             times.append(time.perf_counter() - t)
-    return {"ms": [x * 1e3 for x in times], "peak_mb": peak_mb() - base}
+            cpu.append(time.process_time() - c)
+    return {"ms": [x * 1e3 for x in times], "cpu_ms": [x * 1e3 for x in cpu], "peak_mb": peak_mb() - base}
 
 
 def run_kernel(job: dict) -> dict:
@@ -207,12 +219,13 @@ def net_rows(args, peak, flops, params):
         f = flops[(job["net"], job["size"])]
         if "error" in res:
             rows.append([job["net"], job["variant"], job["size"], f"{params[job['net']]:,}", f"{f / 1e9:.1f}",
-                         "error", "", "", "", ""])
+                         "error", "", "", "", "", ""])
             continue
         ms = statistics.median(res["ms"])
         gflops = f / (ms / 1e3) / 1e9
         rows.append([job["net"], job["variant"], job["size"], f"{params[job['net']]:,}", f"{f / 1e9:.1f}",
-                     f"{ms:.0f}", f"{len(res['ms'])}", f"{res['peak_mb']:.0f}", f"{gflops:.1f}",
+                     f"{ms:.0f}", f"{statistics.median(res['cpu_ms']):.0f}", f"{len(res['ms'])}",
+                     f"{res['peak_mb']:.0f}", f"{gflops:.1f}",
                      f"{100 * gflops / peak:.1f}%"])
     return results, rows
 
@@ -258,7 +271,9 @@ def main(argv=None) -> None:
 
     results, rows = net_rows(args, peak, flops, params)
     print("## Networks (one step with history, batch 1, CPU, inference mode)\n")
-    print_table(["net", "variant", "size", "params", "GFLOP/frame", "ms/frame", "runs", "peak MB",
+    print("ms/frame: median wall clock; CPU ms: process CPU time of the same step (both threads; on an\n"
+          "idle machine about threads x wall, lower when other processes compete for the cores)\n")
+    print_table(["net", "variant", "size", "params", "GFLOP/frame", "ms/frame", "CPU ms", "runs", "peak MB",
                  "GFLOP/s", "of fp32 mm peak"], rows)
     if "student" in params and "teacher" in params:
         ratios = ", ".join(f"{s} {flops[('teacher', s)] / flops[('student', s)]:.1f}x" for s in args.sizes)

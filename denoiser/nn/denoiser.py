@@ -110,7 +110,10 @@ class Denoiser(nn.Module):
         h, w = color.shape[-2:]
         scale = color_scale(color)
         guide = guide_features(frame)
-        net_in = self.embed(self.embed_inputs(frame, color, scale, guide))
+        # the transforms run in float32; a network converted to bfloat16/float16 weights (fast
+        # CPU/GPU inference without autocast) gets its inputs in its own dtype
+        net_dtype = self.embed.layers[0].weight.dtype
+        net_in = self.embed(self.embed_inputs(frame, color, scale, guide).to(net_dtype))
         history = None
         if self.temporal is not None:
             history = self.temporal.warp(state, frame["motion"], reset, like=color)

@@ -32,19 +32,22 @@ def kernel_size_of(logits: torch.Tensor) -> int:
     return k
 
 
-def border_bias(k: int, h: int, w: int, device: torch.device) -> torch.Tensor:
-    """``[1, k*k, h, w]`` float32: ``-inf`` where tap (i, j) at pixel (y, x) reads outside
-    the image (``y + i - r`` or ``x + j - r`` out of range), 0 elsewhere."""
+def mask_border_taps_(logits: torch.Tensor) -> torch.Tensor:
+    """Set, in place, the logits of taps that read outside the image to ``-inf``.
+
+    logits: ``[B, k*k, H, W]`` float32. Tap (i, j) at pixel (y, x) reads (y + i - r, x + j - r);
+    only border strips are written (2k slice assignments), so the cost is O(k*k*r*(H+W)).
+    """
+    k = kernel_size_of(logits)
     r = k // 2
-    bias = torch.zeros(1, k, k, h, w, device=device)
+    h, w = logits.shape[-2:]
     for d in range(-r, r + 1):
-        if d < 0:
-            bias[:, d + r, :, : min(-d, h)] = float("-inf")
-            bias[:, :, d + r, :, : min(-d, w)] = float("-inf")
-        elif d > 0:
-            bias[:, d + r, :, max(h - d, 0):] = float("-inf")
-            bias[:, :, d + r, :, max(w - d, 0):] = float("-inf")
-    return bias.view(1, k * k, h, w)
+        rows = slice(0, min(-d, h)) if d < 0 else slice(max(h - d, 0), h)
+        cols = slice(0, min(-d, w)) if d < 0 else slice(max(w - d, 0), w)
+        if d != 0:
+            logits[:, (d + r) * k: (d + r + 1) * k, rows] = float("-inf")  # taps with row offset d
+            logits[:, d + r:: k, :, cols] = float("-inf")  # taps with column offset d
+    return logits
 
 
 def kernel_weights(logits: torch.Tensor) -> torch.Tensor:
@@ -52,13 +55,9 @@ def kernel_weights(logits: torch.Tensor) -> torch.Tensor:
 
     Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4) so the weights stay finite.
     """
-    k = kernel_size_of(logits)
-    h, w = logits.shape[-2:]
     with torch.autocast(device_type=logits.device.type, enabled=False):
         logits = torch.nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
-        if k > 1:
-            logits = logits + border_bias(k, h, w, logits.device)
-        return torch.softmax(logits, dim=1)
+        return torch.softmax(mask_border_taps_(logits), dim=1)
 
 
 def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:

@@ -81,13 +81,13 @@ class TemporalRecurrence(nn.Module):
         keep = keep.view(b, 1, 1, 1)
         stacked = torch.cat([state[k].float() for k in STATE_KEYS] + [torch.ones_like(like[:, :1])], 1)
         # discarded history must not leak, not even as NaN through 0 * x
-        stacked = torch.where(keep, stacked, torch.zeros_like(stacked))
+        stacked = torch.where(keep, stacked, 0.0)
         warped = warp_to_current(stacked, motion)
         cover = warped[:, -1:]
         ok = cover > COVER_MIN
-        values = torch.where(ok, warped[:, :-1] / cover.clamp_min(COVER_MIN), torch.zeros_like(warped[:, :-1]))
+        values = torch.where(ok, warped[:, :-1] / cover.clamp_min(COVER_MIN), 0.0)
         history = dict(zip(STATE_KEYS, torch.split(values, list(self.state_channels().values()), dim=1)))
-        history["valid"] = torch.where(ok, cover, torch.zeros_like(cover))
+        history["valid"] = torch.where(ok, cover, 0.0)
         return history
 
     def inputs(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> torch.Tensor:

@@ -33,13 +33,20 @@ def report_user_error(exc: BaseException) -> None:
 
 def guarded(task: Callable) -> Callable:
     """Wrap a task so user errors end the process with one line instead of a traceback."""
-    from denoiser.errors import UserError
+    from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue
+
+    from denoiser.errors import ConfigError, UserError
 
     def wrapper(cfg):
         try:
             return task(cfg)
         except UserError as exc:  # a mistake in the input, not a bug
             report_user_error(exc)
+        except (InterpolationResolutionError, MissingMandatoryValue) as exc:  # e.g. key=${no_such_key}, key=???
+            if debug_enabled():
+                raise
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            report_user_error(ConfigError(f"{exc.full_key or 'config'}: {first}"))
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
             sys.exit(130)

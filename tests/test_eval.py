@@ -37,7 +37,7 @@ def compose_eval(overrides):
     from denoiser.cli import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("eval", overrides=overrides)
+        return compose("eval", overrides=[*overrides, "threads=1"])
 
 
 def test_eval_tables_images_and_values(setup, tmp_path):

@@ -11,24 +11,28 @@ import torch
 
 from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
 from denoiser.errors import UserError
-from denoiser.export import OnnxStep, StepGraph, check_export, example_frame, export_onnx
+from denoiser.export import OnnxStep, StepGraph, check_export, example_frame
 
 VENV_BIN = Path(sys.executable).parent
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
+    """A tiny checkpoint exported once through the console script (export + ORT check)."""
     root = tmp_path_factory.mktemp("export")
     cfg = compose_net_config("tiny", "student")
     torch.manual_seed(0)
     net = build_net(cfg).eval()
     ckpt = save_checkpoint(root / "tiny.ckpt", net, cfg)
-    onnx_path = export_onnx(net, root / "tiny.onnx")
-    return root, net, ckpt, onnx_path
+    onnx_path = root / "tiny.onnx"
+    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={onnx_path}", "check_size=[20,28]",
+                           "threads=1", f"hydra.run.dir={root / 'h'}"], capture_output=True, text=True, timeout=300,
+                          check=False)
+    return root, net, ckpt, onnx_path, proc
 
 
 def test_graph_interface(tiny):
-    _, net, _, path = tiny
+    _, net, _, path, _ = tiny
     model = onnx.load(str(path))
     assert model.opset_import[0].version == 17
     inputs = {i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim] for i in model.graph.input}
@@ -42,7 +46,7 @@ def test_graph_interface(tiny):
 
 @pytest.mark.parametrize("size", [(24, 40), (33, 17)])
 def test_onnx_matches_pytorch_at_other_sizes(tiny, size):
-    _, net, _, path = tiny
+    _, net, _, path, _ = tiny
     errors = check_export(net, path, size=size, steps=3)
     assert set(errors) >= {"output", "next_state_color"}
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
@@ -50,7 +54,7 @@ def test_onnx_matches_pytorch_at_other_sizes(tiny, size):
 
 def test_state_carries_history(tiny):
     """The second step depends on the state: feeding a reset or another state changes the output."""
-    _, _, _, path = tiny
+    _, _, _, path, _ = tiny
     runner = OnnxStep(path)
     f0, f1 = example_frame(1, 16, 16, seed=1), example_frame(1, 16, 16, seed=2)
     for f in (f0, f1):
@@ -63,14 +67,11 @@ def test_state_carries_history(tiny):
     assert np.allclose(after_reset, fresh, atol=1e-6)
 
 
-def test_export_command(tiny, tmp_path):
-    _, _, ckpt, _ = tiny
-    out = tmp_path / "cmd.onnx"
-    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", "check_size=[20,28]",
-                           f"hydra.run.dir={tmp_path / 'h'}"], capture_output=True, text=True, timeout=300,
-                          check=False)
+def test_export_command(tiny):
+    *_, out, proc = tiny
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "max abs error" in proc.stdout and "trtexec --onnx=" in proc.stdout and out.exists()
+    assert "ONNX Runtime vs PyTorch at 28x20" in proc.stdout and "max abs error" in proc.stdout
+    assert "trtexec --onnx=" in proc.stdout and out.exists()
 
 
 def test_export_config_errors(tiny, tmp_path):
@@ -78,7 +79,7 @@ def test_export_config_errors(tiny, tmp_path):
 
     from denoiser.export import run
 
-    _, _, ckpt, _ = tiny
+    _, _, ckpt, _, _ = tiny
     base = {"ckpt": str(ckpt), "out": str(tmp_path / "x.onnx"), "opset": 17, "batch": 1, "trace_size": [37, 61],
             "check_size": [37, 61], "tolerance": 1e-4, "threads": None}
     with pytest.raises(UserError, match="check_size must differ"):

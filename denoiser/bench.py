@@ -506,7 +506,7 @@ def run(cfg: DictConfig) -> list[dict]:
                                           curves=_plain(cfg.get("curves")),
                                           noisy_psnr=float(noisy["psnr"]) if noisy else None,
                                           title=f"{seq_name} frames at {plot_size[1]}x{plot_size[0]}, {threads} CPU thread(s)")
-    student = cfg.compare.student or next(iter(network_labels(rows)), None)
+    student = cfg.compare.student or default_student(network_labels(rows))
     ratios = ratio_rows(rows, student, cfg.compare.baseline, cfg.sizes) if student else []
     machine = machine_description(threads, peak)
     write_report(out_dir, rows, ratios, machine, cfg, plot_path)
@@ -523,6 +523,12 @@ def run(cfg: DictConfig) -> list[dict]:
 def _plain(node) -> dict:
     """A config node (or None) as a plain dict."""
     return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
+def default_student(labels: list[str]) -> str | None:
+    """The network compared with the baseline when ``compare.student`` is null: the first whose
+    name contains ``student``, else the first network."""
+    return next((m for m in labels if "student" in m), labels[0] if labels else None)
 
 
 def network_labels(rows: list[dict]) -> list[str]:

@@ -115,3 +115,11 @@ def test_peak_rss_sees_an_allocation():
         block += 1
     del block
     assert mem.megabytes > 40
+
+
+def test_default_student_for_the_ratio():
+    from denoiser.bench import default_student
+
+    assert default_student(["teacher", "student_distilled", "student_no_kd"]) == "student_distilled"
+    assert default_student(["teacher", "tiny"]) == "teacher"
+    assert default_student([]) is None

@@ -71,14 +71,14 @@ train_run student_no_kd experiment=demo_distill ablation=no_kd "trainer.max_time
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
 CKPTS="{teacher: $(ckpt_of teacher), student_distilled: $(ckpt_of student_distilled), student_no_kd: $(ckpt_of student_no_kd)}"
 stage eval "$BIN/denoiser-eval" data=demo "ckpt=$CKPTS" "out_dir=$REPORT/eval"
-if [ -x "$BIN/denoiser-bench" ] && "$PY" -c "import denoiser.bench" 2>/dev/null; then
-    stage bench "$BIN/denoiser-bench" data=demo "ckpt=$CKPTS" "out_dir=$REPORT/bench"
-else
-    echo "==> [bench] denoiser-bench is not available; skipped"
-fi
+# CPU budget: eager PyTorch and ONNX Runtime at 256x256 and 1080p (the teacher at 256x256 only)
+stage bench "$BIN/denoiser-bench" data=demo "ckpt=$CKPTS" "eval_csv=$REPORT/eval/metrics.csv" \
+    "out_dir=$REPORT/bench" "sizes=[[256,256],[1080,1920]]" "use_backends=[eager,onnxruntime]" \
+    "skip={teacher: [[1080,1920]]}" repeats=3
 
 # 6. the report directory
 cp "$REPORT/eval/metrics.md" "$REPORT/metrics.md"
+cp "$REPORT/bench/report.md" "$REPORT/bench.md"
 rm -rf "$REPORT/crops" && cp -r "$REPORT/eval/images" "$REPORT/crops"
 for plot in "$REPORT"/bench/*.png; do [ -f "$plot" ] && cp "$plot" "$REPORT/"; done
 echo "| total | $(( $(date +%s) - START )) |" >> "$TIMINGS.tmp"
@@ -88,11 +88,12 @@ cat <<EOF
 
 ==== demo finished: $REPORT/ ====
   metrics table      $REPORT/metrics.md   (per sequence: $REPORT/eval/metrics.csv)
-  accuracy vs time   $(ls "$REPORT"/*.png 2>/dev/null | tr '\n' ' ' || true)(tables: $REPORT/bench/)
+  accuracy vs time   $REPORT/accuracy_vs_time.png   (table: $REPORT/bench.md)
   crops (PNG)        $REPORT/crops/
   TensorBoard        tensorboard --logdir $RUNS
   checkpoints        $RUNS/{teacher,student_distilled,student_no_kd}/checkpoints/
   stage timings      $TIMINGS
 EOF
 cat "$REPORT/metrics.md"
+cat "$REPORT/bench.md"
 cat "$TIMINGS"

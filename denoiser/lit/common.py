@@ -115,8 +115,27 @@ class DenoiserModule(pl.LightningModule):
         opt = (factory or self._optimizer_factory)(params)
         out: dict = {"optimizer": opt}
         if self._scheduler_factory is not None and factory is None:
-            out["lr_scheduler"] = {"scheduler": self._scheduler_factory(opt), "interval": self.scheduler_interval}
+            scheduler = self._scheduler_factory(opt)
+            if hasattr(scheduler, "bind_progress"):  # e.g. denoiser.lit.schedule.ProgressCosineLR
+                scheduler.bind_progress(self.training_progress)
+            out["lr_scheduler"] = {"scheduler": scheduler, "interval": self.scheduler_interval}
         return out
+
+    def training_progress(self) -> float:
+        """Fraction of the training budget used: max of ``global_step / max_steps`` and
+        ``elapsed / max_time`` (Lightning's Timer callback), in [0, 1]."""
+        from lightning.pytorch.callbacks import Timer
+
+        trainer = self._trainer
+        if trainer is None:
+            return 0.0
+        fractions = []
+        if trainer.max_steps and trainer.max_steps > 0:
+            fractions.append(trainer.global_step / trainer.max_steps)
+        for cb in trainer.callbacks:
+            if isinstance(cb, Timer) and cb._duration:
+                fractions.append(cb.time_elapsed("train") / cb._duration)
+        return min(max(fractions, default=0.0), 1.0)
 
     # ----------------------------------------------------------------- images
 

@@ -16,8 +16,10 @@ CUDA backends that run only where a GPU is present), the benchmark measures:
   ``numThreads`` and ONNX Runtime's intra-op threads);
 * **GFLOP** per frame (convolutions and matrix products, ``torch.utils.flop_counter``) and
   the achieved GFLOP/s as a fraction of this machine's fp32 matmul peak, measured at start;
-* **parameters** and **peak memory**: the peak resident set size above the level before the
-  run, sampled every 2 ms (CPU), or ``torch.cuda.max_memory_allocated`` (CUDA).
+* **parameters** and **peak memory**: the peak resident set size during the warm-up and timed
+  steps above the level after preparing the method (weights loaded, graph exported or
+  compiled), sampled every 2 ms (CPU); ``torch.cuda.max_memory_allocated`` (CUDA). Memory the
+  allocator kept from an earlier run is not counted again, so read it as "at least".
 
 Frames: ``frames`` consecutive frames of one test sequence (``sequence``, default the
 first), resampled to each size (bilinear; normals re-normalised, motion scaled): the cost of
@@ -382,8 +384,8 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
                 try:
                     if backend.device.startswith("cuda"):
                         torch.cuda.reset_peak_memory_stats()
-                    with PeakRss() as mem:
-                        stepper = backend.prepare(net, sized[0], threads)
+                    stepper = backend.prepare(net, sized[0], threads)
+                    with PeakRss() as mem:  # what running needs above the prepared state
                         times = time_steps(stepper, sized, warmup, repeats)
                 except Exception as exc:  # noqa: BLE001 - a backend that fails here is reported, not fatal
                     rows.append(bench_row(label, backend.label, backend.device, size, None,

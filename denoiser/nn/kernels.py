@@ -60,6 +60,56 @@ def kernel_weights(logits: torch.Tensor) -> torch.Tensor:
         return torch.softmax(mask_border_taps_(logits), dim=1)
 
 
+def _accumulate(xp: torch.Tensor, weights: torch.Tensor, k: int, h: int, w: int) -> torch.Tensor:
+    """``sum_t weights[:, t] * xp[:, :, i:i+h, j:j+w]`` over taps ``t = i*k + j`` (no autograd)."""
+    out = None
+    for i in range(k):
+        for j in range(k):
+            tap = weights[:, i * k + j: i * k + j + 1]
+            view = xp[:, :, i: i + h, j: j + w]
+            if out is None:
+                out = tap * view
+            else:
+                out.addcmul_(tap, view)
+    return out
+
+
+class _ApplyWeights(torch.autograd.Function):
+    """Per-pixel weighted sum of shifted views with a hand-written backward.
+
+    forward(xp ``[B, C, H+2r, W+2r]`` zero-padded image, weights ``[B, k*k, H, W]``) ->
+    ``[B, C, H, W]``. backward: ``grad_weights[:, t] = sum_c grad * view_t`` and
+    ``grad_xp[view_t] += grad * weights[:, t]``, accumulated in place (autograd on the loop
+    would keep k*k intermediate graphs and allocate a gradient per view).
+    """
+
+    @staticmethod
+    def forward(ctx, xp, weights):
+        k = kernel_size_of(weights)
+        h, w = weights.shape[-2:]
+        ctx.save_for_backward(xp, weights)
+        ctx.k = k
+        return _accumulate(xp, weights, k, h, w)
+
+    @staticmethod
+    def backward(ctx, grad):
+        xp, weights = ctx.saved_tensors
+        k = ctx.k
+        h, w = weights.shape[-2:]
+        grad = grad.contiguous()
+        grad_xp = torch.zeros_like(xp) if ctx.needs_input_grad[0] else None
+        grad_w = torch.empty_like(weights) if ctx.needs_input_grad[1] else None
+        for i in range(k):
+            for j in range(k):
+                t = i * k + j
+                view = xp[:, :, i: i + h, j: j + w]
+                if grad_w is not None:
+                    torch.sum(grad * view, dim=1, keepdim=True, out=grad_w[:, t: t + 1])
+                if grad_xp is not None:
+                    grad_xp[:, :, i: i + h, j: j + w].addcmul_(grad, weights[:, t: t + 1])
+        return grad_xp, grad_w
+
+
 def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     """Apply per-pixel kernels.
 
@@ -71,18 +121,10 @@ def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     weights = kernel_weights(logits)
     with torch.autocast(device_type=x.device.type, enabled=False):
         x = x.float()
-        h, w = x.shape[-2:]
         xp = F.pad(x, (r, r, r, r)) if r > 0 else x  # zeros, which get zero weight
-        out = None
-        for i in range(k):
-            for j in range(k):
-                tap = weights[:, i * k + j: i * k + j + 1]
-                view = xp[:, :, i: i + h, j: j + w]
-                if out is None:
-                    out = tap * view
-                else:
-                    out.addcmul_(tap, view)
-        return out
+        if torch.is_grad_enabled() and (xp.requires_grad or weights.requires_grad):
+            return _ApplyWeights.apply(xp, weights)
+        return _accumulate(xp, weights, k, *x.shape[-2:])
 
 
 def apply_kernels_unfold(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:

@@ -96,7 +96,7 @@ class Denoiser(nn.Module):
         """Denoise one frame.
 
         frame: ``color [B, 3, H, W]`` linear HDR, ``albedo [B, 3, H, W]``, ``normal [B, 3, H, W]``,
-            ``depth [B, 1, H, W]``, ``motion [B, 2, H, W]`` (needed with temporal recurrence),
+            ``depth [B, 1, H, W]``, ``motion [B, 2, H, W]`` (backward, pixels; zero if absent),
             optional ``samples [B, S, 3, H, W]``.
         state: previous step's state (dict of ``[B, C, H, W]``) or None (= reset all).
         reset: bool ``[B]`` or None; True discards that item's history.
@@ -116,7 +116,10 @@ class Denoiser(nn.Module):
         net_in = self.embed(self.embed_inputs(frame, color, scale, guide).to(net_dtype))
         history = None
         if self.temporal is not None:
-            history = self.temporal.warp(state, frame["motion"], reset, like=color)
+            motion = frame.get("motion")
+            if motion is None:  # no motion vectors: a static camera and scene
+                motion = torch.zeros_like(color[:, :2])
+            history = self.temporal.warp(state, motion, reset, like=color)
             net_in = torch.cat([net_in, self.temporal.inputs(history, scale).to(net_in.dtype)], dim=1)
         heads, features = self.unet(pad_to_multiple(net_in, self.multiple))
         filter_heads = [heads[0][:, : self.filter_head0]] + list(heads[1:])

@@ -134,8 +134,10 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     args = graph_inputs(graph, frame, None, reset=False)
     dynamic = {n: {2: "height", 3: "width"} for n in graph.input_names() + graph.output_names() if n != "reset"}
     path = Path(path)
-    with atomic_path(path, ".onnx") as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # tracer warnings about Python ints are expected (see docstring)
+    with atomic_path(path, ".onnx") as tmp, warnings.catch_warnings(), torch.no_grad():
+        # no_grad: the inference path of every op (no custom autograd.Function in the graph);
+        # tracer warnings about Python ints are expected (see the module docstring)
+        warnings.simplefilter("ignore")
         torch.onnx.export(graph, args, str(tmp), opset_version=int(opset), input_names=graph.input_names(),
                           output_names=graph.output_names(), dynamic_axes=dynamic, dynamo=False,
                           do_constant_folding=True)

@@ -45,8 +45,7 @@ def guarded(task: Callable) -> Callable:
         except (InterpolationResolutionError, MissingMandatoryValue) as exc:  # e.g. key=${no_such_key}, key=???
             if debug_enabled():
                 raise
-            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            report_user_error(ConfigError(f"{exc.full_key or 'config'}: {first}"))
+            report_user_error(ConfigError(_config_error_text(cfg, exc)))
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
             sys.exit(130)
@@ -54,6 +53,20 @@ def guarded(task: Callable) -> Callable:
     wrapper.__name__ = getattr(task, "__name__", "task")
     wrapper.__doc__ = task.__doc__
     return wrapper
+
+
+def _config_error_text(cfg, exc: BaseException) -> str:
+    """``<key>: <problem>`` for an unresolvable config value (finds the key when ``exc`` lacks it)."""
+    key = getattr(exc, "full_key", None)
+    if not key:
+        from omegaconf import OmegaConf
+
+        try:  # resolving the whole config raises at the offending node, with its key
+            OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        except Exception as again:  # noqa: BLE001 - only used to locate the key
+            key = getattr(again, "full_key", None)
+    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return f"{key or 'config'}: {first}"
 
 
 def hydra_command(task: Callable, config_name: str) -> Callable[[], None]:

@@ -50,6 +50,10 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise UserError(f"{path}: checkpoint file does not exist")
     if path.is_dir():
         raise UserError(f"{path}: is a directory, not a checkpoint file")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if not (magic.startswith(b"PK\x03\x04") or magic[:1] == b"\x80"):  # torch.save: zip; legacy: pickle
+        raise UserError(f"{path}: not a checkpoint (not a file written by torch.save or Lightning)")
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError:

@@ -226,7 +226,7 @@ def cases(work: Path, command: str) -> dict[str, dict]:
         train("empty_dataset", data / "empty", "empty/train")
         train("unknown_key", data / "truncated_exr", "trainer.max_stpes", "trainer.max_stpes=3", hydra_error=True)
         train("unknown_option", data / "truncated_exr", "net/huge", "net=huge", hydra_error=True)
-        train("missing_interpolation_key", "${no_such_key}", "no_such_key")
+        train("missing_interpolation_key", "${no_such_key}", "data: Interpolation key 'no_such_key'")
         train("distill_teacher_other_arch", data / "truncated_exr", "other_arch.ckpt", "model=distill", "net=tiny",
               f"model.teacher_ckpt={work / 'other_arch.ckpt'}")
         train("distill_teacher_classifier", data / "truncated_exr", "classifier.ckpt", "model=distill", "net=tiny",
@@ -246,7 +246,8 @@ def cases(work: Path, command: str) -> dict[str, dict]:
         ev("not_a_ckpt", data / "truncated_exr", "notes.ckpt", ckpt=work / "notes.ckpt")
         ev("unknown_key", data / "truncated_exr", "warmpu", "warmpu=3", hydra_error=True)
         ev("unknown_option", data / "truncated_exr", "data/layout/exotic", "data/layout=exotic", hydra_error=True)
-        ev("missing_interpolation_key", data / "truncated_exr", "no_such_key", "warmup=${no_such_key}")
+        ev("missing_interpolation_key", data / "truncated_exr", "warmup: Interpolation key 'no_such_key'",
+           "warmup=${no_such_key}")
     elif command == "denoise":
         def dn(name, src, names, *extra, ckpt=good, hydra_error=False):
             dest = out / name
@@ -262,7 +263,7 @@ def cases(work: Path, command: str) -> dict[str, dict]:
         dn("not_a_ckpt", src, "notes.ckpt", ckpt=work / "notes.ckpt")
         dn("unknown_key", src, "outptu", "outptu=x", hydra_error=True)
         dn("unknown_option", src, "layout", "layout=exotic", hydra_error=True)
-        dn("missing_interpolation_key", src, "no_such_key", "threads=${no_such_key}")
+        dn("missing_interpolation_key", src, "threads: Interpolation key 'no_such_key'", "threads=${no_such_key}")
     elif command == "export":
         def ex(name, ckpt, names, *extra, hydra_error=False):
             dest = out / f"{name}.onnx"
@@ -272,7 +273,7 @@ def cases(work: Path, command: str) -> dict[str, dict]:
         ex("classifier_ckpt", work / "classifier.ckpt", "classifier.ckpt")
         ex("not_a_ckpt", work / "notes.ckpt", "notes.ckpt")
         ex("unknown_key", good, "opste", "opste=13", hydra_error=True)
-        ex("missing_interpolation_key", "${no_such_key}", "no_such_key")
+        ex("missing_interpolation_key", "${no_such_key}", "ckpt: Interpolation key 'no_such_key'")
     elif command == "render":
         def rn(name, names, *extra, hydra_error=False):
             dest = out / name
@@ -283,7 +284,7 @@ def cases(work: Path, command: str) -> dict[str, dict]:
         rn("unknown_material", "velvet", "scene=bad_material")
         rn("unknown_key", "sp", "sp=4", hydra_error=True)
         rn("unknown_option", "scene/atlantis", "scene=atlantis", hydra_error=True)
-        rn("missing_interpolation_key", "no_such_key", "frames=${no_such_key}")
+        rn("missing_interpolation_key", "frames: Interpolation key 'no_such_key'", "frames=${no_such_key}")
         rn("debug_trace", "wobble", "scene=bad_effect", hydra_error=False)
         c["debug_trace"]["env"] = {"DENOISER_DEBUG": "1"}
     return c

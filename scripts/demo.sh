@@ -4,7 +4,8 @@
 #   1. render data/demo (denoiser-render dataset=demo; frames that exist are kept: cached)
 #   2. train the demo teacher                 (experiment=demo_teacher)
 #   3. distill the demo student               (experiment=demo_distill, teacher from step 2)
-#   4. train the same student without KD      (experiment=demo_distill ablation=no_kd)
+#   4. train the same student without KD      (experiment=demo_distill ablation=no_kd), for as
+#      many steps as the distilled student made
 #   5. evaluate noisy input, OIDN, teacher, both students on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench)
 #   6. write reports/demo/: metrics table, accuracy-vs-time plot, PNG crops, TensorBoard logs
@@ -24,7 +25,7 @@ RUNS=$REPORT/runs
 THREADS=${DEMO_THREADS:-null}
 TEACHER_TIME=${DEMO_TEACHER_TIME:-00:00:07:00}
 STUDENT_TIME=${DEMO_STUDENT_TIME:-00:00:07:00}
-NOKD_TIME=${DEMO_NOKD_TIME:-00:00:04:00}
+NOKD_TIME=${DEMO_NOKD_TIME:-00:00:07:00}
 mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
 [ "${DEMO_FRESH:-0}" = 1 ] && rm -rf "$RUNS"/* "$REPORT"/eval "$REPORT"/bench
@@ -66,7 +67,11 @@ stage render "$BIN/denoiser-render" dataset=demo
 train_run teacher experiment=demo_teacher "trainer.max_time=$TEACHER_TIME"
 train_run student_distilled experiment=demo_distill "model.teacher_ckpt=$(ckpt_of teacher)" \
     "trainer.max_time=$STUDENT_TIME"
-train_run student_no_kd experiment=demo_distill ablation=no_kd "trainer.max_time=$NOKD_TIME"
+# the comparison without distillation gets the same number of optimizer steps as the distilled
+# student reached (its steps are cheaper: no teacher, no critic), capped by DEMO_NOKD_TIME
+STEPS=$("$PY" -c "import sys, torch; print(torch.load(sys.argv[1], map_location='cpu', weights_only=False)['global_step'])" \
+    "$RUNS/student_distilled/checkpoints/last.ckpt")
+train_run student_no_kd experiment=demo_distill ablation=no_kd "trainer.max_steps=$STEPS" "trainer.max_time=$NOKD_TIME"
 
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
 CKPTS="{teacher: $(ckpt_of teacher), student_distilled: $(ckpt_of student_distilled), student_no_kd: $(ckpt_of student_no_kd)}"

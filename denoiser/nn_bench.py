@@ -19,12 +19,16 @@ Variants (how a network is prepared and run; ``VARIANTS``):
   float32 (see ``denoiser/nn``), so the output keeps its HDR range;
 * ``channels_last_bf16_weights``: channels-last with the network's weights converted to
   bfloat16 (no autocast: no per-call weight casts); the Denoiser feeds the U-Net in its weights'
-  dtype and still filters in float32.
+  dtype and still filters in float32;
+* ``channels_last_bf16_weights_compiled``: the same with ``torch.compile(net.step)`` (inductor
+  fuses the elementwise work); compiling takes minutes on 2 cores, so it is not in the default
+  ``--variants`` and its warm-up (3 steps, compiling both the first-frame and the recurrent
+  graph) is reported separately as ``warm-up s``.
 
 Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant.
 
 Options: ``--nets student,teacher`` ``--sizes 256x256,1280x720,1920x1080``
-``--variants eager,channels_last,channels_last_bf16`` ``--repeats N`` (student; the teacher
+``--variants eager,channels_last,...`` ``--repeats N`` (student; the teacher
 always runs 1 warm-up + 1 timed step, it takes many seconds per frame on 2 cores) ``--no-kernels``.
 """
 
@@ -72,9 +76,24 @@ def _channels_last_bf16_weights(net, frame):
     return net.to(torch.bfloat16), frame, nullcontext
 
 
+def _channels_last_bf16_weights_compiled(net, frame):
+    import types
+
+    import torch
+
+    net, frame, context = _channels_last_bf16_weights(net, frame)
+    return types.SimpleNamespace(step=torch.compile(net.step, dynamic=False)), frame, context
+
+
 #: variant name -> prepare(net, frame) -> (net, frame, context factory)
 VARIANTS = {"eager": _eager, "channels_last": _channels_last, "channels_last_bf16": _channels_last_bf16,
-            "channels_last_bf16_weights": _channels_last_bf16_weights}
+            "channels_last_bf16_weights": _channels_last_bf16_weights,
+            "channels_last_bf16_weights_compiled": _channels_last_bf16_weights_compiled}
+#: warm-up steps per variant (default 1): a compiled step compiles one graph for the first
+#: frame (no state) and one for later frames
+WARMUP = {"channels_last_bf16_weights_compiled": 3}
+#: variants run by default (compiling takes minutes on 2 cores: ask for it with --variants)
+DEFAULT_VARIANTS = ["eager", "channels_last", "channels_last_bf16", "channels_last_bf16_weights"]
 
 
 def _status_mb(key: str) -> float:
@@ -136,15 +155,18 @@ def run_net(job: dict) -> dict:
     base = start_peak()
     times, cpu = [], []
     with torch.inference_mode(), context():
+        started = time.perf_counter()
         _, state, _ = net.step(frame, None)
         for _ in range(job["warmup"] - 1):
             _, state, _ = net.step(frame, state)
+        warmup_s = time.perf_counter() - started
         for _ in range(job["repeats"]):
             t, c = time.perf_counter(), time.process_time()
             _, state, _ = net.step(frame, state)
             times.append(time.perf_counter() - t)
             cpu.append(time.process_time() - c)
-    return {"ms": [x * 1e3 for x in times], "cpu_ms": [x * 1e3 for x in cpu], "peak_mb": peak_mb() - base}
+    return {"ms": [x * 1e3 for x in times], "cpu_ms": [x * 1e3 for x in cpu], "peak_mb": peak_mb() - base,
+            "warmup_s": warmup_s}
 
 
 def run_kernel(job: dict) -> dict:
@@ -207,7 +229,7 @@ def net_rows(args, peak, flops, params):
                 h, w = SIZES[size]
                 teacher = name == "teacher"
                 jobs.append({"kind": "net", "net": name, "height": h, "width": w, "variant": variant,
-                             "warmup": 1, "repeats": 1 if teacher else args.repeats, "size": size})
+                             "warmup": WARMUP.get(variant, 1), "repeats": 1 if teacher else args.repeats, "size": size})
     results = []
     for job in tqdm(jobs, desc="networks", file=sys.stderr):
         res = in_subprocess(job)
@@ -219,14 +241,14 @@ def net_rows(args, peak, flops, params):
         f = flops[(job["net"], job["size"])]
         if "error" in res:
             rows.append([job["net"], job["variant"], job["size"], f"{params[job['net']]:,}", f"{f / 1e9:.1f}",
-                         "error", "", "", "", "", ""])
+                         "error", "", "", "", "", "", ""])
             continue
         ms = statistics.median(res["ms"])
         gflops = f / (ms / 1e3) / 1e9
         rows.append([job["net"], job["variant"], job["size"], f"{params[job['net']]:,}", f"{f / 1e9:.1f}",
                      f"{ms:.0f}", f"{statistics.median(res['cpu_ms']):.0f}", f"{len(res['ms'])}",
                      f"{res['peak_mb']:.0f}", f"{gflops:.1f}",
-                     f"{100 * gflops / peak:.1f}%"])
+                     f"{100 * gflops / peak:.1f}%", f"{res['warmup_s']:.0f}"])
     return results, rows
 
 
@@ -235,7 +257,8 @@ def main(argv=None) -> None:
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--nets", default="student,teacher")
     parser.add_argument("--sizes", default=",".join(SIZES))
-    parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--variants", default=",".join(DEFAULT_VARIANTS),
+                        help=f"student variants, from {list(VARIANTS)}")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-kernels", action="store_true")
     args = parser.parse_args(argv)
@@ -274,7 +297,7 @@ def main(argv=None) -> None:
     print("ms/frame: median wall clock; CPU ms: process CPU time of the same step (both threads; on an\n"
           "idle machine about threads x wall, lower when other processes compete for the cores)\n")
     print_table(["net", "variant", "size", "params", "GFLOP/frame", "ms/frame", "CPU ms", "runs", "peak MB",
-                 "GFLOP/s", "of fp32 mm peak"], rows)
+                 "GFLOP/s", "of fp32 mm peak", "warm-up s"], rows)
     if "student" in params and "teacher" in params:
         ratios = ", ".join(f"{s} {flops[('teacher', s)] / flops[('student', s)]:.1f}x" for s in args.sizes)
         print(f"teacher/student FLOPs: {ratios}; parameters {params['teacher'] / params['student']:.1f}x\n")

@@ -122,7 +122,9 @@ def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     with torch.autocast(device_type=x.device.type, enabled=False):
         x = x.float()
         xp = F.pad(x, (r, r, r, r)) if r > 0 else x  # zeros, which get zero weight
-        if torch.is_grad_enabled() and (xp.requires_grad or weights.requires_grad):
+        if (torch.is_grad_enabled() and (xp.requires_grad or weights.requires_grad)
+                and not torch.jit.is_tracing() and not torch.onnx.is_in_onnx_export()):
+            # training: hand-written backward; tracing/export records the plain loop instead
             return _ApplyWeights.apply(xp, weights)
         return _accumulate(xp, weights, k, *x.shape[-2:])
 

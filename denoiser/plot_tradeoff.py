@@ -95,12 +95,13 @@ def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size
     if noisy_psnr is not None and not math.isnan(noisy_psnr):
         ax.axhline(noisy_psnr, color="gray", ls=":", lw=1.2, label=f"noisy input ({noisy_psnr:.2f} dB, 0 ms)")
     ax.set_xscale("log")
-    from matplotlib.ticker import FuncFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    plain = FuncFormatter(lambda v, _: f"{v:g}")
-    ax.xaxis.set_major_formatter(plain)
-    ax.xaxis.set_minor_formatter(plain)
-    ax.tick_params(axis="x", which="minor", labelsize=7)
+    # labelled ticks at 1, 2, 3 and 5 times powers of ten, plain numbers (ms), unlabelled minor ticks
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 3.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_locator(LogLocator(base=10, subs=(4.0, 6.0, 7.0, 8.0, 9.0)))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     times = [p[0] for p in points.values()]
     ax.set_xlim(min(times) / 2, max(times) * 3)
     quals = [p[1] for p in points.values()] + ([noisy_psnr] if noisy_psnr is not None else [])
@@ -110,7 +111,7 @@ def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size
     ax.set_ylabel("PSNR (dB, ACES + sRGB tonemapped), higher is better")
     ax.set_title(title or "accuracy vs time", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="best", framealpha=0.9)
     fig.tight_layout()
     with atomic_path(path, ".png") as tmp:
         fig.savefig(tmp, format="png")

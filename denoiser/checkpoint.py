@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import os
 import pickle
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from denoiser.atomic import atomic_path
 from denoiser.errors import UserError
 
 NET_PREFIX = "net."
@@ -162,15 +162,8 @@ def save_checkpoint(path: str | os.PathLike, net: torch.nn.Module, net_cfg: Mapp
         "pytorch-lightning_version": _lightning_version(),
     }
     ckpt.update(extra)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         torch.save(ckpt, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

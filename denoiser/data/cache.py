@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from denoiser.atomic import atomic_path
 
 
 class FrameCache:
@@ -96,15 +97,5 @@ class FrameCache:
     def store(self, key: str, planes: np.ndarray) -> None:
         """Write ``planes`` (float32 ``[C, H, W]``) atomically under ``key``."""
         p = self.entry(key)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=".tmp", dir=p.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.save(fh, np.ascontiguousarray(planes, dtype=np.float32))
-            os.replace(tmp, p)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-            raise
+        with atomic_path(p) as tmp, open(tmp, "wb") as fh:
+            np.save(fh, np.ascontiguousarray(planes, dtype=np.float32))

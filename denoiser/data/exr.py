@@ -24,13 +24,13 @@ anything downstream) and returns how many values it replaced, so the caller can 
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 
+from denoiser.atomic import atomic_path
 from denoiser.errors import ExrError
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -225,18 +225,8 @@ def read_samples(path: str | os.PathLike, channels: Mapping[str, np.ndarray] | N
 
 
 def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(path, suffix=".exr") as tmp:
+        write(str(tmp))
 
 
 def _compression(name: str):

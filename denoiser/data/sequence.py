@@ -19,12 +19,12 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from denoiser.atomic import atomic_write_text
 from denoiser.errors import UserError
 
 FORMAT_VERSION = 1
@@ -305,16 +305,5 @@ def write_sequence_json(path: str | os.PathLike, meta: SequenceMeta | Mapping[st
         path = path / SEQUENCE_JSON
     parsed = _as_meta(meta, path)
     text = format_sequence_json(parsed.to_json())
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write_text(path, text)
     return parsed

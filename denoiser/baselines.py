@@ -15,7 +15,7 @@ the first frame of a sequence and at camera cuts. ``output`` is ``[1, 3, H, W]``
   thread count is set explicitly (``numThreads``), by default to ``torch.get_num_threads()``
   so OIDN and PyTorch get the same cores. OIDN is a single-frame denoiser: ``reset`` is ignored;
 * :class:`NetworkMethod` runs a trained :class:`~denoiser.nn.denoiser.Denoiser` recurrently
-  (its state carried from frame to frame, discarded at resets).
+  through :class:`~denoiser.runner.RecurrentRunner` (state carried, discarded at resets).
 
 OIDN input conventions: color is clamped to >= 0 (HDR input must be non-negative), albedo to
 [0, 1] (OIDN's documented range; some renderers exceed 1), normals are passed as they are
@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from denoiser.errors import ConfigError
+from denoiser.runner import RecurrentRunner
 
 #: OIDN quality names -> pyoidn constants (resolved lazily, pyoidn is an optional extra)
 OIDN_QUALITIES = ("fast", "balanced", "high")
@@ -169,17 +170,14 @@ class NetworkMethod:
         self.net = net.eval().to(device)
         self.label = label
         self.device = torch.device(device)
-        self.state = None
+        self.runner = RecurrentRunner(self.net.step)
 
     def reset(self) -> None:
         """Forget the history (next frame starts a sequence)."""
-        self.state = None
+        self.runner.reset()
 
     @torch.no_grad()
     def __call__(self, frame: dict, reset: bool = False) -> torch.Tensor:
         """One recurrent step: ``frame`` ``[1, C, H, W]`` tensors -> ``[1, 3, H, W]`` float32."""
-        if reset:
-            self.state = None
         inputs = {k: v.to(self.device) for k, v in frame.items() if isinstance(v, torch.Tensor)}
-        out, self.state, _ = self.net.step(inputs, self.state, None)
-        return out.float()
+        return self.runner(inputs, reset).float()

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import pickle
+from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from typing import Any
 import torch
 
 from denoiser.atomic import atomic_path
-from denoiser.errors import UserError
+from denoiser.errors import ConfigError, UserError
 
 NET_PREFIX = "net."
 
@@ -188,7 +189,7 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
 
     if kernel is None:
         kernel = net if (Path(CONF_DIR) / "kernel" / f"{net}.yaml").exists() else "student"
@@ -202,3 +203,29 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
     except HydraException as exc:
         raise UserError(f"net={net} kernel={kernel}: {_first_line(exc)}") from None
     return OmegaConf.to_container(cfg.net, resolve=True)
+
+
+def checkpoint_paths(spec) -> OrderedDict[str, Path]:
+    """``ckpt`` config -> ordered ``{name: path}``.
+
+    ``spec``: None/empty, one path, a list of paths (names are the file stems, made unique
+    with the parent directory when two stems clash) or a mapping ``{name: path}``.
+    """
+    spec = _plain(spec)
+    if spec is None or spec == "" or spec == []:
+        return OrderedDict()
+    if isinstance(spec, (str, os.PathLike)):
+        spec = [spec]
+    if isinstance(spec, Mapping):
+        return OrderedDict((str(k), Path(v)) for k, v in spec.items())
+    if not isinstance(spec, (list, tuple)):
+        raise ConfigError(f"ckpt: expected a path, a list of paths or a mapping name -> path, got {spec!r}")
+    paths = [Path(p) for p in spec]
+    stems = [p.stem for p in paths]
+    out: OrderedDict[str, Path] = OrderedDict()
+    for p in paths:
+        name = p.stem if stems.count(p.stem) == 1 else f"{p.parent.name}/{p.stem}"
+        if name in out:
+            raise ConfigError(f"ckpt: {p} is given twice")
+        out[name] = p
+    return out

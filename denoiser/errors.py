@@ -1,6 +1,6 @@
 """User-facing errors: one clear line naming the file or key and the problem.
 
-Commands catch :class:`UserError` at the top (see :mod:`denoiser.cli`) and print
+Commands catch :class:`UserError` at the top (see :mod:`denoiser.commands.app`) and print
 ``error: <message>`` on stderr with a non-zero exit instead of a traceback. Set
 ``DENOISER_DEBUG=1`` to get the full traceback.
 """

@@ -1,4 +1,4 @@
-"""Training losses (DESIGN 3.3), shared by supervised training and distillation.
+"""Training losses (docs/design.md §3.3), shared by supervised training and distillation.
 
 Every loss is computed in float32 on *linear HDR* radiance unless stated otherwise, and
 returns a per-item value ``[B]`` (mean over frames, channels and pixels) so callers can mask
@@ -37,7 +37,7 @@ from torch import nn
 
 from denoiser.nn.warp import warp_to_current
 
-#: Epsilon of the SMAPE denominator (DESIGN 3.3).
+#: Epsilon of the SMAPE denominator (docs/design.md §3.3).
 SMAPE_EPS = 0.01
 
 

@@ -3,7 +3,7 @@
 Every function takes linear HDR radiance, float tensors shaped ``[N, 3, H, W]`` where ``N`` is
 a batch ``B`` or a sequence of ``T`` frames, and returns one value per frame, ``[N]``.
 
-Tonemapping (the one tonemapper used everywhere, DESIGN 3.4)
+Tonemapping (the one tonemapper used everywhere, docs/design.md §3.4)
     ``tonemap(x) = srgb_oetf(clamp(aces(exposure * max(x, 0)), 0, 1))`` with the ACES filmic
     fit of Narkowicz (2015), ``aces(x) = x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14)``,
     exposure 1, and the sRGB OETF (``12.92 x`` below 0.0031308, else
@@ -16,7 +16,7 @@ Metrics
       frames (Gaussian window 11, sigma 1.5, ``data_range=1``), averaged over pixels and channels.
     * ``relmse``: ``mean((x - y)^2 / (y^2 + 0.01))`` on linear HDR (``y`` the reference).
     * ``smape``: ``mean(|x - y| / (|x| + |y| + 0.01))`` on linear HDR (the same form as the
-      training loss, DESIGN 3.3).
+      training loss, docs/design.md §3.3).
     * ``tpsnr``: temporal stability. With ``d_x(t) = tonemap(x_t) - tonemap(x_{t-1})`` and the
       same for the reference, ``tpsnr(t) = 10 log10(1 / max(mean((d_x - d_y)^2), 1e-10))``:
       the PSNR (peak 1, as ``psnr``) of the output's frame-to-frame change against the
@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -394,12 +394,3 @@ class MetricAccumulator:
 
     def __len__(self) -> int:
         return sum(len(s.rows) for s in self._seqs.values())
-
-
-def summarize(rows: Iterable[Mapping], metrics: Sequence[str]) -> dict[str, float]:
-    """Mean over sequences of per-sequence means of ``rows`` (dicts with ``sequence`` and metrics)."""
-    by_seq: OrderedDict[str, list[Mapping]] = OrderedDict()
-    for r in rows:
-        by_seq.setdefault(r["sequence"], []).append(r)
-    seq_means = [{m: _nanmean(float(r[m]) for r in rs if m in r) for m in metrics} for rs in by_seq.values()]
-    return {m: _nanmean(s[m] for s in seq_means) for m in metrics}

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from denoiser.atomic import atomic_path
 from denoiser.metrics import tonemap
-from denoiser.report import atomic_path
 
 
 def crop_box(height: int, width: int, size: int, center: Sequence[int] | None = None) -> tuple[int, int, int, int]:

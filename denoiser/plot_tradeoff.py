@@ -15,7 +15,7 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from denoiser.report import atomic_path
+from denoiser.atomic import atomic_path
 
 
 def pareto_front(points: Mapping[str, tuple[float, float]]) -> list[str]:

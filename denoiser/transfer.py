@@ -40,6 +40,7 @@ from torch import nn
 from torch.overrides import TorchFunctionMode
 
 from denoiser.errors import ConfigError
+from denoiser.runner import RecurrentRunner
 
 
 @dataclass
@@ -83,10 +84,10 @@ def probe_frame(size: int = 32, batch: int = 1, seed: int = 0) -> dict[str, torc
 @torch.no_grad()
 def trace_steps(net: nn.Module, frame: dict[str, torch.Tensor], steps: int = 2) -> list[list[_Call]]:
     """Record the operations of ``steps`` recurrent ``net.step`` calls on ``frame`` (one list per step)."""
-    traces, state = [], None
+    traces, runner = [], RecurrentRunner(net.step)
     for _ in range(steps):
         with _Recorder() as rec:
-            _, state, _ = net.step(frame, state)
+            runner(frame)
         traces.append(rec.calls)
     return traces
 

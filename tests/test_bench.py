@@ -11,10 +11,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
-from denoiser.bench import PeakRss, Stepper, resize_frame, time_steps
+from denoiser.backends import Stepper
 from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.frames import resize_frame
+from denoiser.measure import PeakRss, read_csv, time_steps
 from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
-from denoiser.report import read_csv
 
 
 @pytest.fixture(scope="module")
@@ -31,15 +32,15 @@ def compose(name, overrides):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return hydra_compose(name, overrides=overrides)
 
 
 def test_bench_end_to_end(setup, tmp_path):
-    from denoiser.bench import run as bench
-    from denoiser.evaluate import run as evaluate
+    from denoiser.commands.bench import run as bench
+    from denoiser.commands.evaluate import run as evaluate
 
     root, ckpt = setup
     data = ["data=tiny", f"data.root={root / 'data'}", "threads=1"]
@@ -99,7 +100,8 @@ def test_resize_frame_scales_motion_and_keeps_unit_normals():
 def test_time_steps_carries_state_and_resets_once():
     calls = []
 
-    def step(frame, state, reset):
+    def step(frame, state):
+        reset = state is None
         calls.append((reset, state))
         return frame, (0 if reset else state + 1)
 
@@ -118,7 +120,7 @@ def test_peak_rss_sees_an_allocation():
 
 
 def test_default_student_for_the_ratio():
-    from denoiser.bench import default_student
+    from denoiser.commands.bench import default_student
 
     assert default_student(["teacher", "student_distilled", "student_no_kd"]) == "student_distilled"
     assert default_student(["teacher", "tiny"]) == "teacher"

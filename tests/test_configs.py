@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from denoiser.cli import CONF_DIR
+from denoiser.conf import CONF_DIR
 
 GROUPS = ["data", "data/layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
           "experiment", "debug"]

@@ -27,11 +27,11 @@ def denoise_argv(ckpt: Path, src: Path, out: Path) -> list[str]:
 
 
 def uninterrupted(ckpt: Path, src: Path, out: Path) -> None:
-    """The reference run, through denoiser.denoise.run in this process (same task, saves a start-up)."""
+    """The reference run, through denoiser.commands.denoise.run in this process (same task, saves a start-up)."""
     from hydra import compose, initialize_config_dir
 
-    from denoiser.cli import CONF_DIR
-    from denoiser.denoise import run
+    from denoiser.commands.denoise import run
+    from denoiser.conf import CONF_DIR
 
     threads = torch.get_num_threads()
     try:

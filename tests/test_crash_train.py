@@ -40,10 +40,10 @@ def resume(data: Path, run: Path) -> None:
     """``train.py <TRAIN> hydra.run.dir=<run> ckpt_path=last``, run through train.train in this process."""
     from hydra import compose, initialize_config_dir
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
 
     sys.path.insert(0, str(REPO))
-    import train as train_script
+    from denoiser.commands import train as train_script
 
     threads = torch.get_num_threads()
     try:
@@ -108,7 +108,7 @@ def test_trainer_presets_use_atomic_checkpoint_io():
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
     from denoiser.lit.checkpoint_io import AtomicCheckpointIO
 
     for preset in ("cpu", "ddp"):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data import augment as aug
 from denoiser.data.augment import Augment
 from denoiser.data.dataset import WindowDataset, index_split
@@ -22,7 +23,7 @@ from denoiser.errors import ConfigError
 NATIVE = {"color": ["color.R", "color.G", "color.B"], "albedo": ["albedo.R", "albedo.G", "albedo.B"],
           "normal": ["normal.X", "normal.Y", "normal.Z"], "depth": ["depth.Z"], "motion": ["motion.X", "motion.Y"],
           "reference": ["reference.R", "reference.G", "reference.B"]}
-INPUTS = ["color", "albedo", "normal", "depth", "motion"]
+INPUTS = list(FRAME_INPUTS)
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +126,7 @@ def test_exposure_scales_radiance_together(dataset):
         assert 0.25 <= k <= 4.0
         for b in ("color", "reference", "samples"):
             torch.testing.assert_close(out[b], item[b] * k, rtol=1e-5, atol=0)
-        for b in ("albedo", "normal", "depth", "motion"):
+        for b in FRAME_INPUTS[1:]:
             assert torch.equal(out[b], item[b])
     assert max(factors) / min(factors) > 1.5
 

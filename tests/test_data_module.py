@@ -13,7 +13,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from denoiser.cli import CONF_DIR
+from denoiser.buffers import FRAME_INPUTS
+from denoiser.conf import CONF_DIR
 from denoiser.data import exr
 from denoiser.data.cache import FrameCache
 from denoiser.data.datamodule import SequenceDataModule
@@ -136,7 +137,7 @@ def test_worker_processes_and_cache(root, tmp_path):
     want = {b["sequence"][0]: b for b in plain.train_dataloader()}
     assert set(got) == {"train/t0", "train/t1"}
     for s in got:
-        for k in ("color", "albedo", "normal", "depth", "motion", "reference"):
+        for k in (*FRAME_INPUTS, "reference"):
             assert torch.equal(got[s][k], want[s][k]), (s, k)
     entries = list(cache.rglob("*.npy"))
     assert len(entries) == 2 * 4 * 6  # sequences x frames x buffers
@@ -211,7 +212,7 @@ def test_precache_fills_the_cache_once(root, tmp_path):
 
 
 def test_benchmark_runs_small():
-    from denoiser.data import bench
+    from denoiser.commands import bench_data as bench
 
     rows = bench.run(size=32, crop=16, window=2, sequences=1, frames=3, workers=[0], batch=2, repeat=1)
     assert [r["mode"].split()[0] for r in rows] == ["cold", "fill", "warm"]

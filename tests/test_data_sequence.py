@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data import exr
 from denoiser.data.layouts import NativeLayout
 from denoiser.data.sequence import (
@@ -28,7 +29,7 @@ def meta_dict(frames=3, **over):
     eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
     d = {
         "format_version": FORMAT_VERSION, "width": 32, "height": 16, "frames": frames, "spp": 4,
-        "buffers": ["color", "albedo", "normal", "depth", "motion", "reference"],
+        "buffers": [*FRAME_INPUTS, "reference"],
         "cameras": [{"to_world": eye, "fov": 40.0} for _ in range(frames)], "cuts": [2],
         "scene": {"name": "box", "effects": ["dof"]},
         "renderer": {"name": "mitsuba", "version": "3.9.0", "variant": "scalar_rgb"},

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split, reset_flags, window_starts
 from denoiser.data.layouts import NativeLayout
 from denoiser.data.synthetic import write_synthetic_sequence
@@ -14,7 +15,7 @@ from denoiser.errors import UserError
 NATIVE = {"color": ["color.R", "color.G", "color.B"], "albedo": ["albedo.R", "albedo.G", "albedo.B"],
           "normal": ["normal.X", "normal.Y", "normal.Z"], "depth": ["depth.Z"], "motion": ["motion.X", "motion.Y"],
           "reference": ["reference.R", "reference.G", "reference.B"]}
-INPUTS = ["color", "albedo", "normal", "depth", "motion"]
+INPUTS = list(FRAME_INPUTS)
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +86,7 @@ def test_same_random_crop_for_all_frames_and_buffers(root):
         offsets.add((top, left))
         for t in range(3):
             f = 1 + t
-            for name in ("color", "albedo", "normal", "depth", "motion", "reference"):
+            for name in (*FRAME_INPUTS, "reference"):
                 expect = written["b"][name][f][top:top + 8, left:left + 12].transpose(2, 0, 1)
                 np.testing.assert_array_equal(item[name][t].numpy(), expect, err_msg=f"{name} frame {f}")
             s = written["b"]["samples"][f][:, top:top + 8, left:left + 12].transpose(0, 3, 1, 2)

@@ -31,14 +31,14 @@ def setup(tmp_path_factory):
 def compose_denoise(overrides):
     from hydra import compose, initialize_config_dir
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return compose("denoise", overrides=[*overrides, "threads=1"])
 
 
 def denoise(overrides):
-    from denoiser.denoise import run
+    from denoiser.commands.denoise import run
 
     return run(compose_denoise(overrides))
 

@@ -14,7 +14,7 @@ from test_eval_data import write_dataset
 
 from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
 from denoiser.errors import UserError
-from denoiser.report import read_csv
+from denoiser.measure import read_csv
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -34,14 +34,14 @@ def setup(tmp_path_factory):
 def compose_eval(overrides):
     from hydra import compose, initialize_config_dir
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return compose("eval", overrides=[*overrides, "threads=1"])
 
 
 def test_eval_tables_images_and_values(setup, tmp_path):
-    from denoiser.evaluate import run
+    from denoiser.commands.evaluate import run
 
     root, a, b = setup
     out = tmp_path / "out"
@@ -83,8 +83,9 @@ def test_eval_tables_images_and_values(setup, tmp_path):
 def test_networks_run_recurrently_over_the_sequence(setup, tmp_path):
     """Eval's per-frame outputs equal Denoiser.forward over the whole sequence (state carried)."""
     from denoiser.checkpoint import load_denoiser
+    from denoiser.commands.evaluate import run
+    from denoiser.data.evalset import open_test_split
     from denoiser.data.exr import read_channels
-    from denoiser.evaluate import open_test_split, run
 
     root, a, _ = setup
     out = tmp_path / "out"
@@ -107,7 +108,8 @@ def test_networks_run_recurrently_over_the_sequence(setup, tmp_path):
 
 
 def test_eval_user_errors(setup, tmp_path):
-    from denoiser.evaluate import checkpoint_paths, run
+    from denoiser.checkpoint import checkpoint_paths
+    from denoiser.commands.evaluate import run
 
     root, _, _ = setup
     base = ["data=tiny", f"data.root={root / 'data'}", f"out_dir={tmp_path}"]

@@ -1,7 +1,7 @@
 """Tiny procedural sequences written as real native-layout EXR files, for the command tests.
 
 The content is analytic (so it is cheap and deterministic) but everything else is real: EXR
-frames with every buffer of DESIGN 3.1 and a validated ``sequence.json``, read back through
+frames with every buffer of docs/design.md §3.1 and a validated ``sequence.json``, read back through
 the data layer. The camera pans ``shift`` pixels per frame to the left, so the backward motion
 is ``(+shift, 0)`` everywhere; the noisy color is the reference times a Gamma(spp)/spp factor
 per pixel (the statistics of a mean of ``spp`` exponential samples), plus rare fireflies.
@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data.exr import write_frame
 from denoiser.data.sequence import write_sequence_json
 
@@ -52,7 +53,7 @@ def write_sequence(directory: Path, frames: int = 4, size: int | tuple[int, int]
     eye = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
     write_sequence_json(directory, {
         "width": w, "height": h, "frames": frames, "spp": spp,
-        "buffers": ["color", "albedo", "normal", "depth", "motion", "reference"],
+        "buffers": [*FRAME_INPUTS, "reference"],
         "cameras": [{"to_world": eye, "fov": 45.0} for _ in range(frames)], "cuts": list(cuts),
         "scene": {"name": scene, "effects": []},
         "renderer": {"name": "procedural-test", "version": "1", "variant": "numpy"},

@@ -11,7 +11,7 @@ import torch
 
 from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
 from denoiser.errors import UserError
-from denoiser.export import OnnxStep, StepGraph, check_export, example_frame
+from denoiser.step_graph import OnnxStep, StepGraph, check_export, example_frame
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -77,7 +77,7 @@ def test_export_command(tiny):
 def test_export_config_errors(tiny, tmp_path):
     from omegaconf import OmegaConf
 
-    from denoiser.export import run
+    from denoiser.commands.export import run
 
     _, _, ckpt, _, _ = tiny
     base = {"ckpt": str(ckpt), "out": str(tmp_path / "x.onnx"), "opset": 17, "batch": 1, "trace_size": [37, 61],

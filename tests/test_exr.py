@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from denoiser.buffers import native_channels
 from denoiser.data import exr
 from denoiser.errors import ExrError, UserError
 
@@ -27,7 +28,7 @@ def all_buffers(rng) -> dict[str, np.ndarray]:
 
 
 def native_spec(bufs) -> dict[str, tuple[str, ...]]:
-    return {k: exr.buffer_channels(k, v.shape[-1]) for k, v in bufs.items() if k != "samples"}
+    return {k: native_channels(k, v.shape[-1]) for k, v in bufs.items() if k != "samples"}
 
 
 @pytest.mark.parametrize("half", [False, True])

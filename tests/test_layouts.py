@@ -12,7 +12,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from denoiser.cli import CONF_DIR
+from denoiser.buffers import FRAME_INPUTS
+from denoiser.conf import CONF_DIR
 from denoiser.data import exr
 from denoiser.data.dataset import WindowDataset, index_split
 from denoiser.data.layouts import BlenderLayout, NativeLayout
@@ -86,7 +87,7 @@ def test_blender_channels_and_vector_conversion(tmp_path, layouts):
     [src] = index_split(blender, tmp_path, "train")
     assert src.frames == FRAMES and (src.width, src.height) == (W, H) and src.cuts == ()
     assert set(src.buffers) == {"color", "albedo", "normal", "depth", "motion", "reference"}
-    frame, counts = blender.read_frame(src, 1, ["color", "albedo", "normal", "depth", "motion", "reference"])
+    frame, counts = blender.read_frame(src, 1, [*FRAME_INPUTS, "reference"])
     assert set(counts.values()) == {0}
     assert frame["motion"].shape == (H, W, 2)
     np.testing.assert_array_equal(frame["motion"][..., 0], -DX)
@@ -164,15 +165,15 @@ def test_blender_and_native_give_the_same_windows(tmp_path, layouts):
 
     for t in range(FRAMES):
         b, _ = blender.read_frame(blender.open_sequence(tmp_path / "blender" / "train" / "s"), t,
-                                  ["color", "albedo", "normal", "depth", "motion", "reference"])
+                                  [*FRAME_INPUTS, "reference"])
         exr.write_frame(tmp_path / "native" / "train" / "s" / f"frame_{t:04d}.exr", b)
     eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
     write_sequence_json(tmp_path / "native" / "train" / "s", {
         "width": W, "height": H, "frames": FRAMES, "spp": 1,
-        "buffers": ["color", "albedo", "normal", "depth", "motion", "reference"],
+        "buffers": [*FRAME_INPUTS, "reference"],
         "cameras": [{"to_world": eye, "fov": 30}] * FRAMES, "cuts": [], "scene": {"name": "t"},
         "renderer": {"name": "blender", "version": "4.2", "variant": "cycles"}, "seeds": {}, "render_seconds": {}})
-    inputs = ["color", "albedo", "normal", "depth", "motion"]
+    inputs = list(FRAME_INPUTS)
     a = WindowDataset(index_split(blender, tmp_path / "blender", "train"), blender, inputs, window=3)[0]
     b = WindowDataset(index_split(native, tmp_path / "native", "train"), native, inputs, window=3)[0]
     for k in (*inputs, "reference", "reset", "frame_index"):

@@ -1,4 +1,4 @@
-"""Net/kernel/ablation configs: DESIGN 2 numbers, composition, the netstats command, import rules."""
+"""Net/kernel/ablation configs: docs/design.md §2 numbers, composition, the netstats command, import rules."""
 
 import subprocess
 import sys
@@ -9,14 +9,15 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from denoiser.commands.netstats import build_net, compose_net_config, count_flops, main
+from denoiser.conf import CONF_DIR
 from denoiser.errors import ConfigError
-from denoiser.netstats import build_net, compose_net_config, count_flops, main
 from denoiser.nn.critic import PatchCritic
 from denoiser.nn.denoiser import Denoiser
 from denoiser.nn.filters import DirectColor, SingleKernelFilter
 from denoiser.nn.pyramid import PyramidFilter
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = Path(CONF_DIR)
 
 
 def test_student_and_teacher_follow_design_table():
@@ -74,7 +75,7 @@ def test_config_mistakes_are_user_errors(args, message):
 
 
 def test_netstats_prints_parameter_counts(capsys, monkeypatch):
-    monkeypatch.setattr("denoiser.netstats.FLOPS_SIZE", 32)
+    monkeypatch.setattr("denoiser.commands.netstats.FLOPS_SIZE", 32)
     main(["net=tiny", "kernel=k3"])
     out = capsys.readouterr().out
     net = build_net(compose_net_config(["net=tiny", "kernel=k3"]))

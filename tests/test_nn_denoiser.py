@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from denoiser.netstats import build_net, compose_net_config, frame_inputs
+from denoiser.commands.netstats import build_net, compose_net_config, frame_inputs
 from denoiser.nn.inputs import sanitize
 
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from denoiser.cli import CONF_DIR
+from denoiser.commands.bench_render import LADDER, bench_scene
+from denoiser.conf import CONF_DIR
 from denoiser.errors import ConfigError, UserError
 from denoiser.render import build
-from denoiser.render.bench import LADDER, bench_scene
 from denoiser.render.catalog import available_scenes, load_scene_config
 from denoiser.render.effects import parse_effects, path_depth
 from denoiser.render.spec import build_scene
@@ -133,7 +133,7 @@ def _compose(overrides):
 
 
 def test_demo_preset_keeps_test_only_scenes_out_of_training():
-    from denoiser.render.cli import plan
+    from denoiser.commands.render import plan
 
     cfg = _compose(["dataset=demo"])
     assert cfg.name == "demo" and cfg.root.endswith("data/demo")
@@ -148,7 +148,7 @@ def test_demo_preset_keeps_test_only_scenes_out_of_training():
 
 
 def test_test_only_scene_refused_for_training():
-    from denoiser.render.cli import plan
+    from denoiser.commands.render import plan
 
     with pytest.raises(UserError, match="test_only"):
         plan(_compose(["scene=gallery", "split=train"]))
@@ -173,7 +173,7 @@ def test_unknown_light_keys_and_shape_params_are_errors(mi):
 
 @pytest.mark.slow
 def test_bench_prints_one_row_per_effect(mi, capsys):
-    from denoiser.render.bench import main
+    from denoiser.commands.bench_render import main
 
     main(["--width", "16", "--height", "16", "--spp", "1", "--ref-spp", "4", "--effects", "area_light,indirect,glossy"])
     out = capsys.readouterr().out

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from denoiser.commands.bench_render import bench_scene
 from denoiser.data.exr import read_frame
-from denoiser.render.bench import bench_scene
 from denoiser.render.job import RenderSettings, frame_path, render_sequence
 from denoiser.render.passes import NO_HIT_DEPTH
 from denoiser.render.spec import build_scene

@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data.exr import list_channels, read_frame, read_samples
 from denoiser.data.sequence import load_sequence_json
 from denoiser.render import job as job_module
@@ -76,7 +77,7 @@ def test_sequence_json_complete(static_seq, mi):
     out, _ = static_seq
     parsed = load_sequence_json(out)  # validates the schema
     assert (parsed.width, parsed.height, parsed.frames, parsed.spp) == (32, 32, 2, 2)
-    assert list(parsed.buffers) == ["color", "albedo", "normal", "depth", "motion", "reference"]
+    assert list(parsed.buffers) == [*FRAME_INPUTS, "reference"]
     assert len(parsed.cameras) == 2 and parsed.cameras[0].fov == 45
     assert np.allclose(np.array(parsed.cameras[0].to_world)[:3, 3], [0, 0, 4])
     assert parsed.cuts == ()
@@ -152,7 +153,7 @@ def test_samples_are_written_and_average_to_color(mi, tmp_path):
 
 
 def _cli(*args, cwd):
-    return subprocess.run([sys.executable, "-c", "from denoiser.render.cli import main; main()", *args],
+    return subprocess.run([sys.executable, "-c", "from denoiser.commands.render import main; main()", *args],
                           cwd=cwd, capture_output=True, text=True, timeout=300, check=False)
 
 
@@ -173,7 +174,7 @@ def test_cli_renders_and_reports_user_errors(tmp_path):
 
 
 def test_dof_blurs_albedo_but_depth_and_motion_stay_pixel_centre(mi):
-    from denoiser.render.bench import bench_scene
+    from denoiser.commands.bench_render import bench_scene
     from denoiser.render.motion import backward_motion
     from denoiser.render.passes import FrameRenderer
 

@@ -19,7 +19,7 @@ Table of the combinations tested (command x bad input); each cell is one case be
 | scene: unknown material / effect       |          |         |      |         |        | x      |
 
 How the commands run: each command's real console entry point (``train.main``,
-``denoiser.evaluate:main``, ...) runs in its own child process with its own argv, stdout and
+``denoiser.commands.evaluate:main``, ...) runs in its own child process with its own argv, stdout and
 stderr, and the test reads that process's exit status and stderr. To keep the whole table
 within the test budget on 2 cores, the children are forked from one driver subprocess per
 command that has imported the command's module once (this file, run as a script); the forked
@@ -46,16 +46,18 @@ from pathlib import Path
 import pytest
 import torch
 
+from denoiser.conf import CONF_DIR
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 #: commands: console entry point (module:function) and argv[0]
 ENTRIES = {
-    "train": ("train:main", "train.py"),
-    "eval": ("denoiser.evaluate:main", "denoiser-eval"),
-    "denoise": ("denoiser.denoise:main", "denoiser-denoise"),
-    "export": ("denoiser.export:main", "denoiser-export"),
-    "render": ("denoiser.render.cli:main", "denoiser-render"),
+    "train": ("denoiser.commands.train:main", "denoiser-train"),
+    "eval": ("denoiser.commands.evaluate:main", "denoiser-eval"),
+    "denoise": ("denoiser.commands.denoise:main", "denoiser-denoise"),
+    "export": ("denoiser.commands.export:main", "denoiser-export"),
+    "render": ("denoiser.commands.render:main", "denoiser-render"),
 }
 #: modules the driver imports before forking (what every child would import anyway; saves time)
 PRELOAD = {
@@ -181,7 +183,7 @@ def work(tmp_path_factory) -> Path:
 
     scenes = root / "search" / "scene"
     scenes.mkdir(parents=True)
-    cornell = (REPO / "conf" / "scene" / "cornell.yaml").read_text()
+    cornell = (Path(CONF_DIR) / "scene" / "cornell.yaml").read_text()
     (scenes / "bad_effect.yaml").write_text(
         cornell.replace("name: cornell", "name: bad_effect").replace("camera_motion]", "camera_motion, wobble]"))
     bad_mat = cornell.replace("name: cornell", "name: bad_material").replace(

@@ -1,4 +1,4 @@
-"""Scale-out on existing engines (DESIGN 6, docs/scaling.md): Lightning DDP, Hydra's joblib and
+"""Scale-out on existing engines (docs/design.md §6, docs/scaling.md): Lightning DDP, Hydra's joblib and
 submitit launchers. Real runs of ``train.py`` on a tiny synthetic dataset:
 
 * ``trainer=ddp`` with 2 CPU processes (gloo) *inside a Hydra multirun* (``-m``): the job runs
@@ -108,7 +108,7 @@ def test_slurm_ddp_preset_makes_the_expected_sbatch_script(tmp_path, monkeypatch
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
     from omegaconf import OmegaConf
 
-    from denoiser.cli import CONF_DIR
+    from denoiser.conf import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", overrides=["hydra/launcher=slurm_ddp", "trainer=ddp", "trainer.num_nodes=2",

@@ -16,12 +16,12 @@ from hydra import compose, initialize_config_dir
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from denoiser.checkpoint import load_denoiser
-from denoiser.cli import CONF_DIR
+from denoiser.conf import CONF_DIR
 from denoiser.data.synthetic import write_synthetic_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-import train as train_script
+from denoiser.commands import train as train_script
 
 #: small, fast, quiet runs: 4 steps of 3-frame windows of 16x16 crops, validation every 2 steps
 FAST = ["data=tiny", "net=tiny", "threads=1", "trainer.enable_progress_bar=false", "callbacks.progress=null",
@@ -204,7 +204,7 @@ def test_multirun_over_three_ablations(data_root, tmp_path):
 
 def test_distillation_without_teacher_is_a_one_line_error(data_root, tmp_path, capsys):
     """What `python train.py model=distill` (no teacher) prints: one line, exit code 2, no traceback."""
-    from denoiser.cli import guarded
+    from denoiser.commands.app import guarded
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", overrides=[*FAST, f"data.root={data_root}", f"output_dir={tmp_path}", "model=distill"])

@@ -29,12 +29,11 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-#: Buffers that hold radiance (scaled by exposure).
-RADIANCE = ("color", "samples", "reference")
-#: Buffers whose channels are R, G, B (permuted together).
-RGB = ("color", "samples", "albedo", "reference")
-#: Image buffers (every spatial transform applies).
-IMAGES = ("color", "samples", "albedo", "normal", "depth", "motion", "reference")
+from denoiser.buffers import RADIANCE_BUFFERS, RGB_BUFFERS, SEQUENCE_BUFFERS
+
+#: Buffers that hold radiance (scaled by exposure), whose channels are R, G, B (permuted together),
+#: and image buffers (every spatial transform applies).
+RADIANCE, RGB, IMAGES = RADIANCE_BUFFERS, RGB_BUFFERS, SEQUENCE_BUFFERS
 
 Arrays = dict[str, np.ndarray]
 

@@ -4,7 +4,7 @@ Entry = one logical buffer of one file, stored as a float32 ``.npy`` array ``[C,
 (channel planes: a crop is ``C`` runs of contiguous rows, fetched with ``C`` plain file reads
 by :meth:`FrameCache.read`, and becomes a tensor without a transpose; :meth:`FrameCache.load`
 maps a whole entry). Float32, not float16: HDR radiance above 65504 would overflow half
-precision, and values are never clamped on load (DESIGN 3.2).
+precision, and values are never clamped on load (docs/design.md §3.2).
 
 Key: SHA-1 of (absolute path, file size, modification time in ns, buffer name, layout spec
 text). Changing or touching the EXR, or reading the buffer through different channels or a

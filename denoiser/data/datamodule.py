@@ -25,6 +25,7 @@ import lightning as L
 from torch.utils.data import ConcatDataset, DataLoader
 from tqdm.auto import tqdm
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data.augment import Augment
 from denoiser.data.collate import collate_items
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
@@ -32,8 +33,6 @@ from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
 from denoiser.data.sampler import MixedSampler
 from denoiser.errors import ConfigError
-
-DEFAULT_BUFFERS = ("color", "albedo", "normal", "depth", "motion")
 
 
 def _instantiate(obj, cls):
@@ -57,7 +56,7 @@ class SequenceDataModule(L.LightningDataModule):
         self,
         root: str,
         layout: Layout | Mapping,
-        buffers: Sequence[str] = DEFAULT_BUFFERS,
+        buffers: Sequence[str] = FRAME_INPUTS,
         samples: bool = False,
         window: int = 8,
         stride: int = 1,

@@ -8,7 +8,7 @@ Two levels:
   and ``read_frame(path, {"color": ("color.R", "color.G", "color.B"), ...})`` which assemble
   named multi-channel buffers ``[H, W, C]``.
 
-Channel naming of the native layout (DESIGN 3.1): buffer ``color`` is written as
+Channel naming of the native layout (docs/design.md §3.1): buffer ``color`` is written as
 ``color.R/G/B``, ``normal`` as ``normal.X/Y/Z``, ``depth`` as ``depth.Z``, ``motion`` as
 ``motion.X/Y``; per-sample radiance ``samples`` ``[S, H, W, 3]`` as ``sample.<k>.R/G/B``.
 
@@ -31,20 +31,10 @@ import numpy as np
 import OpenEXR
 
 from denoiser.atomic import atomic_path
+from denoiser.buffers import native_channels, sample_channels
 from denoiser.errors import ExrError
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
-
-#: Channel suffixes per buffer in the native layout; buffers not listed get ``.0, .1, ...``.
-NATIVE_SUFFIXES: dict[str, tuple[str, ...]] = {
-    "color": ("R", "G", "B"),
-    "albedo": ("R", "G", "B"),
-    "reference": ("R", "G", "B"),
-    "denoised": ("R", "G", "B"),
-    "normal": ("X", "Y", "Z"),
-    "depth": ("Z",),
-    "motion": ("X", "Y"),
-}
 
 COMPRESSIONS: dict[str, object] = {
     name[: -len("_COMPRESSION")].lower(): getattr(OpenEXR, name)
@@ -54,22 +44,6 @@ COMPRESSIONS: dict[str, object] = {
 
 #: Largest finite float16; +Inf is replaced by it on read.
 POS_INF_REPLACEMENT = 65504.0
-
-
-def buffer_channels(name: str, num_channels: int) -> tuple[str, ...]:
-    """Native channel names of buffer ``name`` with ``num_channels`` components."""
-    suffixes = NATIVE_SUFFIXES.get(name)
-    if suffixes is None or len(suffixes) != num_channels:
-        if num_channels == 3:
-            suffixes = ("R", "G", "B")
-        else:
-            suffixes = tuple(str(i) for i in range(num_channels))
-    return tuple(f"{name}.{s}" for s in suffixes)
-
-
-def sample_channels(k: int) -> tuple[str, str, str]:
-    """Channel names of the ``k``-th per-sample radiance: ``sample.k.R/G/B``."""
-    return (f"sample.{k}.R", f"sample.{k}.G", f"sample.{k}.B")
 
 
 # ----------------------------------------------------------------------------- reading
@@ -310,7 +284,7 @@ def write_frame(
             arr = arr[:, :, None]
         if arr.ndim != 3:
             raise ExrError(path, f"buffer {name} must be [H, W, C], got shape {arr.shape}")
-        names = tuple(channel_names[name]) if channel_names and name in channel_names else buffer_channels(
+        names = tuple(channel_names[name]) if channel_names and name in channel_names else native_channels(
             name, arr.shape[-1])
         if len(names) != arr.shape[-1]:
             raise ExrError(path, f"buffer {name} has {arr.shape[-1]} channels but {len(names)} names")

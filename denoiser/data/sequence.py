@@ -1,6 +1,6 @@
 """``sequence.json``: the metadata file of one rendered sequence (schema, loader, writer).
 
-One file per sequence directory, next to its frames (DESIGN 3.1)::
+One file per sequence directory, next to its frames (docs/design.md §3.1)::
 
     <root>/<split>/<sequence>/sequence.json
     <root>/<split>/<sequence>/frame_0000.exr ...
@@ -25,15 +25,12 @@ from pathlib import Path
 from typing import Any
 
 from denoiser.atomic import atomic_write_text
+from denoiser.buffers import REQUIRED_BUFFERS, SEQUENCE_BUFFERS
 from denoiser.errors import UserError
 
 FORMAT_VERSION = 1
 SEQUENCE_JSON = "sequence.json"
 
-#: Logical buffers a sequence may declare (DESIGN 3.1).
-KNOWN_BUFFERS = ("color", "samples", "albedo", "normal", "depth", "motion", "reference")
-#: Buffers every sequence must have.
-REQUIRED_BUFFERS = ("color",)
 
 
 @dataclass(frozen=True)
@@ -184,9 +181,9 @@ def parse_sequence_meta(data: Mapping[str, Any], path: str | os.PathLike = SEQUE
     buffers = chk.get("buffers")
     if not isinstance(buffers, list) or not all(isinstance(b, str) for b in buffers):
         raise chk.fail("buffers", "must be a list of buffer names")
-    unknown = [b for b in buffers if b not in KNOWN_BUFFERS]
+    unknown = [b for b in buffers if b not in SEQUENCE_BUFFERS]
     if unknown:
-        raise chk.fail("buffers", f"unknown buffer(s) {', '.join(unknown)}; known: {', '.join(KNOWN_BUFFERS)}")
+        raise chk.fail("buffers", f"unknown buffer(s) {', '.join(unknown)}; known: {', '.join(SEQUENCE_BUFFERS)}")
     missing = [b for b in REQUIRED_BUFFERS if b not in buffers]
     if missing:
         raise chk.fail("buffers", f"must include {', '.join(missing)}")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.data.exr import write_frame
 from denoiser.data.sequence import write_sequence_json
 
@@ -96,7 +97,7 @@ def write_synthetic_sequence(
         write_frame(directory / f"frame_{t:04d}.exr", bufs, half=half, compression=compression)
         for k, v in bufs.items():
             written.setdefault(k, []).append(v)
-    names = ["color", "albedo", "normal", "depth", "motion"] + (["samples"] if samples else []) + (
+    names = list(FRAME_INPUTS) + (["samples"] if samples else []) + (
         ["reference"] if labeled else [])
     eye = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
     write_sequence_json(directory, {

@@ -22,10 +22,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from denoiser.buffers import NETWORK_INPUTS
 from denoiser.metrics import MetricAccumulator, tonemap
 
-#: Batch keys the network reads (docs/contracts.md); everything else (reference, labels) is not input.
-INPUT_KEYS = ("color", "albedo", "normal", "depth", "motion", "samples")
 #: Metrics computed in validation (names of denoiser.metrics.METRICS); logged as ``val/<name>``.
 VAL_METRICS = ("psnr", "ssim", "tpsnr", "smape")
 
@@ -40,7 +39,7 @@ def plain(cfg: Any) -> Any:
 def network_inputs(batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
     """The network inputs of a batch: ``color [B,T,3,H,W]``, ``albedo``, ``normal``, ``depth [B,T,1,H,W]``,
     ``motion [B,T,2,H,W]`` and, when present, ``samples [B,T,S,3,H,W]``."""
-    return {k: batch[k] for k in INPUT_KEYS if k in batch}
+    return {k: batch[k] for k in NETWORK_INPUTS if k in batch}
 
 
 def labeled_mask(batch: Mapping[str, Any]) -> torch.Tensor:
@@ -88,8 +87,6 @@ class DenoiserModule(pl.LightningModule):
         self.grad_clip = float(grad_clip or 0.0)
         self.val_metrics = MetricAccumulator(VAL_METRICS, warmup=self.warmup_frames)
         self.val_input_metrics = MetricAccumulator(("psnr", "ssim"), warmup=self.warmup_frames)
-        #: last validation results ``{"val/psnr": ..}`` (train.py logs them with the hparams)
-        self.final_metrics: dict[str, float] = {}
         #: global step of the last (non-sanity) validation, -1 before any
         self.validated_step = -1
         self._val_carry: tuple[list[str], dict] | None = None  # (sequence names, state) of the last val batch
@@ -188,5 +185,4 @@ class DenoiserModule(pl.LightningModule):
         for k, v in values.items():
             self.log(k, v, prog_bar=k in ("val/psnr", "val/ssim"), sync_dist=True)
         if not getattr(self.trainer, "sanity_checking", False):
-            self.final_metrics = values
             self.validated_step = int(self.global_step)

@@ -91,7 +91,7 @@ class DistillationModule(DenoiserModule):
             self.teacher.requires_grad_(False)
             self.teacher.eval()
         if param_transfer and self.teacher is not None:
-            self.transfer_report = self._factory(param_transfer)(self.teacher, self.net)
+            self._factory(param_transfer)(self.teacher, self.net)
 
         self.adapters = FeatureAdapters.between(self.net, self.teacher) if self.weights["feature"] > 0 else None
         self.critic: nn.Module | None = None

@@ -27,10 +27,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from denoiser.buffers import NETWORK_INPUTS
 from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature, color_scale, guide_features, sanitize
-
-#: keys of a frame dict that the network reads (per time step); others are ignored
-FRAME_KEYS = ("color", "albedo", "normal", "depth", "motion", "samples")
+from denoiser.runner import unroll
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
@@ -140,7 +139,7 @@ class Denoiser(nn.Module):
 
     def forward(self, frames: dict, state: dict | None = None, reset: torch.Tensor | None = None,
                 detach_every: int = 0):
-        """Unroll :meth:`step` over a window.
+        """Unroll :meth:`step` over a window (:func:`denoiser.runner.unroll`).
 
         frames: batch dict with ``[B, T, C, H, W]`` tensors (``samples [B, T, S, 3, H, W]``);
             other keys are ignored. reset: bool ``[B, T]``; None uses ``frames["reset"]`` if
@@ -151,13 +150,5 @@ class Denoiser(nn.Module):
         """
         if reset is None:
             reset = frames.get("reset")
-        steps = frames["color"].shape[1]
-        outputs, extras_list = [], []
-        for t in range(steps):
-            if detach_every and t > 0 and t % detach_every == 0:
-                state = detach_state(state)
-            frame = {k: frames[k][:, t] for k in FRAME_KEYS if frames.get(k) is not None}
-            out, state, extras = self.step(frame, state, None if reset is None else reset[:, t])
-            outputs.append(out)
-            extras_list.append(extras)
-        return torch.stack(outputs, dim=1), state, extras_list
+        outputs, state, extras = unroll(self.step, frames, NETWORK_INPUTS, state, reset, detach_every, detach_state)
+        return torch.stack(outputs, dim=1), state, extras

@@ -17,7 +17,7 @@ class EmbedNet(nn.Module):
 
     Args:
         in_channels: input feature channels per sample / pixel (set by :class:`Denoiser`).
-        hidden: width of the two hidden layers (DESIGN 2: student 32, teacher 256).
+        hidden: width of the two hidden layers (docs/design.md §2: student 32, teacher 256).
         out_channels: output width (defaults to ``hidden``).
         negative_slope: LeakyReLU slope.
     """

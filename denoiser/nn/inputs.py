@@ -1,7 +1,7 @@
 """Input sanitising and the feature transforms that keep HDR range safe for half precision.
 
 The network never sees raw radiance: every input is mapped to a bounded or logarithmic range
-(DESIGN 3.3), while the filter itself works on linear radiance. All transforms run in float32
+(docs/design.md §3.3), while the filter itself works on linear radiance. All transforms run in float32
 (call them outside autocast, or they upcast themselves) and are elementwise or per-image
 reductions, so they are cheap.
 

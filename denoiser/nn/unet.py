@@ -1,4 +1,4 @@
-"""U-Net with one 1x1 output head per pyramid level (DESIGN 2, "How the U-Net reads").
+"""U-Net with one 1x1 output head per pyramid level (docs/design.md §2, "How the U-Net reads").
 
 With ``encoder = [e0, e1, ..., e_{n-1}]``, ``bottleneck = b`` and ``decoder = [d0, ..., d_{n-2}]``:
 

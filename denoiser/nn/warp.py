@@ -1,4 +1,4 @@
-"""Backward warping with motion vectors (DESIGN 3.1 convention).
+"""Backward warping with motion vectors (docs/design.md §3.1 convention).
 
 The surface seen at pixel centre ``p`` in frame t was at ``p + motion(p)`` in frame t-1
 (pixels; x to the right, y downward). ``warp_to_current`` therefore samples the previous

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from denoiser.cli import CONF_DIR
+from denoiser.conf import CONF_DIR
 from denoiser.errors import ConfigError
 
 SCENE_DIR = Path(CONF_DIR) / "scene"

@@ -1,4 +1,4 @@
-"""Render one sequence into the native layout (DESIGN 3.1), resumably.
+"""Render one sequence into the native layout (docs/design.md §3.1), resumably.
 
 ``<out_dir>/frame_0000.exr ...`` (written atomically by :func:`denoiser.data.exr.write_frame`)
 and ``<out_dir>/sequence.json`` (:func:`denoiser.data.sequence.write_sequence_json`, rewritten
@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from denoiser.data.exr import buffer_channels, list_channels, sample_channels, write_frame
+from denoiser.buffers import SEQUENCE_BUFFERS, native_channels, sample_channels
+from denoiser.data.exr import list_channels, write_frame
 from denoiser.data.sequence import SEQUENCE_JSON, load_sequence_json, write_sequence_json
 from denoiser.errors import ExrError, UserError
 from denoiser.render import seeds as sd
@@ -57,8 +58,8 @@ class RenderSettings:
     half: bool = False
 
     def buffers(self) -> list[str]:
-        out = ["color"] + (["samples"] if self.save_samples else []) + ["albedo", "normal", "depth", "motion"]
-        return out + (["reference"] if self.labeled else [])
+        return [b for b in SEQUENCE_BUFFERS
+                if (b != "samples" or self.save_samples) and (b != "reference" or self.labeled)]
 
     def channels(self) -> list[str]:
         names: list[str] = []
@@ -67,7 +68,7 @@ class RenderSettings:
             if b == "samples":
                 names += [c for k in range(self.spp) for c in sample_channels(k)]
             else:
-                names += list(buffer_channels(b, sizes[b]))
+                names += list(native_channels(b, sizes[b]))
         return names
 
 

@@ -1,6 +1,6 @@
 """Backward motion vectors from geometry (not optical flow).
 
-DESIGN 3.1: the surface seen at pixel centre ``p`` in frame ``t`` was at ``p + motion`` in
+docs/design.md §3.1: the surface seen at pixel centre ``p`` in frame ``t`` was at ``p + motion`` in
 frame ``t-1``; x right, y down, in pixels. For a pixel that sees point ``P`` of object ``k``
 at time ``t``, its position at ``t-1`` is ``M_k(t-1) M_k(t)^-1 P`` (static objects: ``P``),
 projected with the camera of ``t-1``. Pixels that see nothing (environment at infinity) move

@@ -1,6 +1,6 @@
 """What every layout shares: buffer specs, the on-disk view of one sequence, frame reading.
 
-A *layout* maps the logical buffers of DESIGN 3.1 (``color``, ``albedo``, ``normal``,
+A *layout* maps the logical buffers of docs/design.md §3.1 (``color``, ``albedo``, ``normal``,
 ``depth``, ``motion``, ``reference``, ``samples``) to files and EXR channel names. It is built
 by Hydra from ``conf/data/layout/*.yaml`` (``_target_``) and answers three questions:
 
@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from denoiser.buffers import sample_channels
 from denoiser.data import exr
 from denoiser.data.sequence import SequenceMeta
 from denoiser.errors import ExrError, UserError
@@ -185,7 +186,7 @@ class Layout:
         wanted: dict[str, tuple[str, ...]] = {}
         for b in buffers:
             if b == "samples":
-                wanted[b] = tuple(c for k in range(sample_count) for c in exr.sample_channels(k))
+                wanted[b] = tuple(c for k in range(sample_count) for c in sample_channels(k))
                 continue
             chans = self.resolve(path, b, present)
             if chans is None:

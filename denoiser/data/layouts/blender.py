@@ -10,7 +10,7 @@ A directory with the ``.exr`` files directly in it (no ``noisy/`` folder) is rea
 frames of one unlabeled sequence (e.g. for ``denoiser-denoise layout=blender``). Noisy and
 reference frames are paired by file name; frames are ordered by the number in the name.
 
-Facts about Cycles 4.x files (DESIGN 3.1): single-part scanline EXR, float32, channels
+Facts about Cycles 4.x files (docs/design.md §3.1): single-part scanline EXR, float32, channels
 ``<ViewLayer>.<Pass>.<chan>``. ``Combined.RGBA`` is the raw noisy image when Cycles' denoiser is
 off; ``Noisy Image.RGBA`` exists only when the denoiser ran (and then ``Combined`` is denoised),
 so the alias table of ``conf/data/layout/blender.yaml`` tries ``Noisy Image`` first for
@@ -23,7 +23,7 @@ channels complete the pass is used (several candidate layers are an error naming
 
 **Motion, the one conversion**: Blender's ``Vector`` pass stores in (X, Y) the position in frame
 t-1 minus the position in frame t, in pixels, with +Y pointing *up*; (Z, W) look forward to t+1.
-Our ``motion`` (DESIGN 3.1) is the same backward displacement with y pointing *down*, so
+Our ``motion`` (docs/design.md §3.1) is the same backward displacement with y pointing *down*, so
 ``motion = (X, -Y)``: :func:`vector_to_motion`, referenced from the layout config.
 """
 

@@ -1,4 +1,4 @@
-"""The native layout (DESIGN 3.1): one EXR per frame holding every buffer, plus sequence.json.
+"""The native layout (docs/design.md §3.1): one EXR per frame holding every buffer, plus sequence.json.
 
 ::
 
@@ -19,6 +19,7 @@ import re
 from collections.abc import Mapping
 from pathlib import Path
 
+from denoiser.buffers import sample_channels
 from denoiser.data import exr
 from denoiser.data.layouts.base import Layout, SequenceSource, image_size
 from denoiser.data.sequence import SEQUENCE_JSON, SequenceMeta, check_frames_on_disk, load_sequence_json
@@ -39,7 +40,7 @@ def count_samples(present) -> int:
     """Number of consecutive ``sample.k.R/G/B`` triples present, from k = 0."""
     present = set(present)
     k = 0
-    while all(c in present for c in exr.sample_channels(k)):
+    while all(c in present for c in sample_channels(k)):
         k += 1
     return k
 
@@ -123,7 +124,7 @@ class NativeLayout(Layout):
         present = exr.list_channels(path)
         for b in meta.buffers:
             if b == "samples":
-                need = [c for k in range(meta.sample_count) for c in exr.sample_channels(k)]
+                need = [c for k in range(meta.sample_count) for c in sample_channels(k)]
                 missing = [c for c in need if c not in present]
             elif b in self.specs:
                 missing = [] if self.resolve(path, b, present) else list(self.specs[b].alternatives[0])

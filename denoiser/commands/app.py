@@ -1,0 +1,81 @@
+"""Shared start-up for the console commands (each one is a Hydra app over ``denoiser/conf/``).
+
+``hydra_command(task, config_name)`` returns a ``main()`` suitable for a console script:
+Hydra composes ``conf/<config_name>.yaml`` with the command line, then ``task(cfg)`` runs.
+A :class:`~denoiser.errors.UserError` becomes one line on stderr and exit code 2; the full
+traceback is shown only with ``DENOISER_DEBUG=1``.
+
+The configs ship inside the package (:data:`denoiser.conf.CONF_DIR`), so a plain
+``pip install`` of the project runs every command from any directory.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+
+from denoiser.conf import CONF_DIR
+
+
+def debug_enabled() -> bool:
+    return os.environ.get("DENOISER_DEBUG", "") not in ("", "0", "false", "False")
+
+
+def report_user_error(exc: BaseException) -> None:
+    """Print a user error as one line (or the traceback in debug mode) and exit 2."""
+    if debug_enabled():
+        raise exc
+    print(f"error: {exc}", file=sys.stderr)
+    sys.exit(2)
+
+
+def guarded(task: Callable) -> Callable:
+    """Wrap a task so user errors end the process with one line instead of a traceback."""
+    from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue
+
+    from denoiser.errors import ConfigError, UserError
+
+    def wrapper(cfg):
+        try:
+            return task(cfg)
+        except UserError as exc:  # a mistake in the input, not a bug
+            report_user_error(exc)
+        except (InterpolationResolutionError, MissingMandatoryValue) as exc:  # e.g. key=${no_such_key}, key=???
+            if debug_enabled():
+                raise
+            report_user_error(ConfigError(_config_error_text(cfg, exc)))
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            sys.exit(130)
+
+    wrapper.__name__ = getattr(task, "__name__", "task")
+    wrapper.__doc__ = task.__doc__
+    return wrapper
+
+
+def _config_error_text(cfg, exc: BaseException) -> str:
+    """``<key>: <problem>`` for an unresolvable config value (finds the key when ``exc`` lacks it)."""
+    key = getattr(exc, "full_key", None)
+    if not key:
+        from omegaconf import OmegaConf
+
+        try:  # resolving the whole config raises at the offending node, with its key
+            OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        except Exception as again:  # noqa: BLE001 - only used to locate the key
+            key = getattr(again, "full_key", None)
+    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return f"{key or 'config'}: {first}"
+
+
+def hydra_command(task: Callable, config_name: str) -> Callable[[], None]:
+    """Build a console-script entry point running ``task`` as a Hydra app."""
+    import hydra
+
+    def main() -> None:
+        if not debug_enabled():
+            os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+        app = hydra.main(config_path=CONF_DIR, config_name=config_name, version_base="1.3")(guarded(task))
+        app()
+
+    return main

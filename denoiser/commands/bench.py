@@ -1,0 +1,344 @@
+"""``denoiser-bench``: what accuracy costs in time, networks and OIDN timed on the same frames.
+
+::
+
+    denoiser-bench 'ckpt={teacher: t.ckpt, student: s.ckpt}' eval_csv=eval/metrics.csv data=demo
+    denoiser-bench ckpt=[s.ckpt] sizes=[[256,256]] repeats=5 use_backends=[eager,onnxruntime]
+
+For every method (OIDN fast/balanced/high from ``baselines``, each checkpoint of ``ckpt`` and
+each untrained config variant of ``variants``), every size of ``sizes`` ``[H, W]`` and, for
+networks, every backend of ``use_backends`` (Hydra ``_target_`` entries of ``backends``:
+PyTorch eager fp32, channels_last, bfloat16 autocast, ``torch.compile``, ONNX Runtime; and
+CUDA backends that run only where a GPU is present), the benchmark measures:
+
+* the **median ms per frame** of ``repeats`` recurrent steps after ``warmup`` steps (state
+  carried, as in real use), with one thread count for everyone (``threads``; torch, OIDN's
+  ``numThreads`` and ONNX Runtime's intra-op threads);
+* **GFLOP** per frame (convolutions and matrix products, ``torch.utils.flop_counter``) and
+  the achieved GFLOP/s as a fraction of this machine's fp32 matmul peak, measured at start;
+* **parameters** and **peak memory**: the peak resident set size during the warm-up and timed
+  steps above the level after preparing the method (weights loaded, graph exported or
+  compiled), sampled every 2 ms (CPU); ``torch.cuda.max_memory_allocated`` (CUDA). Memory the
+  allocator kept from an earlier run is not counted again, so read it as "at least".
+
+Frames: ``frames`` consecutive frames of one test sequence (``sequence``, default the
+first), resampled to each size (bilinear; normals re-normalised, motion scaled): the cost of
+these networks and of OIDN does not depend on the content, and every method sees the same
+frames. Sizes can be skipped per method (``skip``), since a teacher at 1080p on 2 cores takes
+minutes, and a method's backends restricted (``method_backends``).
+
+The quality of each method is read from ``denoiser-eval``'s ``metrics.csv`` (``eval_csv``,
+the ``mean`` rows) and joined by method name. Outputs in ``out_dir``: ``bench.csv`` (one row
+per method, backend, device and size), ``report.md`` (machine, the table, the student vs
+OIDN-fast ratio at every size) and ``accuracy_vs_time.png`` (PSNR against ms per frame at
+``plot_size`` on a log axis; see :mod:`denoiser.plot_tradeoff`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import platform
+import statistics
+from collections import OrderedDict
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from denoiser.atomic import atomic_write_text
+from denoiser.backends import Stepper
+from denoiser.buffers import FRAME_INPUTS
+from denoiser.errors import ConfigError, UserError
+from denoiser.frames import resize_frame
+from denoiser.measure import (
+    PeakRss,
+    count_gflop,
+    markdown_table,
+    measure_matmul_peak,
+    read_csv,
+    time_steps,
+    write_csv,
+)
+
+# ----------------------------------------------------------------------------- frames
+
+
+def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: int) -> tuple[str, list[dict]]:
+    """``count`` consecutive frames ``{buffer: [1, C, H, W]}`` of one test sequence (cycled if short)."""
+    from denoiser.data.evalset import open_test_split, read_frame
+
+    _, sources, dataset = open_test_split(data_cfg, split, [sequence] if sequence else None)
+    source = sources[0]
+    frames = [read_frame(dataset, source, i % source.frames)[0] for i in range(count)]
+    return source.name, [{k: f[k] for k in FRAME_INPUTS} for f in frames]
+
+
+# ----------------------------------------------------------------------------- backends
+
+
+# ----------------------------------------------------------------------------- measuring
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
+    """``{label: {"net": module, "kind": "checkpoint"|"variant"}}`` from ``ckpt`` and ``variants``."""
+    from denoiser.checkpoint import build_net, checkpoint_paths, compose_net_config, load_denoiser
+
+    out: OrderedDict[str, dict] = OrderedDict()
+    for name, path in checkpoint_paths(cfg.get("ckpt")).items():
+        out[name] = {"net": load_denoiser(path), "kind": "checkpoint"}
+    for name, spec in (cfg.get("variants") or {}).items():
+        if name in out:
+            raise ConfigError(f"variants.{name}: the name is already used by a checkpoint")
+        net_cfg = compose_net_config(spec.get("net", "student"), spec.get("kernel"), list(spec.get("overrides") or []))
+        torch.manual_seed(0)
+        out[str(name)] = {"net": build_net(net_cfg, f"variants.{name}").eval(), "kind": "variant (untrained)"}
+    return out
+
+
+def quality_from_eval(path: str | os.PathLike | None) -> dict[str, dict]:
+    """``{method: {"psnr": ..., ...}}`` from the ``mean`` rows of ``denoiser-eval``'s metrics.csv."""
+    if not path:
+        return {}
+    rows = read_csv(path)
+    if rows and ("method" not in rows[0] or "sequence" not in rows[0]):
+        raise UserError(f"{path}: not a denoiser-eval metrics.csv (needs columns method and sequence)")
+    return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}
+
+
+def skipped(skip_cfg, label: str, size: tuple[int, int]) -> bool:
+    """True when ``skip[label]`` lists ``[H, W]`` = ``size``."""
+    entries = (skip_cfg or {}).get(label) or []
+    return any(tuple(int(v) for v in e) == size for e in entries)
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def bench_row(method: str, backend: str, device: str, size, times: list[float] | None, **extra) -> dict:
+    row = {"method": method, "backend": backend, "device": device, "height": size[0], "width": size[1],
+           "ms_median": float("nan"), "ms_min": float("nan"), "repeats": 0}
+    if times:
+        row.update(ms_median=1000 * statistics.median(times), ms_min=1000 * min(times), repeats=len(times))
+    row.update(extra)
+    return row
+
+
+def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops: float) -> list[dict]:
+    """Time every method, backend and size; returns the table rows."""
+    from hydra.utils import instantiate
+
+    sizes = [tuple(int(v) for v in s) for s in cfg.sizes]
+    nets = network_methods(cfg)
+    baselines = OrderedDict()
+    for key, node in (cfg.get("baselines") or {}).items():
+        if node is not None:
+            m = instantiate(node)
+            baselines[m.label] = m
+    backends = OrderedDict()
+    for key in cfg.use_backends:
+        if key not in cfg.backends:
+            raise ConfigError(f"use_backends: {key!r} is not in backends ({', '.join(cfg.backends)})")
+        backends[key] = instantiate(cfg.backends[key])
+    warmup, repeats = int(cfg.warmup), int(cfg.repeats)
+    if repeats < 1 or warmup < 0:
+        raise ConfigError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")
+    jobs = [(size, label) for size in sizes for label in [*baselines, *nets] if not skipped(cfg.get("skip"), label, size)]
+    rows = []
+    with tqdm(jobs, desc="bench", unit="job") as progress:
+        for size, label in progress:
+            progress.set_postfix_str(f"{label} {size[1]}x{size[0]}")
+            sized = [resize_frame(f, *size) for f in frames]
+            if label in baselines:
+                method = baselines[label]
+                with PeakRss() as mem:
+                    times = time_steps(Stepper(lambda f, s, m=method: (m(f, s is None), None)), sized, warmup, repeats)
+                rows.append(bench_row(label, "OIDN (pyoidn)", "cpu", size, times, threads=threads,
+                                      peak_mb=mem.megabytes, kind="baseline"))
+                continue
+            net, kind = nets[label]["net"], nets[label]["kind"]
+            gflop = count_gflop(net, sized[0])
+            allowed = (cfg.get("method_backends") or {}).get(label)
+            for key, backend in backends.items():
+                if allowed is not None and key not in allowed:
+                    continue
+                reason = backend.available()
+                base = {"threads": threads if backend.device == "cpu" else "", "gflop": gflop,
+                        "params": net.num_parameters(), "kind": kind}
+                if reason:
+                    rows.append(bench_row(label, backend.label, backend.device, size, None, status=f"skipped: {reason}",
+                                          **base))
+                    continue
+                try:
+                    if backend.device.startswith("cuda"):
+                        torch.cuda.reset_peak_memory_stats()
+                    stepper = backend.prepare(net, sized[0], threads)
+                    with PeakRss() as mem:  # what running needs above the prepared state
+                        times = time_steps(stepper, sized, warmup, repeats)
+                except Exception as exc:  # noqa: BLE001 - a backend that fails here is reported, not fatal
+                    rows.append(bench_row(label, backend.label, backend.device, size, None,
+                                          status=f"failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
+                                          if str(exc) else f"failed: {type(exc).__name__}", **base))
+                    continue
+                peak = (torch.cuda.max_memory_allocated() / 2**20 if backend.device.startswith("cuda")
+                        else mem.megabytes)
+                row = bench_row(label, backend.label, backend.device, size, times, peak_mb=peak, **base)
+                row["gflops_per_s"] = gflop / (row["ms_median"] / 1000)
+                if backend.device == "cpu":
+                    row["peak_fraction"] = row["gflops_per_s"] / peak_gflops
+                rows.append(row)
+    for m in baselines.values():
+        close = getattr(m, "close", None)
+        if close:
+            close()
+    return rows
+
+
+# ----------------------------------------------------------------------------- report
+
+COLUMNS = ["method", "backend", "device", "height", "width", "ms_median", "ms_min", "repeats", "gflop", "params",
+           "peak_mb", "gflops_per_s", "peak_fraction", "psnr", "kind", "threads", "status"]
+FORMATS = {"ms_median": ".1f", "ms_min": ".1f", "gflop": ".2f", "peak_mb": ".0f", "gflops_per_s": ".1f",
+           "peak_fraction": ".1%", "psnr": ".2f", "ratio": ".2f", "psnr_gain": "+.2f", "student_ms": ".1f",
+           "baseline_ms": ".1f"}
+HEADERS = {"ms_median": "ms/frame (median)", "ms_min": "ms min", "gflop": "GFLOP", "peak_mb": "peak MB",
+           "gflops_per_s": "GFLOP/s", "peak_fraction": "of matmul peak", "psnr": "PSNR dB"}
+
+
+def best_rows(rows: list[dict], size, device: str = "cpu") -> dict[str, dict]:
+    """Per method, its fastest timed row at ``size`` on ``device``."""
+    best: dict[str, dict] = {}
+    for r in rows:
+        if (r["height"], r["width"]) != tuple(size) or r["device"] != device or math.isnan(r["ms_median"]):
+            continue
+        if r["method"] not in best or r["ms_median"] < best[r["method"]]["ms_median"]:
+            best[r["method"]] = r
+    return best
+
+
+def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dict]:
+    """Student vs baseline (e.g. OIDN-fast) at each size: best CPU backend and eager fp32."""
+    out = []
+    for size in sizes:
+        size = tuple(int(v) for v in size)
+        b = best_rows(rows, size).get(baseline)
+        s_best = best_rows(rows, size).get(student)
+        s_eager = next((r for r in rows if r["method"] == student and r["backend"] == "eager fp32" and r["device"] == "cpu"
+                        and (r["height"], r["width"]) == size and not math.isnan(r["ms_median"])), None)
+        for which, s in (("fastest backend", s_best), ("eager fp32", s_eager)):
+            if b is None or s is None:
+                continue
+            out.append({"size": f"{size[1]}x{size[0]}", "student": f"{student} ({s['backend']})", "student_ms": s["ms_median"],
+                        "baseline": baseline, "baseline_ms": b["ms_median"], "ratio": b["ms_median"] / s["ms_median"],
+                        "psnr_gain": s.get("psnr", float("nan")) - b.get("psnr", float("nan")), "compare": which})
+    return out
+
+
+def machine_description(threads: int, peak_gflops: float) -> str:
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    return (f"CPU: {cpu}, {os.cpu_count()} logical cores, {threads} thread(s) for every method; "
+            f"fp32 matmul peak {peak_gflops:.1f} GFLOP/s (1024x1024 torch.mm); GPU: {gpu}; "
+            f"torch {torch.__version__}")
+
+
+def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: str, cfg: DictConfig,
+                 plot: Path | None) -> str:
+    parts = ["# Accuracy vs time\n", machine + "\n",
+             f"Median of {cfg.repeats} recurrent steps after {cfg.warmup} warm-up step(s), same frames for every "
+             "method (resampled to each size). GFLOP counts convolutions and matrix products of one step. "
+             "PSNR (tonemapped, dB) from denoiser-eval's metrics.csv"
+             + (f" ({cfg.eval_csv})" if cfg.get("eval_csv") else " (not given: no quality column)") + ".\n"]
+    if ratios:
+        parts += ["## Student vs " + ratios[0]["baseline"] + " (same frames, same run)\n",
+                  markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline_ms", "ratio", "psnr_gain"],
+                                 FORMATS, {"student_ms": "student ms", "baseline_ms": f"{ratios[0]['baseline']} ms",
+                                           "ratio": "speed-up (x)", "psnr_gain": "PSNR gain dB"}), ""]
+    parts += ["## All measurements\n", markdown_table(rows, [c for c in COLUMNS if c not in ("kind",)], FORMATS, HEADERS)]
+    if plot is not None:
+        from denoiser.plot_tradeoff import pareto_front_of_rows
+
+        size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
+        front = pareto_front_of_rows(rows, size)
+        parts += ["", f"Pareto front at {size[1]}x{size[0]} (fastest first): {', '.join(front)}.", "",
+                  f"![accuracy vs time]({plot.name})", ""]
+    text = "\n".join(parts)
+    atomic_write_text(out_dir / "report.md", text)
+    return text
+
+
+def run(cfg: DictConfig) -> list[dict]:
+    """The ``denoiser-bench`` task; returns the table rows."""
+    threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
+    torch.set_num_threads(threads)
+    out_dir = Path(cfg.out_dir)
+    quality = quality_from_eval(cfg.get("eval_csv"))
+    seq_name, frames = load_frames(cfg.data, cfg.split, cfg.get("sequence"), int(cfg.warmup) + int(cfg.repeats))
+    peak = measure_matmul_peak(threads)
+    rows = run_benchmark(cfg, frames, threads, peak)
+    for r in rows:
+        q = quality.get(r["method"])
+        r["psnr"] = float(q["psnr"]) if q and "psnr" in q else float("nan")
+        r.setdefault("status", "ok")
+    write_csv(out_dir / "bench.csv", rows, COLUMNS)
+    plot_path = None
+    if quality:
+        from denoiser.plot_tradeoff import plot_accuracy_vs_time
+
+        plot_size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
+        noisy = quality.get(cfg.get("noisy_label", "noisy input"))
+        plot_path = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", rows, plot_size,
+                                          curves=_plain(cfg.get("curves")),
+                                          noisy_psnr=float(noisy["psnr"]) if noisy else None,
+                                          title=f"{seq_name} frames at {plot_size[1]}x{plot_size[0]}, {threads} CPU thread(s)")
+    student = cfg.compare.student or default_student(network_labels(rows))
+    ratios = ratio_rows(rows, student, cfg.compare.baseline, cfg.sizes) if student else []
+    machine = machine_description(threads, peak)
+    write_report(out_dir, rows, ratios, machine, cfg, plot_path)
+    print(machine)
+    print(markdown_table(rows, ["method", "backend", "device", "height", "width", "ms_median", "gflop", "params",
+                                "peak_mb", "peak_fraction", "psnr", "status"], FORMATS, HEADERS))
+    if ratios:
+        print(markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline", "baseline_ms", "ratio",
+                                      "psnr_gain"], FORMATS, {"ratio": "speed-up (x)"}))
+    print(f"wrote {out_dir / 'bench.csv'}, {out_dir / 'report.md'}" + (f" and {plot_path}" if plot_path else ""))
+    return rows
+
+
+def _plain(node) -> dict:
+    """A config node (or None) as a plain dict."""
+    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
+def default_student(labels: list[str]) -> str | None:
+    """The network compared with the baseline when ``compare.student`` is null: the first whose
+    name contains ``student``, else the first network."""
+    return next((m for m in labels if "student" in m), labels[0] if labels else None)
+
+
+def network_labels(rows: list[dict]) -> list[str]:
+    seen = []
+    for r in rows:
+        if r.get("kind") != "baseline" and r["method"] not in seen:
+            seen.append(r["method"])
+    return seen
+
+
+def main() -> None:
+    from denoiser.commands.app import hydra_command
+
+    hydra_command(run, "bench")()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""``denoiser-render``: render scenes into the native sequence layout (Hydra app, ``conf/render.yaml``).
+
+One scene::
+
+    denoiser-render scene=cornell split=train sequences=2 frames=8 spp=4 ref_spp=256 width=128 height=128
+
+A dataset preset (``conf/dataset/*.yaml``) renders several scenes and splits in one command::
+
+    denoiser-render dataset=demo            # -> data/demo/{train,val,test,unlabeled}/<scene>_<k>/
+
+Output root: ``root`` (default ``data/<name>``, ``name`` = the preset's name or ``default``).
+Resumable: finished frames are skipped. Scenes marked ``test_only`` are refused for the
+train/val/unlabeled splits unless ``allow_test_only=true``.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from denoiser.commands.app import hydra_command
+from denoiser.errors import ConfigError
+from denoiser.render.build import scene_dict
+from denoiser.render.catalog import load_scene_config
+from denoiser.render.job import RenderSettings, render_sequence
+from denoiser.render.seeds import sequence_seed
+from denoiser.render.spec import build_scene
+
+SPLITS = ("train", "val", "test", "unlabeled")
+JOB_KEYS = {"split", "scenes", "sequences", "frames", "spp", "ref_spp", "width", "height", "save_samples",
+            "first_sequence"}
+
+
+@dataclass
+class SequenceJob:
+    """One sequence to render."""
+
+    split: str
+    scene_config: Any
+    index: int
+    settings: RenderSettings
+
+    @property
+    def scene_name(self) -> str:
+        return str(self.scene_config.get("name"))
+
+    @property
+    def directory(self) -> str:
+        return f"{self.split}/{self.scene_name}_{self.index:03d}"
+
+
+def _settings(cfg: DictConfig, job: dict, split: str) -> RenderSettings:
+    def get(key):
+        return job[key] if key in job else cfg[key]
+
+    values = {k: get(k) for k in ("frames", "spp", "ref_spp", "width", "height")}
+    for k, v in values.items():
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ConfigError(f"render: key '{k}' must be a positive integer, got {v!r}")
+    return RenderSettings(**values, labeled=split != "unlabeled", save_samples=bool(get("save_samples")),
+                          half=bool(cfg.half))
+
+
+def plan(cfg: DictConfig) -> list[SequenceJob]:
+    """Expand the config (one scene, or the jobs of ``dataset``) into sequences to render."""
+    if cfg.get("dataset"):
+        jobs = [OmegaConf.to_container(j, resolve=True) for j in cfg.dataset.jobs]
+    else:
+        jobs = [{"split": cfg.split, "scenes": [cfg.scene]}]
+    out: list[SequenceJob] = []
+    for i, job in enumerate(jobs):
+        unknown = set(job) - JOB_KEYS
+        if unknown:
+            raise ConfigError(f"dataset.jobs[{i}]: unknown key(s) {', '.join(sorted(unknown))}")
+        split = job.get("split", cfg.split)
+        if split not in SPLITS:
+            raise ConfigError(f"render: key 'split' must be one of {', '.join(SPLITS)}, got {split!r}")
+        settings = _settings(cfg, job, split)
+        first = int(job.get("first_sequence", cfg.first_sequence))
+        for scene in job.get("scenes", []):
+            scene_cfg = load_scene_config(scene) if isinstance(scene, str) else scene
+            if scene_cfg.get("test_only", False) and split != "test" and not cfg.allow_test_only:
+                raise ConfigError(f"scene '{scene_cfg.get('name')}' is test_only and cannot be rendered into split "
+                                  f"'{split}' (set allow_test_only=true to override)")
+            for k in range(int(job.get("sequences", cfg.sequences))):
+                out.append(SequenceJob(split, scene_cfg, first + k, settings))
+    return out
+
+
+def run(cfg: DictConfig) -> None:
+    """Render everything ``cfg`` asks for, with one progress bar over all frames."""
+    from denoiser.render.variant import activate
+
+    jobs = plan(cfg)
+    # Build every scene first: configuration mistakes surface before any rendering.
+    specs = [build_scene(j.scene_config, sequence_seed(cfg.seed, j.scene_name, j.split, j.index)) for j in jobs]
+    mi = activate(cfg.variant)
+    for spec in specs:  # materials, textures, lights and shapes are checked by building them once
+        scene_dict(mi, spec, 0.0, 8, 8)
+    root = Path(cfg.root)
+    total = sum(j.settings.frames for j in jobs)
+    skipped = 0
+    with tqdm(total=total, unit="frame", desc="render", dynamic_ncols=True) as bar:
+        for job, spec in zip(jobs, specs):
+            bar.set_postfix_str(job.directory)
+
+            def on_frame(t: int, was_done: bool) -> None:
+                nonlocal skipped
+                skipped += was_done
+                bar.update(1)
+
+            render_sequence(mi, spec, root / job.directory, job.settings,
+                            sequence_seed(cfg.seed, job.scene_name, job.split, job.index),
+                            overwrite=bool(cfg.overwrite), on_frame=on_frame)
+    print(f"rendered {total - skipped} frame(s), skipped {skipped} finished, {len(jobs)} sequence(s) in {root}",
+          file=sys.stderr)
+
+
+main = hydra_command(run, "render")

@@ -1,0 +1,151 @@
+"""Train a denoiser: the teacher, the student, or the student by distillation (docs/design.md §5).
+
+    python train.py model=teacher|student|distill [net=... kernel=... ablation=... data=... trainer=...]
+    python train.py experiment=demo_teacher                     # the demo's teacher (CPU widths)
+    python train.py -m experiment=demo ablation=none,no_pyramid,no_temporal    # a sweep
+    python train.py <overrides> hydra.run.dir=<run dir> ckpt_path=last         # resume that run
+    python train.py --cfg job                                   # print the composed config
+
+A Hydra app over ``conf/train.yaml``: the data module, the Lightning module (``model``), the
+trainer, logger and callbacks are all built from their ``_target_`` configs. Everything a run
+writes lives in its run directory: ``checkpoints/{last,best}.ckpt``, ``tb/`` (TensorBoard:
+scalars, image panels, hparams with the final validation metrics) and ``.hydra/`` (the
+composed config). See docs/training.md.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from denoiser.commands.app import guarded
+from denoiser.conf import CONF_DIR
+from denoiser.errors import ConfigError, UserError
+
+#: prefix of the final validation metrics logged together with the hyperparameters
+FINAL_PREFIX = "final/"
+
+
+def build(node: Any, key: str, **kwargs: Any) -> Any:
+    """``hydra.utils.instantiate(node, **kwargs)``; config mistakes become a one-line ConfigError naming ``key``.
+
+    A UserError raised inside a constructor (e.g. a missing teacher checkpoint) is re-raised as is.
+    """
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+    from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
+    try:
+        return instantiate(node, **kwargs)
+    except MissingMandatoryValue as exc:
+        raise ConfigError(f"{_full_key(exc, key)}: missing mandatory value (give it on the command line)") from None
+    except OmegaConfBaseException as exc:
+        raise ConfigError(f"{key}: {_first_line(exc)}") from None
+    except InstantiationException as exc:
+        chain: list[BaseException] = []
+        cause: BaseException | None = exc
+        while cause is not None and len(chain) < 20:
+            chain.append(cause)
+            cause = cause.__cause__ or cause.__context__
+        for cause in chain:
+            if isinstance(cause, UserError):
+                raise cause from None
+            if isinstance(cause, MissingMandatoryValue):
+                raise ConfigError(f"{_full_key(cause, key)}: missing mandatory value (give it on the command line)") \
+                    from None
+        for cause in chain:  # config mistakes: unknown _target_, misspelled argument
+            text = str(cause)
+            if "Error locating target" in text or isinstance(cause, (ImportError, AttributeError)) or (
+                    isinstance(cause, TypeError) and "argument" in text):
+                raise ConfigError(f"{key}: {_first_line(cause)}") from None
+        raise
+
+
+def _full_key(exc: BaseException, key: str) -> str:
+    full = getattr(exc, "full_key", None)
+    return f"{key}.{full}" if full and not str(full).startswith(key) else (full or key)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:300] if text else type(exc).__name__
+
+
+def resolve_ckpt_path(ckpt_path: str | None, output_dir: str) -> str | None:
+    """``None`` (fresh start), ``last`` (``<output_dir>/checkpoints/last.ckpt``) or an existing file."""
+    if ckpt_path in (None, "", "null"):
+        return None
+    path = Path(output_dir) / "checkpoints" / "last.ckpt" if ckpt_path == "last" else Path(ckpt_path)
+    if not path.is_file():
+        hint = " (resume a run with hydra.run.dir=<its run dir> ckpt_path=last)" if ckpt_path == "last" else ""
+        raise ConfigError(f"ckpt_path={ckpt_path}: {path} does not exist{hint}")
+    return str(path)
+
+
+def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved run config as ``{"model/loss/kd_weight": 1.0, ...}`` (lists as strings)."""
+    def walk(node: Any, prefix: str, out: dict) -> dict:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}/", out)
+        else:
+            out[prefix[:-1]] = node if isinstance(node, (int, float, str, bool)) or node is None else str(node)
+        return out
+
+    container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+    return {k: ("null" if v is None else v) for k, v in walk(container, "", {}).items()}
+
+
+def final_metrics(trainer) -> dict[str, float]:
+    """The last validation metrics ``{"val/psnr": ..}`` the trainer holds."""
+    return {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
+
+
+def train(cfg: DictConfig) -> dict[str, float]:
+    """Run one training job from a composed config; returns the final validation metrics."""
+    import lightning.pytorch as pl
+    import torch
+
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    pl.seed_everything(int(cfg.seed), workers=True)
+    ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), cfg.output_dir)
+    datamodule = build(cfg.data, "data")
+    if hasattr(datamodule, "setup"):  # index and validate the data before any log or checkpoint is written
+        datamodule.setup("fit")
+    model = build(cfg.model, "model")
+    callbacks = [build(c, f"callbacks.{name}") for name, c in (cfg.get("callbacks") or {}).items() if c is not None]
+    logger = build(cfg.logger, "logger") if cfg.get("logger") else False
+    trainer = build(cfg.trainer, "trainer", callbacks=callbacks, logger=logger)
+
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    if trainer.interrupted:
+        print("training interrupted; last.ckpt holds the last state", file=sys.stderr)
+    validated_at = getattr(model, "validated_step", -1)
+    if cfg.get("final_validation", True) and validated_at != trainer.global_step and not trainer.interrupted \
+            and getattr(datamodule, "splits", {}).get("val") and not trainer.fast_dev_run:
+        trainer.validate(model, datamodule=datamodule, verbose=False)
+    metrics = final_metrics(trainer)
+    if logger and metrics:
+        logger.log_hyperparams(flat_hparams(cfg), metrics={FINAL_PREFIX + k[len("val/"):]: v for k, v in metrics.items()})
+        logger.finalize("success")
+    print(f"run directory: {cfg.output_dir}")
+    print(f"  checkpoints: {Path(cfg.output_dir) / 'checkpoints'}   tensorboard: {Path(cfg.output_dir) / 'tb'}")
+    if metrics:
+        print("  final " + "  ".join(f"{k[len('val/'):]}={v:.4f}" for k, v in sorted(metrics.items())))
+    return metrics
+
+
+@hydra.main(config_path=CONF_DIR, config_name="train", version_base="1.3")
+def main(cfg: DictConfig) -> float | None:
+    """Hydra entry point; returns val/psnr for sweepers that optimize it."""
+    metrics = guarded(train)(cfg)
+    return (metrics or {}).get("val/psnr")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""The labeled sequences that evaluation and the benchmark read, one frame at a time.
+
+Frames stream from disk (memory does not grow with sequence length). A frame is
+``{buffer: [1, C, H, W]}`` over :data:`denoiser.buffers.FRAME_INPUTS`, plus its reference
+``[1, 3, H, W]`` and whether history resets there (the first frame and camera cuts).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from denoiser.buffers import FRAME_INPUTS
+from denoiser.errors import UserError
+
+
+def open_test_split(data_cfg: DictConfig, split: str, sequences=None):
+    """``(layout, sources, dataset)`` for the labeled sequences of ``<data.root>/<split>``."""
+    from hydra.utils import instantiate
+
+    from denoiser.data.dataset import SequenceDataset, index_split
+
+    layout = instantiate(data_cfg.layout)
+    sources = index_split(layout, data_cfg.root, split)
+    if sequences:
+        wanted = [str(s) for s in sequences]
+        by_name = {s.name.split("/", 1)[-1]: s for s in sources}
+        missing = [w for w in wanted if w not in by_name and w not in {s.name for s in sources}]
+        if missing:
+            raise UserError(f"{Path(data_cfg.root) / split}: no sequence(s) {', '.join(missing)}; "
+                            f"present: {', '.join(sorted(by_name))}")
+        sources = [s for s in sources if s.name in wanted or s.name.split("/", 1)[-1] in wanted]
+    unlabeled = [s for s in sources if not s.labeled]
+    if unlabeled:
+        raise UserError(f"{unlabeled[0].directory}: sequence has no reference buffer; evaluation needs "
+                        "a labeled split")
+    dataset = SequenceDataset(sources, layout, list(FRAME_INPUTS), window=1, labeled=True, cache_dir=None)
+    return layout, sources, dataset
+
+
+def read_frame(dataset, source, index: int) -> tuple[dict, torch.Tensor, bool]:
+    """Frame ``index`` of ``source``: ``(inputs {buffer: [1, C, H, W]}, reference [1, 3, H, W], reset)``."""
+    item = dataset.load(source, index, 1, None)
+    inputs = {b: item[b] for b in FRAME_INPUTS}
+    reset = index == 0 or index in source.cuts
+    return inputs, item["reference"], reset
+
+
+def sequence_reference(dataset, source, frames: int) -> torch.Tensor:
+    """All reference frames ``[T, 3, H, W]`` of ``source`` (for the FLIP exposure range)."""
+    return torch.stack([torch.from_numpy(dataset.reader.read(source, i, ["reference"])["reference"])
+                        for i in range(frames)])

@@ -1,0 +1,80 @@
+"""The one recurrent runner: steps a network over a sequence's frames, carrying its state and
+resetting it at the first frame and at camera cuts.
+
+Every consumer steps networks through this module: training and validation windows
+(:func:`unroll`, through ``Denoiser.forward``), evaluation and the baselines, the benchmark's
+backends, ``denoiser-denoise``, the export check and the network benchmark
+(:class:`RecurrentRunner`). A new backend (ONNX Runtime, OpenVINO, ...) or baseline only has to
+provide a *step function*; a test checks that nothing else loops over ``step`` by itself.
+
+Step function contract::
+
+    step(frame, state) -> (output, new_state, *extras)
+
+``frame`` is ``{buffer: [B, C, H, W]}`` (tensors or arrays, :mod:`denoiser.buffers`),
+``state`` the previous call's ``new_state`` or None, which means "no history": the first frame
+of a sequence or a camera cut. :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>`,
+the exported graph's :class:`~denoiser.step_graph.OnnxStep` and every backend's
+:class:`~denoiser.backends.Stepper` follow it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Any
+
+StepFn = Callable[..., tuple]
+
+
+class RecurrentRunner:
+    """A step function with its state carried from call to call (one sequence at a time).
+
+    ``runner(frame, reset)`` -> output; ``reset=True`` (first frame, camera cut) drops the
+    history before stepping. ``extras`` holds what the last step returned after the state
+    (``Denoiser.step``'s extras dict), ``state`` the carried state.
+    """
+
+    def __init__(self, step: StepFn):
+        self.step = step
+        self.state: Any = None
+        self.extras: tuple = ()
+
+    def reset(self) -> None:
+        """Forget the history: the next frame starts a sequence."""
+        self.state = None
+
+    def __call__(self, frame: Mapping[str, Any], reset: bool = False):
+        """One step: ``frame`` ``{buffer: [B, C, H, W]}`` -> the step's output ``[B, 3, H, W]``."""
+        if reset:
+            self.state = None
+        output, self.state, *self.extras = self.step(frame, self.state)
+        return output
+
+    def run(self, frames: Iterable[tuple[Mapping[str, Any], bool]]) -> Iterator:
+        """Step over ``(frame, reset)`` pairs in order, yielding each output (state carried)."""
+        for frame, reset in frames:
+            yield self(frame, reset)
+
+
+def unroll(step: StepFn, frames: Mapping[str, Any], keys: Iterable[str], state: Any = None, reset: Any = None,
+           detach_every: int = 0, detach: Callable[[Any], Any] | None = None):
+    """Unroll ``step`` over a batch of windows (training, validation).
+
+    frames: ``{buffer: [B, T, C, H, W]}`` (``samples [B, T, S, 3, H, W]``); only ``keys`` that
+        are present and not None are stepped. reset: bool ``[B, T]`` or None; ``reset[:, t]``
+        is passed to ``step(frame, state, reset)`` so items of a batch reset independently.
+    detach_every: k > 0 applies ``detach`` to the state before every k-th step (truncated BPTT).
+
+    Returns ``(outputs: list of T outputs [B, 3, H, W], final state, list of T extras)``.
+    """
+    keys = [k for k in keys if frames.get(k) is not None]
+    steps = frames["color"].shape[1]
+    outputs, extras_list = [], []
+    for t in range(steps):
+        if detach_every and t > 0 and t % detach_every == 0 and detach is not None:
+            state = detach(state)
+        frame = {k: frames[k][:, t] for k in keys}
+        output, state, *extras = step(frame, state, None if reset is None else reset[:, t])
+        outputs.append(output)
+        extras_list.append(extras[0] if len(extras) == 1 else tuple(extras))
+    return outputs, state, extras_list

@@ -1,0 +1,228 @@
+"""A denoiser's recurrent step as an ONNX graph (opset 17), and that graph run by ONNX Runtime.
+
+Used by ``denoiser-export`` (:mod:`denoiser.commands.export`) and by the ONNX Runtime backend
+of the benchmark (:mod:`denoiser.backends`). The graph is one :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>` with the recurrent
+state as explicit inputs and outputs (see ``docs/export.md``):
+
+=================================  ======================  =====================================
+inputs                             shape                   meaning
+=================================  ======================  =====================================
+``color``                          ``[B, 3, H, W]`` f32    noisy linear HDR radiance
+``albedo``, ``normal``             ``[B, 3, H, W]`` f32    first-hit albedo, camera-space normal
+``depth``                          ``[B, 1, H, W]`` f32    planar depth
+``motion``                         ``[B, 2, H, W]`` f32    backward motion in pixels (x right, y down)
+``reset``                          ``[B]`` bool            True: discard the history (first frame, cut)
+``state_<k>``                      ``[B, C_k, H, W]`` f32  previous step's ``next_state_<k>``
+=================================  ======================  =====================================
+
+outputs: ``output [B, 3, H, W]`` (denoised linear HDR) and ``next_state_<k>`` for every state
+key ``k`` (``output``, ``color``, ``features``, ``guide`` for the temporal recurrence). On the
+first frame pass zeros as state and ``reset = True``. Networks without temporal recurrence have
+neither ``reset`` nor state. ``H`` and ``W`` are dynamic (any size; ``B`` is fixed at export).
+
+How: the TorchScript-based exporter traces the step at a deliberately odd size
+(``trace_size``, not a multiple of the U-Net's 2^levels), so the internal padding to a multiple
+is recorded as shape arithmetic and the graph stays valid at every size. (The
+``torch.export``-based exporter rejected the padding's shape guards and a ``clamp`` at opset 17
+with torch 2.13.) The result is checked by ONNX Runtime against PyTorch at ``check_size``, a
+different resolution, over two recurrent steps (reset, then with the returned state); the
+largest absolute error of every output is printed and must stay below
+``tolerance * max(1, max |value|)`` (HDR values reach hundreds: float32 rounding in a
+different operator order scales with them).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from denoiser.atomic import atomic_path
+from denoiser.buffers import CHANNELS, FRAME_INPUTS
+from denoiser.runner import RecurrentRunner
+
+
+def state_keys(net: nn.Module) -> list[str]:
+    """State keys of a denoiser's recurrence, in graph order (empty without recurrence)."""
+    temporal = getattr(net, "temporal", None)
+    return [] if temporal is None else list(temporal.state_channels())
+
+
+def state_channels(net: nn.Module) -> dict[str, int]:
+    temporal = getattr(net, "temporal", None)
+    return {} if temporal is None else dict(temporal.state_channels())
+
+
+class StepGraph(nn.Module):
+    """``Denoiser.step`` with positional tensors: the module that is traced to ONNX.
+
+    ``forward(color, albedo, normal, depth, motion[, reset, *state]) -> (output, *next_state)``
+    with the shapes of the module docstring; ``state`` in :func:`state_keys` order.
+    """
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+        self.keys = state_keys(net)
+
+    def input_names(self) -> list[str]:
+        extra = ["reset", *[f"state_{k}" for k in self.keys]] if self.keys else []
+        return [*FRAME_INPUTS, *extra]
+
+    def output_names(self) -> list[str]:
+        return ["output", *[f"next_state_{k}" for k in self.keys]]
+
+    def forward(self, color, albedo, normal, depth, motion, reset=None, *state):
+        frame = {"color": color, "albedo": albedo, "normal": normal, "depth": depth, "motion": motion}
+        previous = dict(zip(self.keys, state)) if self.keys else None
+        output, new_state, _ = self.net.step(frame, previous, reset)
+        return (output, *[new_state[k] for k in self.keys])
+
+
+def example_frame(batch: int, height: int, width: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    """A plausible random frame ``{buffer: [B, C, H, W]}``: HDR color with fireflies, unit
+    normals, depth with sky (1e10), motion up to a quarter of the frame size."""
+    g = torch.Generator().manual_seed(seed)
+    color = torch.rand(batch, 3, height, width, generator=g) ** 2 * 4
+    color = torch.where(torch.rand(batch, 1, height, width, generator=g) < 0.01, color * 50, color)
+    depth = torch.rand(batch, 1, height, width, generator=g) * 20 + 0.5
+    depth = torch.where(torch.rand(batch, 1, height, width, generator=g) < 0.1, torch.full_like(depth, 1e10), depth)
+    return {
+        "color": color,
+        "albedo": torch.rand(batch, 3, height, width, generator=g),
+        "normal": nn.functional.normalize(torch.randn(batch, 3, height, width, generator=g), dim=1),
+        "depth": depth,
+        "motion": torch.randn(batch, 2, height, width, generator=g) * 0.25 * max(height, width),
+    }
+
+
+def graph_inputs(graph: StepGraph, frame: dict, state: dict | None, reset: bool) -> tuple:
+    """Positional inputs of :class:`StepGraph` (zero state when ``state`` is None)."""
+    args = [frame[k] for k in FRAME_INPUTS]
+    if graph.keys:
+        like = frame["color"]
+        b, _, h, w = like.shape
+        if state is None:
+            state = {k: like.new_zeros(b, c, h, w) for k, c in state_channels(graph.net).items()}
+        args.append(torch.full((b,), bool(reset), dtype=torch.bool))
+        args.extend(state[k] for k in graph.keys)
+    return tuple(args)
+
+
+def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_size=(37, 61), batch: int = 1,
+                metadata: dict | None = None) -> Path:
+    """Trace ``net.step`` at ``trace_size`` ``(H, W)`` and write an ONNX model to ``path`` (atomic)."""
+    import onnx
+
+    graph = StepGraph(net.eval()).eval()
+    h, w = (int(v) for v in trace_size)
+    frame = example_frame(batch, h, w)
+    args = graph_inputs(graph, frame, None, reset=False)
+    dynamic = {n: {2: "height", 3: "width"} for n in graph.input_names() + graph.output_names() if n != "reset"}
+    path = Path(path)
+    with atomic_path(path, ".onnx") as tmp, warnings.catch_warnings(), torch.no_grad():
+        # no_grad: the inference path of every op (no custom autograd.Function in the graph);
+        # tracer warnings about Python ints are expected (see the module docstring)
+        warnings.simplefilter("ignore")
+        torch.onnx.export(graph, args, str(tmp), opset_version=int(opset), input_names=graph.input_names(),
+                          output_names=graph.output_names(), dynamic_axes=dynamic, dynamo=False,
+                          do_constant_folding=True)
+        model = onnx.load(str(tmp))
+        onnx.checker.check_model(model)
+        meta = {"state_keys": ",".join(graph.keys), "multiple": str(getattr(net, "multiple", 1)),
+                **{k: str(v) for k, v in (metadata or {}).items()}}
+        for k, v in meta.items():
+            entry = model.metadata_props.add()
+            entry.key, entry.value = k, v
+        onnx.save(model, str(tmp))
+    return path
+
+
+class OnnxStep:
+    """Runs an exported step graph with ONNX Runtime, carrying the state like ``Denoiser.step``.
+
+    ``threads``: intra-op threads (None = ONNX Runtime's default).
+    """
+
+    def __init__(self, path: str | os.PathLike, threads: int | None = None, providers=("CPUExecutionProvider",)):
+        import onnxruntime as ort
+
+        options = ort.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = int(threads)
+            options.inter_op_num_threads = 1
+        self.session = ort.InferenceSession(str(path), options, providers=list(providers))
+        self.inputs = [i.name for i in self.session.get_inputs()]
+        self.outputs = [o.name for o in self.session.get_outputs()]
+        self.keys = [n[len("state_"):] for n in self.inputs if n.startswith("state_")]
+        self.channels = {i.name[len("state_"):]: int(i.shape[1]) for i in self.session.get_inputs()
+                         if i.name.startswith("state_")}
+
+    def step(self, frame: dict, state: dict | None, reset: bool = False) -> tuple[np.ndarray, dict]:
+        """``frame``: ``{buffer: [B, C, H, W]}`` tensors or arrays -> ``(output array, state)``.
+
+        ``state=None`` (or ``reset=True``) starts a sequence: zero state and the graph's reset
+        input set (the runner's contract, :mod:`denoiser.runner`)."""
+        feed = {k: np.ascontiguousarray(_numpy(frame[k]), dtype=np.float32) for k in FRAME_INPUTS}
+        b, _, h, w = feed["color"].shape
+        if self.keys:
+            if state is None:
+                state = {k: np.zeros((b, c, h, w), np.float32) for k, c in self.channels.items()}
+                reset = True
+            feed["reset"] = np.full((b,), bool(reset))
+            feed.update({f"state_{k}": state[k] for k in self.keys})
+        results = self.session.run(None, feed)
+        named = dict(zip(self.outputs, results))
+        return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
+
+
+def _numpy(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+@torch.no_grad()
+def check_export(net: nn.Module, path: str | os.PathLike, size=(72, 104), batch: int = 1, steps: int = 2,
+                 threads: int | None = None) -> OrderedDict[str, tuple[float, float]]:
+    """Largest absolute error of ONNX Runtime vs PyTorch per output over ``steps`` recurrent steps.
+
+    Frames are random (:func:`example_frame`) at ``size`` ``(H, W)``; the first step resets.
+    Returns ``{"output": (err, scale), "next_state_<k>": (err, scale), ...}``: the largest
+    absolute error and the largest magnitude of the PyTorch value (max over steps).
+    """
+    torch_runner = RecurrentRunner(net.step)
+    onnx_runner = RecurrentRunner(OnnxStep(path, threads).step)
+    h, w = (int(v) for v in size)
+    errors: OrderedDict[str, tuple[float, float]] = OrderedDict()
+    for t in range(steps):
+        frame = example_frame(batch, h, w, seed=100 + t)
+        expected = torch_runner(frame, reset=t == 0)
+        got = onnx_runner(frame, reset=t == 0)
+        pairs = [("output", expected, got)] + [(f"next_state_{k}", torch_runner.state[k], onnx_runner.state[k])
+                                               for k in onnx_runner.state]
+        for name, a, b in pairs:
+            if tuple(a.shape) != tuple(b.shape):
+                raise RuntimeError(f"ONNX output {name} has shape {tuple(b.shape)}, PyTorch {tuple(a.shape)}")
+            err = float(np.abs(a.float().numpy() - b).max())
+            scale = float(a.abs().max())
+            old = errors.get(name, (0.0, 0.0))
+            errors[name] = (max(old[0], err), max(old[1], scale))
+    return errors
+
+
+def trtexec_command(path: str | os.PathLike, net: nn.Module, batch: int = 1,
+                    sizes=((64, 64), (1080, 1920), (2160, 3840))) -> str:
+    """A ``trtexec`` command building a TensorRT FP16 engine with min/opt/max ``(H, W)`` shapes."""
+    channels = {**{b: CHANNELS[b] for b in FRAME_INPUTS}, **{f"state_{k}": c for k, c in state_channels(net).items()}}
+
+    def shapes(h: int, w: int) -> str:
+        return ",".join(f"{n}:{batch}x{c}x{h}x{w}" for n, c in channels.items())
+
+    (h0, w0), (h1, w1), (h2, w2) = sizes
+    engine = Path(path).with_suffix(".fp16.plan")
+    return (f"trtexec --onnx={path} --fp16 --saveEngine={engine} \\\n  --minShapes={shapes(h0, w0)} \\\n"
+            f"  --optShapes={shapes(h1, w1)} \\\n  --maxShapes={shapes(h2, w2)}")

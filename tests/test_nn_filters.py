@@ -86,3 +86,46 @@ def test_direct_color_is_finite_and_nonnegative(value):
     out, _ = filt(torch.zeros(1, 3, 4, 4), heads, torch.full((1, 1, 1, 1), 2.0))
     out.sum().backward()
     assert torch.isfinite(out).all() and (out >= 0).all() and torch.isfinite(heads[0].grad).all()
+
+
+def identity_like_heads(filt, b, h, w, gap):
+    """Heads at a saturated identity: partition on level 0 and every kernel on its centre tap,
+    ``gap`` logits above everything else (the frozen state of the collapsed demo teacher)."""
+    heads = [torch.zeros(b, n, h // 2**i, w // 2**i) for i, n in enumerate(filt.head_channels)]
+    heads[0][:, 0] = gap
+    for i, k in enumerate(filt.kernel_sizes):
+        offset = filt.levels if i == 0 else 0
+        heads[i][:, offset + (k * k) // 2] = gap
+    return [hd.requires_grad_() for hd in heads]
+
+
+@pytest.mark.parametrize("gap", [200.0, 1e6])
+def test_identity_like_state_keeps_a_gradient_with_scaled_logits(gap):
+    """With raw logits a saturated identity has an exactly-zero gradient (float32 softmax
+    underflows to one-hot), so training can never leave it; normalised logits keep it alive."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(1, 3, 16, 16, generator=g)
+    target = F.avg_pool2d(x, 5, stride=1, padding=2)  # any target other than the input
+    grads = {}
+    for scale in (None, 2.5):
+        filt = PyramidFilter([5, 7, 9], logit_scale=scale)
+        heads = identity_like_heads(filt, 1, 16, 16, gap)
+        out, _ = filt(x, heads, torch.ones(1, 1, 1, 1))
+        (out - target).abs().mean().backward()
+        grads[scale] = max(float(hd.grad.abs().max()) for hd in heads)
+    assert grads[None] == 0.0
+    assert grads[2.5] > 0.0
+
+
+def test_scaled_logits_keep_every_kernel_weight_above_the_floor():
+    from denoiser.nn.kernels import kernel_weights
+
+    logits = torch.zeros(1, 25, 8, 8)
+    logits[:, 12] = 1e30
+    logits[:, 3] = float("inf")
+    logits[:, 7] = float("nan")
+    w = kernel_weights(logits, scale=2.5)
+    inside = w[..., 4, 4]  # an interior pixel: every tap is in the image
+    floor = float(torch.exp(torch.tensor(-2.5 * 50**0.5)) / 25)  # exp(-scale * sqrt(2 n)) / n
+    assert torch.isfinite(w).all() and float(inside.min()) >= floor
+    torch.testing.assert_close(w.sum(1), torch.ones(1, 8, 8))

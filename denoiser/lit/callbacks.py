@@ -4,6 +4,7 @@ bar are used as they are, see conf/callbacks/default.yaml)."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -35,3 +36,57 @@ class FinalCheckpoint(pl.Callback):
     def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
         if isinstance(exception, KeyboardInterrupt):
             self._save(trainer)
+
+
+class CollapseDetector(pl.Callback):
+    """Detect a collapsed run: the network returns its noisy input.
+
+    After every validation (sanity checks excluded) it compares ``val/psnr`` with the noisy
+    input's ``val/input_psnr`` (both logged by :class:`~denoiser.lit.common.DenoiserModule`).
+    When they are within ``margin_db`` for ``patience`` validations in a row, the run has
+    collapsed to (about) the identity: it says so in one line on stderr, logs
+    ``val/collapsed = 1`` and the same line as TensorBoard text, writes ``<run dir>/COLLAPSED``
+    holding that line (``make demo`` fails when it finds one), and stops training when ``stop``.
+    A run whose output merely has low partition entropy is not a collapse; only the output is
+    judged.
+    """
+
+    def __init__(self, margin_db: float = 0.5, patience: int = 3, stop: bool = True, marker: str | None = None):
+        self.margin_db = float(margin_db)
+        self.patience = int(patience)
+        self.stop = bool(stop)
+        self.marker = Path(marker) if marker else None
+        self.streak = 0
+        self.fired = False
+
+    def state_dict(self) -> dict:
+        return {"streak": self.streak, "fired": self.fired}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.streak = int(state_dict.get("streak", 0))
+        self.fired = bool(state_dict.get("fired", False))
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if trainer.sanity_checking:
+            return
+        metrics = trainer.callback_metrics
+        if "val/psnr" not in metrics or "val/input_psnr" not in metrics:
+            return
+        psnr, noisy = float(metrics["val/psnr"]), float(metrics["val/input_psnr"])
+        self.streak = self.streak + 1 if abs(psnr - noisy) < self.margin_db else 0
+        if self.streak < self.patience or self.fired:
+            return
+        self.fired = True
+        line = (f"collapse: val PSNR {psnr:.2f} dB has stayed within {self.margin_db:g} dB of the noisy input's "
+                f"{noisy:.2f} dB for {self.streak} validations (step {trainer.global_step}): the network returns its input")
+        print(line, file=sys.stderr, flush=True)
+        if trainer.logger is not None:  # self.log is not allowed after the epoch: write to the logger itself
+            trainer.logger.log_metrics({"val/collapsed": 1.0}, step=trainer.global_step)
+            experiment = getattr(trainer.logger, "experiment", None)
+            if hasattr(experiment, "add_text"):
+                experiment.add_text("collapse", line, global_step=trainer.global_step)
+        marker = self.marker or Path(trainer.default_root_dir) / "COLLAPSED"
+        if trainer.is_global_zero:
+            marker.write_text(line + "\n")
+        if self.stop:
+            trainer.should_stop = True

@@ -29,11 +29,13 @@ MAX_LOG = math.log1p(POSINF / COLOR_EPS)
 
 
 class SingleKernelFilter(nn.Module):
-    """One full-resolution kernel of size ``max(kernel_sizes)`` (the ``no_pyramid`` ablation)."""
+    """One full-resolution kernel of size ``max(kernel_sizes)`` (the ``no_pyramid`` ablation);
+    ``logit_scale`` as in :class:`~denoiser.nn.pyramid.PyramidFilter`."""
 
-    def __init__(self, kernel_sizes: Sequence[int]):
+    def __init__(self, kernel_sizes: Sequence[int], logit_scale: float | None = None):
         super().__init__()
         self.kernel_size = max(check_kernel_sizes(kernel_sizes))
+        self.logit_scale = None if logit_scale is None else float(logit_scale)
         self.head_channels = [self.kernel_size ** 2]
         self.multiple = 1
 
@@ -41,13 +43,14 @@ class SingleKernelFilter(nn.Module):
                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """x: ``[B, 3, H, W]`` linear; heads[0]: ``[B, k*k, H, W]`` -> ``([B, 3, H, W], {})``."""
         with torch.autocast(device_type=x.device.type, enabled=False):
-            return apply_kernels(x.float(), heads[0]), {}
+            return apply_kernels(x.float(), heads[0], self.logit_scale), {}
 
 
 class DirectColor(nn.Module):
-    """Direct color prediction (the ``direct`` ablation); ``kernel_sizes`` is accepted and unused."""
+    """Direct color prediction (the ``direct`` ablation); ``kernel_sizes`` and ``logit_scale`` are
+    accepted (the net config's filter keys) and unused."""
 
-    def __init__(self, kernel_sizes: Sequence[int] | None = None):
+    def __init__(self, kernel_sizes: Sequence[int] | None = None, logit_scale: float | None = None):
         super().__init__()
         self.head_channels = [3]
         self.multiple = 1

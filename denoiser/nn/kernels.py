@@ -50,14 +50,35 @@ def mask_border_taps_(logits: torch.Tensor) -> torch.Tensor:
     return logits
 
 
-def kernel_weights(logits: torch.Tensor) -> torch.Tensor:
+def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> torch.Tensor:
+    """Scale-normalised softmax logits: ``scale * z / sqrt(var_dim(z) + 1)``; any shape.
+
+    Why: with raw logits the softmax can only sharpen by growing the logits, and Adam keeps
+    growing them until float32 ``softmax`` returns exactly one-hot; its gradient is then exactly
+    0 and the weights never move again (the demo teacher froze that way into the identity
+    kernel, partition 100% on level 0). Divided by their spread over the taps (levels), the
+    logits' sharpness is set by their *shape*, not their scale: near zero the map is about
+    ``scale * z`` (an untrained head still gives smooth kernels), and however large ``z``
+    grows, the logits of ``n`` entries stay within ``scale * sqrt(2 n)`` of each other, so every
+    weight stays above ``exp(-scale * sqrt(2 n)) / n`` and a gradient always flows (the same
+    remedy as normalised attention logits against attention-entropy collapse).
+    ``scale=None`` leaves the logits as they are (networks configured before this existed).
+    Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4). Computed in float32.
+    """
+    logits = torch.nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
+    if scale is None:
+        return logits
+    var = logits.var(dim=dim, unbiased=False, keepdim=True) if logits.shape[dim] > 1 else torch.zeros_like(logits)
+    return logits * (scale * torch.rsqrt(var + 1.0))
+
+
+def kernel_weights(logits: torch.Tensor, scale: float | None = None) -> torch.Tensor:
     """Softmax over the in-image kernel taps in float32: ``[B, k*k, H, W]`` -> same shape, float32.
 
-    Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4) so the weights stay finite.
+    Logits pass :func:`scale_logits` first (non-finite values replaced, optional normalisation).
     """
     with torch.autocast(device_type=logits.device.type, enabled=False):
-        logits = torch.nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
-        return torch.softmax(mask_border_taps_(logits), dim=1)
+        return torch.softmax(mask_border_taps_(scale_logits(logits, scale)), dim=1)
 
 
 def _accumulate(xp: torch.Tensor, weights: torch.Tensor, k: int, h: int, w: int) -> torch.Tensor:
@@ -110,15 +131,15 @@ class _ApplyWeights(torch.autograd.Function):
         return grad_xp, grad_w
 
 
-def apply_kernels(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+def apply_kernels(x: torch.Tensor, logits: torch.Tensor, scale: float | None = None) -> torch.Tensor:
     """Apply per-pixel kernels.
 
     x: ``[B, C, H, W]`` linear radiance; logits: ``[B, k*k, H, W]`` unnormalised kernel taps
-    (any float dtype). Returns ``[B, C, H, W]`` float32.
+    (any float dtype); scale: logit normalisation (:func:`scale_logits`). Returns ``[B, C, H, W]`` float32.
     """
     k = kernel_size_of(logits)
     r = k // 2
-    weights = kernel_weights(logits)
+    weights = kernel_weights(logits, scale)
     with torch.autocast(device_type=x.device.type, enabled=False):
         x = x.float()
         xp = F.pad(x, (r, r, r, r)) if r > 0 else x  # zeros, which get zero weight

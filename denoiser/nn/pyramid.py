@@ -4,13 +4,14 @@ With L levels and kernel sizes ``k_0..k_{L-1}`` (finest first), the network pred
 resolution L partition logits and the level-0 kernel logits, and at scale 1/2^i the level-i
 kernel logits. For linear radiance ``x`` ``[B, 3, H, W]``:
 
-    w       = softmax_L(partition logits)                        (float32, sums to 1 per pixel)
+    w       = softmax_L(norm(partition logits))                  (float32, sums to 1 per pixel)
     p_i     = avg_pool_{2^i}(w_i * [x, 1])                        partition i, [B, 4, H/2^i, W/2^i]
-    y_i     = apply_kernels(p_i, kernel logits of level i)        (softmax-normalised, float32)
+    y_i     = apply_kernels(p_i, norm(kernel logits of level i))  (softmax-normalised, float32)
     acc     = y_{L-1};  acc = up2_bilinear(acc) + y_i  for i = L-2 .. 0
     output  = acc[:, :3] / acc[:, 3:]    (x itself where acc[:, 3:] <= NORM_EPS)
 
-The constant channel ``1`` travels through exactly the same non-negative linear operators as
+``norm`` is the logit normalisation of :func:`~denoiser.nn.kernels.scale_logits` (``logit_scale``;
+it keeps the softmaxes from saturating into a frozen state, e.g. the identity). The constant channel ``1`` travels through exactly the same non-negative linear operators as
 ``x``, and the division normalises the result: every output pixel is a convex combination of
 input pixels, whatever the predicted weights and even next to the border (kernels renormalised
 over in-image taps, clamping in the upsampling). The normaliser is a sum of positive float32
@@ -28,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.kernels import apply_kernels
+from denoiser.nn.kernels import apply_kernels, scale_logits
 
 #: smallest normaliser used for division; below it the input pixel is passed through
 NORM_EPS = 1e-30
@@ -59,14 +60,18 @@ class PyramidFilter(nn.Module):
 
     Args:
         kernel_sizes: kernel size per level, finest first (``${kernel.sizes}``).
+        logit_scale: sharpness of the partition and kernel softmaxes over scale-normalised
+            logits (:func:`~denoiser.nn.kernels.scale_logits`); None = raw logits (configs from
+            before it existed).
 
     ``head_channels[i]`` is what the U-Net head at scale 1/2^i must predict: level 0 has
     ``L + k_0^2`` channels (partition logits first), level i >= 1 ``k_i^2``.
     """
 
-    def __init__(self, kernel_sizes: Sequence[int]):
+    def __init__(self, kernel_sizes: Sequence[int], logit_scale: float | None = None):
         super().__init__()
         self.kernel_sizes = check_kernel_sizes(kernel_sizes)
+        self.logit_scale = None if logit_scale is None else float(logit_scale)
         self.levels = len(self.kernel_sizes)
         self.head_channels = [self.levels + self.kernel_sizes[0] ** 2] + [
             k * k for k in self.kernel_sizes[1:]]
@@ -82,14 +87,14 @@ class PyramidFilter(nn.Module):
         with torch.autocast(device_type=x.device.type, enabled=False):
             x1 = with_ones(x)
             head0 = heads[0].float()
-            partition = torch.softmax(head0[:, : self.levels], dim=1)
+            partition = torch.softmax(scale_logits(head0[:, : self.levels], self.logit_scale), dim=1)
             logits = [head0[:, self.levels:]] + [heads[i].float() for i in range(1, self.levels)]
             filtered = []
             for i in range(self.levels):
                 part = partition[:, i: i + 1] * x1
                 if i > 0:
                     part = F.avg_pool2d(part, 2 ** i)
-                filtered.append(apply_kernels(part, logits[i]))
+                filtered.append(apply_kernels(part, logits[i], self.logit_scale))
             acc = filtered[-1]
             for i in range(self.levels - 2, -1, -1):
                 acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",

@@ -14,7 +14,12 @@ Channel naming of the native layout (DESIGN 3.1): buffer ``color`` is written as
 
 Writes are atomic: the file is written under a temporary name in the same directory and
 renamed into place, so a crash never leaves a half-written file under its final name.
-Every failure is an :class:`~denoiser.errors.ExrError` whose message names the file.
+Every failure is an :class:`~denoiser.errors.ExrError` whose message names the file, and is one
+line: deep images (deep scanline or deep tiled parts) are refused; a file any of whose parts
+cannot be decoded fails as a whole (``OpenEXR.File`` itself only warns and drops such a part);
+what the library prints while reading (its C core on file descriptor 2, its Python bindings on
+``sys.stdout``) is captured into that message instead of reaching the terminal (see
+:func:`library_output`). ``tests/test_exr_fuzz.py`` fuzzes the reader (docs/fuzzing.md).
 
 HDR values are never clamped. ``read_frame`` replaces NaN/Inf (NaN and -Inf by 0, +Inf by
 the largest finite float16 value, 65504, which keeps "very bright" without overflowing
@@ -23,8 +28,13 @@ anything downstream) and returns how many values it replaced, so the caller can 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
-from collections.abc import Iterable, Mapping, Sequence
+import sys
+import tempfile
+import threading
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +64,13 @@ COMPRESSIONS: dict[str, object] = {
 
 #: Largest finite float16; +Inf is replaced by it on read.
 POS_INF_REPLACEMENT = 65504.0
+
+#: Part types this reader refuses (their pixels are per-pixel sample lists, not images).
+DEEP_TYPES = (OpenEXR.deepscanline, OpenEXR.deeptile)
+#: Longest library text kept in an error message.
+MAX_DETAIL = 500
+
+_OUTPUT_LOCK = threading.Lock()
 
 
 def buffer_channels(name: str, num_channels: int) -> tuple[str, ...]:
@@ -89,13 +106,82 @@ def _check_exr_file(path: Path) -> None:
         raise ExrError(path, "not an EXR file (bad magic number)")
 
 
+@contextlib.contextmanager
+def library_output() -> Iterator[list[str]]:
+    """Capture what the OpenEXR library prints inside the block; yields a list that then holds the text.
+
+    OpenEXR's C core reports damage with ``fprintf(stderr)`` (file descriptor 2) and the Python
+    bindings ``print`` a warning to ``sys.stdout`` when they drop a part they cannot decode. File
+    descriptor 2 is pointed at a temporary file for the block and restored after it (a
+    ``sys.stderr`` swap would not see C writes), and ``sys.stdout`` is swapped for a buffer. Both
+    are process-wide, so blocks are serialized by a lock: concurrent reads wait, each gets its own
+    text. Output of other threads during the block is caught too; callers that succeed pass it on
+    with :func:`_pass_on`.
+    """
+    text: list[str] = []
+    with _OUTPUT_LOCK, tempfile.TemporaryFile() as tmp:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = os.dup(2)
+        printed = io.StringIO()
+        try:
+            os.dup2(tmp.fileno(), 2)
+            with contextlib.redirect_stdout(printed):
+                yield text
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text.append(tmp.read().decode("utf-8", "replace") + printed.getvalue())
+
+
+def _pass_on(text: list[str]) -> None:
+    """Write captured output that explains no error back to stderr (nothing is lost)."""
+    if text and text[0]:
+        sys.stderr.write(text[0])
+        sys.stderr.flush()
+
+
+def _library_detail(path: Path, text: list[str], exc: BaseException | None = None) -> str:
+    """One line from an exception and the library's captured output (without the path it repeats)."""
+    lines = [str(exc).strip()] if exc is not None and str(exc).strip() else []
+    for line in (text[0] if text else "").splitlines():
+        line = line.strip().removeprefix("Warning: ").removeprefix(f"{path}: ").strip()
+        if line and line not in lines:
+            lines.append(line)
+    detail = "; ".join(lines) or (type(exc).__name__ if exc is not None else "no message from the library")
+    return detail if len(detail) <= MAX_DETAIL else detail[: MAX_DETAIL - 3] + "..."
+
+
 def _open(path: Path, header_only: bool = False) -> OpenEXR.File:
+    """``OpenEXR.File`` of a flat (not deep) EXR whose every part decodes; ExrError naming ``path`` otherwise.
+
+    The headers are read first (deep parts are refused before their samples are decoded), then,
+    unless ``header_only``, the pixels; a part that ``OpenEXR.File`` dropped fails the read.
+    """
     _check_exr_file(path)
-    try:
-        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
-    except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain RuntimeError/Exception on damage
-        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ExrError(path, f"truncated or corrupt EXR ({detail})") from None
+    error: BaseException | None = None
+    headers = f = deep = None
+    with library_output() as text:
+        try:
+            headers = OpenEXR.File(str(path), separate_channels=True, header_only=True)
+            deep = next(((i, part.type()) for i, part in enumerate(headers.parts) if part.type() in DEEP_TYPES), None)
+            if deep is None:
+                f = headers if header_only else OpenEXR.File(str(path), separate_channels=True)
+        except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain RuntimeError/Exception on damage
+            error = exc
+    if deep is not None:
+        raise ExrError(path, f"deep EXR images are not supported (part {deep[0]} is {deep[1].name})")
+    if error is not None or f is None:
+        raise ExrError(path, f"truncated or corrupt EXR ({_library_detail(path, text, error)})") from None
+    count = len(headers.parts)
+    decoded = [part.name() for part in f.parts if header_only or part.channels]
+    if not count or len(decoded) < count:
+        lost = [i for i, part in enumerate(headers.parts) if part.name() not in decoded] or [len(decoded)]
+        where = "pixel data unreadable" if count <= 1 else f"part {lost[0]} of {count} unreadable"
+        raise ExrError(path, f"truncated or corrupt EXR ({where}: {_library_detail(path, text)})")
+    _pass_on(text)
+    return f
 
 
 def list_channels(path: str | os.PathLike) -> list[str]:
@@ -127,9 +213,6 @@ def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -
     """
     path = Path(path)
     f = _open(path)
-    if not f.parts or not all(part.channels for part in f.parts):
-        # OpenEXR.File only warns (on stderr) and drops the parts whose pixels cannot be read
-        raise ExrError(path, "truncated or corrupt EXR (pixel data unreadable)")
     found: dict[str, np.ndarray] = {}
     try:
         for part in f.parts:

@@ -21,7 +21,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_eval_data import write_dataset, write_sequence
+from test_eval_data import write_dataset
 
 from denoiser.checkpoint import build_net, compose_net_config, load_denoiser, read_checkpoint, save_checkpoint
 from denoiser.errors import UserError

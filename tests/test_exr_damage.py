@@ -148,8 +148,8 @@ def _cut_in_part_1(data: bytearray, offsets: list[list[int]]) -> None:
 
 
 @pytest.mark.parametrize("damage, library_says", [
-    (_bad_part_number, "(EXR_ERR_BAD_CHUNK_LEADER) Corrupt tile (0, 0), level (0, 0) (chunk 0): bad part number "
-                       "(99, expect 1)"),
+    (_bad_part_number, ("(EXR_ERR_BAD_CHUNK_LEADER) Corrupt tile (0, 0), level (0, 0) (chunk 0): bad part number "
+                        "(99, expect 1)")),
     (_cut_in_part_1, "corrupt chunk table"),
 ], ids=["bad_chunk_leader", "truncated_part"])
 def test_damaged_second_part_fails_the_whole_read(tmp_path, capfd, damage, library_says):
@@ -199,4 +199,40 @@ def test_concurrent_reads_keep_their_own_messages(tmp_path, capfd):
     for i, path in enumerate(bad):
         assert f"bad part number ({90 + i}, expect 1)" in results[path.name]
         assert all(f"bad part number ({90 + j}," not in results[path.name] for j in range(4) if j != i)
+    assert capfd.readouterr() == ("", "")
+
+
+# ----------------------------------------------------------------------------- fuzzer findings
+
+
+def test_channel_name_that_is_not_utf8(tmp_path, capfd):
+    """Found by tests/fuzz_exr.py: the bindings decode channel names lazily and raised UnicodeDecodeError."""
+    path = tmp_path / "name.exr"
+    exr.write_frame(path, {"color": np.ones((H, W, 3), np.float32)}, compression="no")
+    data = path.read_bytes()
+    assert data.count(b"color.G\0") == 1
+    path.write_bytes(data.replace(b"color.G\0", b"c\x9flor.G\0"))
+    for read in (exr.list_channels, exr.read_channels):
+        with pytest.raises(ExrError, match=r"name\.exr: truncated or corrupt EXR \(.*utf-8.*can't decode byte 0x9f"):
+            read(path)
+    assert capfd.readouterr() == ("", "")
+
+
+def test_absurd_tile_size_is_refused_before_allocating(tmp_path, capfd):
+    """Found by tests/fuzz_exr.py: a ~1.7 KB file whose header declares 8 x 83886084 tiles made the library
+    allocate gigabytes for one tile (an out-of-memory finding). The reader sets OpenEXR's own size limits."""
+    import resource
+
+    path = tmp_path / "tiles.exr"
+    write_tiled_multipart(path)
+    data = bytearray(path.read_bytes())
+    at = data.index(b"tiles\0tiledesc\0") + len(b"tiles\0tiledesc\0") + 4  # the value: xSize, ySize (uint32), mode
+    assert struct.unpack_from("<II", data, at) == (8, 8)
+    struct.pack_into("<I", data, at + 4, 83886084)
+    path.write_bytes(bytes(data))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for read in (exr.list_channels, exr.read_channels):
+        with pytest.raises(ExrError, match=r"tiles\.exr: truncated or corrupt EXR \(Unable to open '.*' for read\)$"):
+            read(path)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200_000  # KiB: no gigabyte buffer
     assert capfd.readouterr() == ("", "")

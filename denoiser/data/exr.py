@@ -24,9 +24,10 @@ of reaching the terminal (see :func:`library_output`); images and tiles wider or
 :data:`MAX_SIDE` are refused by the library's own header checks. ``tests/fuzz_exr.py`` fuzzes
 the reader (docs/fuzzing.md).
 
-HDR values are never clamped. ``read_frame`` replaces NaN/Inf (NaN and -Inf by 0, +Inf by
-the largest finite float16 value, 65504, which keeps "very bright" without overflowing
-anything downstream) and returns how many values it replaced, so the caller can report it.
+HDR values are never clamped. ``read_frame`` replaces NaN/Inf by the project's one rule
+(:mod:`denoiser.nonfinite`: NaN and -Inf by 0, +Inf by the largest finite float16 value, 65504,
+which keeps "very bright" without overflowing anything downstream; the network applies the same
+rule to its inputs) and returns how many values it replaced, so the caller can report it.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ import OpenEXR
 
 from denoiser.atomic import atomic_path
 from denoiser.errors import ExrError
+from denoiser.nonfinite import POSINF, replace_array
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
@@ -66,8 +68,8 @@ COMPRESSIONS: dict[str, object] = {
     if name.endswith("_COMPRESSION") and name != "NUM_COMPRESSION_METHODS"
 }
 
-#: Largest finite float16; +Inf is replaced by it on read.
-POS_INF_REPLACEMENT = 65504.0
+#: Largest finite float16; +Inf is replaced by it on read (:data:`denoiser.nonfinite.POSINF`).
+POS_INF_REPLACEMENT = POSINF
 
 #: Largest image and tile side (pixels) accepted, by OpenEXR's own header checks (``Imf::Header::
 #: setMaxImageSize`` / ``setMaxTileSize``), which this module sets at import unless they are set already
@@ -259,12 +261,8 @@ def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -
 
 
 def sanitize(array: np.ndarray) -> int:
-    """Replace NaN/-Inf by 0 and +Inf by 65504 in place; return how many values changed."""
-    bad = ~np.isfinite(array)
-    count = int(bad.sum())
-    if count:
-        np.copyto(array, np.where(np.isposinf(array), POS_INF_REPLACEMENT, 0.0).astype(array.dtype), where=bad)
-    return count
+    """Replace NaN/-Inf by 0 and +Inf by 65504 in place (:mod:`denoiser.nonfinite`); return how many changed."""
+    return replace_array(array)
 
 
 def read_frame(

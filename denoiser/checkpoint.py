@@ -11,15 +11,24 @@ missing file, not a checkpoint, no net config, a net config that cannot be built
 checkpoint of another architecture (state-dict keys or shapes that do not match the net its
 own config builds).
 
-Checkpoints are loaded with ``torch.load(weights_only=True)`` first; a Lightning checkpoint
-holding other pickled objects (e.g. OmegaConf containers in ``hyper_parameters``) is then
-loaded with ``weights_only=False``: only load checkpoints you trust, as with Lightning itself.
+Loading is safe by default: ``torch.load(weights_only=True)`` only, whose unpickler builds
+tensors, containers and plain values but calls nothing it has not been told is safe. Every
+checkpoint the project writes (:func:`save_checkpoint`, the Lightning checkpoints of
+``train.py`` for every model, distillation included) loads that way. A file that needs more (a
+pickled object whose reconstruction could run code: ``os.system``, any class) is refused with
+one line naming the file and the first refused globals (listed by torch's own
+``torch.serialization.get_unsafe_globals_in_checkpoint``), unless the caller passes
+``trust=True`` (config ``trust_checkpoint=true``): then it is loaded with
+``weights_only=False`` and a warning, as one would load any pickle from a trusted source.
+``train.py ckpt_path=`` goes through :func:`resume_weights_only` before Lightning reads the file.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import pickle
+import re
 from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
@@ -31,6 +40,12 @@ from denoiser.atomic import atomic_path
 from denoiser.errors import ConfigError, UserError
 
 NET_PREFIX = "net."
+#: config key that lets a command load a checkpoint the safe loader refuses (the default for ``trust_key``)
+TRUST_KEY = "trust_checkpoint"
+#: refused globals named in the one-line message (the rest are counted)
+SHOWN_GLOBALS = 3
+
+log = logging.getLogger(__name__)
 
 
 def _plain(obj: Any) -> Any:
@@ -44,8 +59,41 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
-def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
-    """The raw checkpoint dict of ``path`` (UserError if missing or not a torch checkpoint)."""
+def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu", *, trust: bool = False,
+                    trust_key: str = TRUST_KEY) -> dict:
+    """The raw checkpoint dict of ``path``, read with ``torch.load(weights_only=True)``.
+
+    UserError naming ``path`` if it is missing or not a torch checkpoint, and if the safe loader
+    refuses it (it holds pickled objects that could run code) unless ``trust``: then it is
+    loaded with ``weights_only=False`` after a warning. ``trust_key``: the config key named in
+    the refusal and the warning (``trust_checkpoint``, ``model.trust_teacher_ckpt``).
+    """
+    path = _check_file(path)
+    ckpt = _load_safe(path, map_location, trust, trust_key)
+    if ckpt is None:  # refused by the safe loader, and trusted
+        try:
+            ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        except Exception as exc:  # noqa: BLE001 - any failure means "not a checkpoint"
+            raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
+    if not isinstance(ckpt, Mapping):
+        raise UserError(f"{path}: not a Lightning checkpoint (top level is a {type(ckpt).__name__}, not a dict)")
+    return dict(ckpt)
+
+
+def resume_weights_only(path: str | os.PathLike | None, trust: bool = False, trust_key: str = TRUST_KEY) -> bool:
+    """Check a checkpoint that another loader (Lightning's resume, ``trainer.fit(ckpt_path=...)``) will read.
+
+    Reads ``path`` with the safe loader first, so a refused file is the one-line UserError of
+    :func:`read_checkpoint` before anything unpickles it. Returns the ``weights_only`` flag to
+    give that loader: True, or False only when ``trust`` and the file needs it (warning logged).
+    ``path`` None (a fresh start): True.
+    """
+    if path is None:
+        return True
+    return _load_safe(_check_file(path), "cpu", trust, trust_key) is not None
+
+
+def _check_file(path: str | os.PathLike) -> Path:
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: checkpoint file does not exist")
@@ -55,18 +103,49 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         magic = fh.read(4)
     if not (magic.startswith(b"PK\x03\x04") or magic[:1] == b"\x80"):  # torch.save: zip; legacy: pickle
         raise UserError(f"{path}: not a checkpoint (not a file written by torch.save or Lightning)")
+    return path
+
+
+def _load_safe(path: Path, map_location, trust: bool, trust_key: str):
+    """``torch.load(weights_only=True)`` of ``path``; None when it refuses the file and ``trust`` (warned)."""
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError:
-        try:
-            ckpt = torch.load(path, map_location=map_location, weights_only=False)
-        except Exception as exc:  # noqa: BLE001 - any failure means "not a checkpoint"
-            raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
-    except Exception as exc:  # noqa: BLE001
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:  # what the weights-only unpickler raises for anything it does not allow
+        error = exc
+    except Exception as exc:  # noqa: BLE001 - any other failure means "not a checkpoint"
         raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
-    if not isinstance(ckpt, Mapping):
-        raise UserError(f"{path}: not a Lightning checkpoint (top level is a {type(ckpt).__name__}, not a dict)")
-    return dict(ckpt)
+    refused = _refused_globals(path, error)
+    if refused:
+        shown = ", ".join(refused[:SHOWN_GLOBALS]) + (f", ... {len(refused)} in all" if len(refused) > SHOWN_GLOBALS
+                                                      else "")
+        what = f"the checkpoint holds pickled objects that could run code ({shown})"
+    else:  # refused for another reason (e.g. pickle opcodes the safe loader does not implement)
+        what = f"the safe loader cannot read the checkpoint ({_unpickler_reason(error)})"
+    if not trust:
+        raise UserError(f"{path}: refused: {what}; load it only if you trust its source, with {trust_key}=true")
+    log.warning("%s: %s; loading it anyway (weights_only=False) because %s=true", path, what, trust_key)
+    return None
+
+
+def _refused_globals(path: Path, exc: BaseException) -> list[str]:
+    """The pickle GLOBALs the safe loader refuses in ``path``: first the one that stopped it (named in
+    its message, ``GLOBAL <name>``), then the others of torch's static scan of the file, sorted.
+
+    The scan (``torch.serialization.get_unsafe_globals_in_checkpoint``) reads the zip format that
+    ``torch.save`` writes; for the legacy format only the loader's message names one.
+    """
+    try:
+        scanned = sorted(set(torch.serialization.get_unsafe_globals_in_checkpoint(path)))
+    except Exception:  # noqa: BLE001 - legacy format, or no scan in this torch version
+        scanned = []
+    return list(dict.fromkeys([*re.findall(r"GLOBAL ([\w.]+)", str(exc)), *scanned]))
+
+
+def _unpickler_reason(exc: BaseException) -> str:
+    """The line of a weights-only UnpicklingError that says what was refused."""
+    text = str(exc)
+    match = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
+    return match.group(1).strip()[:200] if match else _first_line(exc)
 
 
 def _first_line(exc: BaseException) -> str:
@@ -129,13 +208,15 @@ def build_net(cfg: Mapping, path: str | os.PathLike = "<config>") -> torch.nn.Mo
     return net
 
 
-def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "cpu"):
+def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "cpu", *, trust: bool = False,
+                  trust_key: str = TRUST_KEY):
     """Build the checkpoint's ``Denoiser`` from its stored config and load its weights.
 
     Returns the network in eval mode on ``map_location``. Errors (all ``UserError`` naming
-    ``path``): missing file, not a checkpoint, no net config, another architecture.
+    ``path``): missing file, not a checkpoint, refused by the safe loader (without ``trust``,
+    see :func:`read_checkpoint`), no net config, another architecture.
     """
-    ckpt = read_checkpoint(path, map_location)
+    ckpt = read_checkpoint(path, map_location, trust=trust, trust_key=trust_key)
     cfg = net_config(ckpt, path)
     state = net_state_dict(ckpt, path)
     net = build_net(cfg, path)

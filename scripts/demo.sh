@@ -69,7 +69,7 @@ train_run student_distilled experiment=demo_distill "model.teacher_ckpt=$(ckpt_o
     "trainer.max_time=$STUDENT_TIME"
 # the comparison without distillation gets the same number of optimizer steps as the distilled
 # student reached (its steps are cheaper: no teacher, no critic), capped by DEMO_NOKD_TIME
-STEPS=$("$PY" -c "import sys, torch; print(torch.load(sys.argv[1], map_location='cpu', weights_only=False)['global_step'])" \
+STEPS=$("$PY" -c "import sys, torch; print(torch.load(sys.argv[1], map_location='cpu', weights_only=True)['global_step'])" \
     "$RUNS/student_distilled/checkpoints/last.ckpt")
 train_run student_no_kd experiment=demo_distill ablation=no_kd "trainer.max_steps=$STEPS" "trainer.max_time=$NOKD_TIME"
 

@@ -66,13 +66,13 @@ def test_training_killed_resumes_from_last_checkpoint(tmp_path):
 
     assert kill_when(train_argv(data, run), last.exists, env=env)
     for ckpt in (run / "checkpoints").glob("*.ckpt"):  # nothing broken under a final name
-        torch.load(ckpt, map_location="cpu", weights_only=False)
-    saved = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
+        torch.load(ckpt, map_location="cpu", weights_only=True)
+    saved = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
     assert 0 < saved < MAX_STEPS, saved
     first_events = set((run / "tb").glob("events.out.tfevents.*"))
 
     resume(data, run)  # the same command with ckpt_path=last (in this process: saves a start-up)
-    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == MAX_STEPS
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == MAX_STEPS
     resumed = [f for f in (run / "tb").glob("events.out.tfevents.*") if f not in first_events]
     assert resumed  # (the final hparams/metrics may go to a second event file of the same process)
     steps = sorted({s for f in resumed for s in loss_steps(f)})

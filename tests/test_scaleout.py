@@ -51,7 +51,7 @@ def job_dirs(sweep: Path) -> list[Path]:
 
 
 def final_step(job: Path) -> int:
-    return torch.load(job / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"]
+    return torch.load(job / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["global_step"]
 
 
 def event_pids(job: Path) -> set[int]:

@@ -79,7 +79,7 @@ def teacher_run(data_root, tmp_path_factory) -> Path:
 
 
 def test_teacher_run_writes_checkpoints_and_tensorboard(teacher_run):
-    ckpt = torch.load(teacher_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    ckpt = torch.load(teacher_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert ckpt["global_step"] == 4
     # model=teacher selected kernel=teacher (5, 7, 9) for the tiny widths given on the command line
     assert ckpt["hyper_parameters"]["net"]["filter"]["kernel_sizes"] == [5, 7, 9]
@@ -110,11 +110,11 @@ def test_student_resumes_after_a_crash_from_the_saved_step(data_root, tmp_path):
     with pytest.raises(RuntimeError, match="simulated crash"):
         run(data_root, tmp_path, "model=student", *crash)
     last = tmp_path / "checkpoints" / "last.ckpt"
-    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == 2
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 2
     first_file = event_files(tmp_path / "tb")[-1]
 
     run(data_root, tmp_path, "model=student", "trainer.max_steps=6", "ckpt_path=last")
-    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == 6
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 6
     resumed = [f for f in event_files(tmp_path / "tb") if f != first_file and f.stat().st_mtime >= first_file.stat().st_mtime]
     steps = sorted({e.step for f in resumed for e in _scalars(f, "train/loss")})
     assert steps and steps[0] >= 2 and steps[-1] <= 6  # the resumed run started at the saved step, not 0
@@ -134,7 +134,7 @@ def test_resume_from_a_missing_checkpoint_is_a_config_error(data_root, tmp_path)
 
 
 def _teacher_and_student_state(out: Path):
-    return torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    return torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
 
 
 def test_distillation_with_every_term(data_root, teacher_run, tmp_path):
@@ -152,7 +152,7 @@ def test_distillation_with_every_term(data_root, teacher_run, tmp_path):
     state = ckpt["state_dict"]
     assert any(k.startswith("critic.") for k in state) and any(k.startswith("adapters.") for k in state)
     # the teacher stayed frozen: its weights in the distillation checkpoint equal the teacher checkpoint's
-    teacher_state = torch.load(teacher_ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    teacher_state = torch.load(teacher_ckpt, map_location="cpu", weights_only=True)["state_dict"]
     for k, v in teacher_state.items():
         assert torch.equal(state["teacher." + k[len("net."):]], v), k
     student = load_denoiser(tmp_path / "checkpoints" / "last.ckpt")
@@ -195,7 +195,7 @@ def test_multirun_over_three_ablations(data_root, tmp_path):
         acc = events(job / "tb")
         assert {"train/loss", "val/psnr"} <= set(acc.Tags()["scalars"]), job
         assert {"train/panel", "val/panel"} <= set(acc.Tags()["images"]), job
-        ckpt = torch.load(job / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+        ckpt = torch.load(job / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
         net = ckpt["hyper_parameters"]["net"]
         filters.add((net["filter"]["_target_"], net["temporal"] is None))
     assert filters == {("denoiser.nn.pyramid.PyramidFilter", False), ("denoiser.nn.filters.SingleKernelFilter", False),
@@ -223,7 +223,7 @@ def test_validation_carries_the_state_across_sequence_pieces(data_root, teacher_
             cfg = compose("train", overrides=[*FAST, f"data.root={data_root}", "output_dir=/tmp/unused",
                                               "model=teacher", f"data.val_window={window}"])
         model = train_script.build(cfg.model, "model")
-        state = torch.load(teacher_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+        state = torch.load(teacher_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
         model.load_state_dict(state["state_dict"])
         trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
                              enable_model_summary=False)

@@ -91,7 +91,7 @@ def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
 
     out: OrderedDict[str, dict] = OrderedDict()
     for name, path in checkpoint_paths(cfg.get("ckpt")).items():
-        out[name] = {"net": load_denoiser(path), "kind": "checkpoint"}
+        out[name] = {"net": load_denoiser(path, trust=bool(cfg.get("trust_checkpoint"))), "kind": "checkpoint"}
     for name, spec in (cfg.get("variants") or {}).items():
         if name in out:
             raise ConfigError(f"variants.{name}: the name is already used by a checkpoint")

@@ -130,7 +130,7 @@ def run(cfg: DictConfig) -> dict:
         torch.set_num_threads(int(cfg.threads))
     device = torch.device(cfg.get("device") or "cpu")
 
-    net = load_denoiser(cfg.ckpt, device)
+    net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
     layout = instantiate(cfg.layout)
     source = layout.open_sequence(src_dir)
     needed = needed_buffers(net)

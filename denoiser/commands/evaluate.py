@@ -70,7 +70,8 @@ def build_methods(cfg: DictConfig, device: str = "cpu") -> OrderedDict[str, obje
     for name, path in checkpoint_paths(cfg.get("ckpt")).items():
         if name in methods:
             raise ConfigError(f"ckpt: name {name!r} is already used by a baseline")
-        methods[name] = NetworkMethod(load_denoiser(path, device), label=name, device=device)
+        methods[name] = NetworkMethod(load_denoiser(path, device, trust=bool(cfg.get("trust_checkpoint"))),
+                                      label=name, device=device)
     if not methods:
         raise ConfigError("eval: nothing to evaluate (no ckpt and no baselines)")
     return methods

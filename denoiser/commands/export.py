@@ -34,7 +34,7 @@ def run(cfg: DictConfig) -> dict:
 
     if not cfg.get("ckpt"):
         raise ConfigError("ckpt: give the checkpoint to export (ckpt=<path>)")
-    net = load_denoiser(cfg.ckpt)
+    net = load_denoiser(cfg.ckpt, trust=bool(cfg.get("trust_checkpoint")))
     out = Path(cfg.out) if cfg.get("out") else default_output(cfg.ckpt)
     if out.suffix != ".onnx":
         raise ConfigError(f"out: {out} should end in .onnx")

@@ -110,10 +110,13 @@ def train(cfg: DictConfig) -> dict[str, float]:
     import lightning.pytorch as pl
     import torch
 
+    from denoiser.checkpoint import resume_weights_only
+
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     pl.seed_everything(int(cfg.seed), workers=True)
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), cfg.output_dir)
+    weights_only = resume_weights_only(ckpt_path, trust=bool(cfg.get("trust_checkpoint")))  # refuses pickled code
     datamodule = build(cfg.data, "data")
     if hasattr(datamodule, "setup"):  # index and validate the data before any log or checkpoint is written
         datamodule.setup("fit")
@@ -122,7 +125,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     logger = build(cfg.logger, "logger") if cfg.get("logger") else False
     trainer = build(cfg.trainer, "trainer", callbacks=callbacks, logger=logger)
 
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=weights_only)
     if trainer.interrupted:
         print("training interrupted; last.ckpt holds the last state", file=sys.stderr)
     validated_at = getattr(model, "validated_step", -1)

@@ -14,17 +14,32 @@ Channel naming of the native layout (docs/design.md §3.1): buffer ``color`` is 
 
 Writes are atomic: the file is written under a temporary name in the same directory and
 renamed into place, so a crash never leaves a half-written file under its final name.
-Every failure is an :class:`~denoiser.errors.ExrError` whose message names the file.
+Every failure is an :class:`~denoiser.errors.ExrError` whose message names the file, and is one
+line: deep images (deep scanline or deep tiled parts) are refused; a file any of whose parts
+cannot be decoded fails as a whole (``OpenEXR.File`` itself only warns and drops such a part),
+and so does a read during which the library reports an error even if pixels came back (e.g.
+after rebuilding a damaged chunk table); what the library prints while reading (its C core on
+file descriptor 2, its Python bindings on ``sys.stdout``) is captured into that message instead
+of reaching the terminal (see :func:`library_output`); images and tiles wider or taller than
+:data:`MAX_SIDE` are refused by the library's own header checks. ``tests/fuzz_exr.py`` fuzzes
+the reader (docs/fuzzing.md).
 
-HDR values are never clamped. ``read_frame`` replaces NaN/Inf (NaN and -Inf by 0, +Inf by
-the largest finite float16 value, 65504, which keeps "very bright" without overflowing
-anything downstream) and returns how many values it replaced, so the caller can report it.
+HDR values are never clamped. ``read_frame`` replaces NaN/Inf by the project's one rule
+(:mod:`denoiser.nonfinite`: NaN and -Inf by 0, +Inf by the largest finite float16 value, 65504,
+which keeps "very bright" without overflowing anything downstream; the network applies the same
+rule to its inputs) and returns how many values it replaced, so the caller can report it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
-from collections.abc import Iterable, Mapping, Sequence
+import re
+import sys
+import tempfile
+import threading
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +48,7 @@ import OpenEXR
 from denoiser.atomic import atomic_path
 from denoiser.buffers import native_channels, sample_channels
 from denoiser.errors import ExrError
+from denoiser.nonfinite import POSINF, replace_array
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
@@ -42,8 +58,30 @@ COMPRESSIONS: dict[str, object] = {
     if name.endswith("_COMPRESSION") and name != "NUM_COMPRESSION_METHODS"
 }
 
-#: Largest finite float16; +Inf is replaced by it on read.
-POS_INF_REPLACEMENT = 65504.0
+#: Largest finite float16; +Inf is replaced by it on read (:data:`denoiser.nonfinite.POSINF`).
+POS_INF_REPLACEMENT = POSINF
+
+#: Largest image and tile side (pixels) accepted, by OpenEXR's own header checks (``Imf::Header::
+#: setMaxImageSize`` / ``setMaxTileSize``), which this module sets at import unless they are set already
+#: (they are process-wide; 0 = no limit, the library's default). Without them a 7 KB file whose header
+#: declares 8 x 83886084 tiles made the library allocate ~24 GB and spend 80 s before failing (a finding
+#: of tests/fuzz_exr.py).
+MAX_SIDE = 16384
+if OpenEXR.getMaxImageSize() == (0, 0):
+    OpenEXR.setMaxImageSize(MAX_SIDE, MAX_SIDE)
+if OpenEXR.getMaxTileSize() == (0, 0):
+    OpenEXR.setMaxTileSize(MAX_SIDE, MAX_SIDE)
+
+#: Part types this reader refuses (their pixels are per-pixel sample lists, not images).
+DEEP_TYPES = (OpenEXR.deepscanline, OpenEXR.deeptile)
+#: Longest library text kept in an error message.
+MAX_DETAIL = 500
+
+#: Lines the library prints when a read goes wrong: its core's error handler (``<file>: (EXR_ERR_<code>)
+#: <message>``), the bindings' warning when they drop a part, the HTJ2K codec's errors.
+LIBRARY_ERROR = re.compile(r"\(EXR_ERR_\w+\)|Exception raised reading|ojph error")
+
+_OUTPUT_LOCK = threading.Lock()
 
 
 # ----------------------------------------------------------------------------- reading
@@ -63,34 +101,107 @@ def _check_exr_file(path: Path) -> None:
         raise ExrError(path, "not an EXR file (bad magic number)")
 
 
-def _open(path: Path, header_only: bool = False) -> OpenEXR.File:
+@contextlib.contextmanager
+def library_output() -> Iterator[list[str]]:
+    """Capture what the OpenEXR library prints inside the block; yields a list that then holds the text.
+
+    OpenEXR's C core reports damage with ``fprintf(stderr)`` (file descriptor 2) and the Python
+    bindings ``print`` a warning to ``sys.stdout`` when they drop a part they cannot decode. File
+    descriptor 2 is pointed at a temporary file for the block and restored after it (a
+    ``sys.stderr`` swap would not see C writes), and ``sys.stdout`` is swapped for a buffer. Both
+    are process-wide, so blocks are serialized by a lock: concurrent reads wait, each gets its own
+    text. Output of other threads during the block is caught too; :func:`_open` passes on every
+    line that is not one of the library's error reports (:data:`LIBRARY_ERROR`).
+    """
+    text: list[str] = []
+    with _OUTPUT_LOCK, tempfile.TemporaryFile() as tmp:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = os.dup(2)
+        printed = io.StringIO()
+        try:
+            os.dup2(tmp.fileno(), 2)
+            with contextlib.redirect_stdout(printed):
+                yield text
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text.append(tmp.read().decode("utf-8", "replace") + printed.getvalue())
+
+
+def _split_output(path: Path, text: list[str]) -> tuple[list[str], str]:
+    """``(the library's error reports, one per line without the path they repeat; the rest of the text)``."""
+    errors, rest = [], []
+    for line in (text[0] if text else "").splitlines(keepends=True):
+        if LIBRARY_ERROR.search(line):
+            line = line.strip().removeprefix("Warning: ").removeprefix(f"{path}: ").strip()
+            if line not in errors:
+                errors.append(line)
+        else:
+            rest.append(line)
+    return errors, "".join(rest)
+
+
+def _detail(errors: list[str], exc: BaseException | None = None) -> str:
+    """One line: the exception's text, then the library's error reports."""
+    lines = [str(exc).strip().replace("\n", " ")] if exc is not None and str(exc).strip() else []
+    lines += [e for e in errors if e not in lines]
+    detail = "; ".join(lines) or (type(exc).__name__ if exc is not None else "no message from the library")
+    return detail if len(detail) <= MAX_DETAIL else detail[: MAX_DETAIL - 3] + "..."
+
+
+def _open(path: Path, header_only: bool = False) -> list[tuple[dict, dict[str, np.ndarray | None]]]:
+    """The parts of a flat (not deep) EXR whose every part decodes: ``[(header, {channel: pixels})]``.
+
+    The headers are read first (deep parts are refused before their samples are decoded), then,
+    unless ``header_only`` (pixels None), the pixels; a part that ``OpenEXR.File`` dropped fails
+    the read. Everything is converted to Python objects inside the capture (the bindings decode
+    names and attributes lazily), so any failure is an ExrError naming ``path``.
+    """
     _check_exr_file(path)
-    try:
-        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
-    except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain RuntimeError/Exception on damage
-        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ExrError(path, f"truncated or corrupt EXR ({detail})") from None
+    error: BaseException | None = None
+    deep = parts = None
+    with library_output() as text:
+        try:
+            headers = OpenEXR.File(str(path), separate_channels=True, header_only=True)
+            count = len(headers.parts)
+            deep = next(((i, part.type()) for i, part in enumerate(headers.parts) if part.type() in DEEP_TYPES), None)
+            if deep is None:
+                f = headers if header_only else OpenEXR.File(str(path), separate_channels=True)
+                parts = [(dict(part.header), {c.name: None for c in part.header.get("channels", [])} if header_only
+                          else {name: ch.pixels for name, ch in part.channels.items()}) for part in f.parts]
+                decoded = [part.name() for part, (_, chans) in zip(f.parts, parts) if header_only or chans]
+                lost = [i for i, part in enumerate(headers.parts) if part.name() not in decoded] or [len(decoded)]
+        except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain RuntimeError/Exception on damage
+            error = exc
+    errors, rest = _split_output(path, text)
+    if rest:  # not the library's: pass it on (another thread's output, say)
+        sys.stderr.write(rest)
+        sys.stderr.flush()
+    if deep is not None:
+        raise ExrError(path, f"deep EXR images are not supported (part {deep[0]} is {deep[1].name})")
+    if error is not None or parts is None:
+        raise ExrError(path, f"truncated or corrupt EXR ({_detail(errors, error)})") from None
+    if not count or len(decoded) < count:
+        where = "pixel data unreadable" if count <= 1 else f"part {lost[0]} of {count} unreadable"
+        raise ExrError(path, f"truncated or corrupt EXR ({where}: {_detail(errors)})")
+    if errors:  # pixels came back, but the library reported damage on the way (e.g. a rebuilt chunk table)
+        raise ExrError(path, f"truncated or corrupt EXR ({_detail(errors)})")
+    return parts
 
 
 def list_channels(path: str | os.PathLike) -> list[str]:
     """All channel names of all parts of an EXR file (header only)."""
-    f = _open(Path(path), header_only=True)
     names: list[str] = []
-    for part in f.parts:
-        names.extend(n for n in _part_channel_names(part) if n not in names)
+    for _, channels in _open(Path(path), header_only=True):
+        names.extend(n for n in channels if n not in names)
     return names
-
-
-def _part_channel_names(part) -> list[str]:
-    if part.channels:
-        return list(part.channels.keys())
-    return [c.name for c in part.header.get("channels", [])]
 
 
 def read_header(path: str | os.PathLike) -> dict:
     """Header of the first part (``dataWindow``, ``compression``, custom attributes)."""
-    f = _open(Path(path), header_only=True)
-    return dict(f.parts[0].header)
+    return _open(Path(path), header_only=True)[0][0]
 
 
 def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
@@ -100,18 +211,10 @@ def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -
     an :class:`ExrError` listing the channels that are present. Pixels are not sanitized here.
     """
     path = Path(path)
-    f = _open(path)
-    if not f.parts or not all(part.channels for part in f.parts):
-        # OpenEXR.File only warns (on stderr) and drops the parts whose pixels cannot be read
-        raise ExrError(path, "truncated or corrupt EXR (pixel data unreadable)")
     found: dict[str, np.ndarray] = {}
-    try:
-        for part in f.parts:
-            for cname, ch in part.channels.items():
-                if cname not in found:
-                    found[cname] = ch.pixels
-    except Exception as exc:  # noqa: BLE001 - any failure while decoding pixels means damage
-        raise ExrError(path, f"truncated or corrupt EXR ({str(exc).strip() or type(exc).__name__})") from None
+    for _, channels in _open(path):
+        for cname, pixels in channels.items():
+            found.setdefault(cname, pixels)
     if names is None:
         wanted = list(found)
     else:
@@ -125,19 +228,15 @@ def read_channels(path: str | os.PathLike, names: Iterable[str] | None = None) -
     out: dict[str, np.ndarray] = {}
     for n in wanted:
         arr = found[n]
-        if arr is None or arr.ndim != 2:
+        if not isinstance(arr, np.ndarray) or arr.ndim != 2:
             raise ExrError(path, f"channel {n} is not a 2-D image channel")
         out[n] = np.ascontiguousarray(arr, dtype=np.float32)
     return out
 
 
 def sanitize(array: np.ndarray) -> int:
-    """Replace NaN/-Inf by 0 and +Inf by 65504 in place; return how many values changed."""
-    bad = ~np.isfinite(array)
-    count = int(bad.sum())
-    if count:
-        np.copyto(array, np.where(np.isposinf(array), POS_INF_REPLACEMENT, 0.0).astype(array.dtype), where=bad)
-    return count
+    """Replace NaN/-Inf by 0 and +Inf by 65504 in place (:mod:`denoiser.nonfinite`); return how many changed."""
+    return replace_array(array)
 
 
 def read_frame(

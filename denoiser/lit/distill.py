@@ -1,7 +1,7 @@
 """Distillation: a frozen teacher teaches the student on the same recurrent windows.
 
 The teacher is loaded from ``teacher_ckpt`` with :func:`denoiser.checkpoint.load_denoiser`
-(frozen: eval mode, ``requires_grad=False``, run under ``torch.no_grad``) and unrolled over the
+(safe loader; ``trust_teacher_ckpt=True`` also loads a teacher holding pickled objects) (frozen: eval mode, ``requires_grad=False``, run under ``torch.no_grad``) and unrolled over the
 same window as the student (same resets; the student's state is detached every
 ``detach_every`` frames). Loss terms, each with a weight in ``loss`` (a term whose weight is 0
 is not computed, not logged and absent from :meth:`DistillationModule.loss_terms`):
@@ -63,7 +63,8 @@ class DistillationModule(DenoiserModule):
                  critic_optimizer: Callable | Mapping | None = None, adversarial: Mapping | None = None,
                  critic_steps: int = 1, param_transfer: Mapping | None = None,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
-                 detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0):
+                 detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
+                 trust_teacher_ckpt: bool = False):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
                          image_interval, grad_clip)
         self.automatic_optimization = False
@@ -87,7 +88,7 @@ class DistillationModule(DenoiserModule):
             if not teacher_ckpt:
                 raise ConfigError("model.teacher_ckpt: distillation needs a teacher checkpoint "
                                   "(e.g. model.teacher_ckpt=outputs/.../checkpoints/last.ckpt)")
-            self.teacher = load_denoiser(teacher_ckpt)
+            self.teacher = load_denoiser(teacher_ckpt, trust=trust_teacher_ckpt, trust_key="model.trust_teacher_ckpt")
             self.teacher.requires_grad_(False)
             self.teacher.eval()
         if param_transfer and self.teacher is not None:

@@ -8,7 +8,8 @@ the recurrence off).
 
 Per step (shapes for one frame ``[B, C, H, W]``):
 
-1. inputs are sanitised (NaN -> 0, Inf -> 65504) and transformed (:mod:`denoiser.nn.inputs`):
+1. inputs are sanitised (NaN, -Inf -> 0; +Inf -> 65504: :mod:`denoiser.nonfinite`) and transformed
+   (:mod:`denoiser.nn.inputs`):
    color ``log1p(max(x,0)/s)`` with the per-image scale ``s``, albedo, normal, depth features;
 2. EmbedNet runs per sample (``samples [B, S, 3, H, W]`` present) or per pixel;
 3. with temporal recurrence the warped history (:mod:`denoiser.nn.temporal`) is appended;

@@ -7,8 +7,10 @@ reductions, so they are cheap.
 
 Formulas (``x`` a tensor, ``B`` the batch):
 
-* sanitise: ``nan_to_num(x, nan=0, posinf=POSINF, neginf=-POSINF)`` with ``POSINF = 65504``
-  (the reader already does this; repeated here so the network is robust on its own);
+* sanitise: the project's one non-finite rule, :func:`denoiser.nonfinite.replace_tensor`: NaN -> 0,
+  -Inf -> 0, +Inf -> ``POSINF = 65504``, on every input buffer (depth and motion included). The
+  EXR reader applies the same rule, so a frame given to the network directly (or to its ONNX
+  export) and the same frame read from a file denoise alike;
 * color scale (per image): ``s = mean_{c,h,w}(max(color, 0)) + COLOR_EPS``, ``COLOR_EPS = 1e-3``;
 * color feature: ``log1p(max(x, 0) / s)``, at most ``log1p(65504 / 1e-3) ~ 18`` for sanitised
   inputs: fine in float16 and bfloat16;
@@ -16,7 +18,8 @@ Formulas (``x`` a tensor, ``B`` the batch):
   exceed 1 on some paths; the log keeps such values within ~4.6);
 * normal feature: ``clamp(normal, -1, 1)``;
 * depth feature: ``d / (d + m)`` in [0, 1), where ``d = clamp(depth, 0, DEPTH_FAR)``,
-  ``DEPTH_FAR = 1e10`` (no-hit pixels map to ~1), and ``m`` is the mean depth of the image's
+  ``DEPTH_FAR = 1e10`` (no-hit pixels written as 1e10 map to ~1; +Inf becomes 65504 by the rule
+  above, like in the reader, and counts as a far hit), and ``m`` is the mean depth of the image's
   hit pixels (``d < DEPTH_HIT``, ``DEPTH_HIT = 1e9``) plus ``DEPTH_EPS = 1e-6`` (``m = 1`` when
   nothing is hit). The feature is scale invariant: scenes in millimetres or kilometres look alike.
 """
@@ -25,7 +28,8 @@ from __future__ import annotations
 
 import torch
 
-POSINF = 65504.0
+from denoiser.nonfinite import POSINF, replace_tensor  # noqa: F401 - POSINF is used through this module
+
 COLOR_EPS = 1e-3
 ALBEDO_MAX = 100.0
 DEPTH_FAR = 1e10
@@ -36,9 +40,9 @@ DEPTH_EPS = 1e-6
 GUIDE_CHANNELS = 7
 
 
-def sanitize(x: torch.Tensor, posinf: float = POSINF) -> torch.Tensor:
-    """Replace NaN by 0 and +-Inf by +-``posinf``; returns float32. ``x``: any shape."""
-    return torch.nan_to_num(x.float(), nan=0.0, posinf=posinf, neginf=-posinf)
+def sanitize(x: torch.Tensor) -> torch.Tensor:
+    """NaN, -Inf -> 0 and +Inf -> ``POSINF`` (:mod:`denoiser.nonfinite`); returns float32. ``x``: any shape."""
+    return replace_tensor(x)
 
 
 def color_scale(color: torch.Tensor) -> torch.Tensor:
@@ -91,7 +95,7 @@ def guide_features(frame: dict) -> torch.Tensor:
         [
             albedo_feature(sanitize(frame["albedo"])),
             normal_feature(sanitize(frame["normal"])),
-            depth_feature(sanitize(frame["depth"], posinf=DEPTH_FAR)),
+            depth_feature(sanitize(frame["depth"])),
         ],
         dim=1,
     )

@@ -20,7 +20,7 @@ MOTION_LIMIT = 4.0
 def sampling_grid(motion: torch.Tensor) -> torch.Tensor:
     """Normalised ``grid_sample`` grid for backward motion.
 
-    motion: ``[B, 2, H, W]`` pixels (x right, y down; NaN -> 0) -> ``[B, H, W, 2]`` float32 in
+    motion: ``[B, 2, H, W]`` pixels (x right, y down; NaN, -Inf -> 0, +Inf -> 65504) -> ``[B, H, W, 2]`` float32 in
     ``align_corners=False`` convention: ``g = (p + motion + 0.5) * 2 / size - 1``.
     """
     h, w = motion.shape[-2:]

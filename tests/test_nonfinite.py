@@ -1,0 +1,113 @@
+"""One rule for non-finite inputs, in the EXR reader, the network and its ONNX export: NaN -> 0, -Inf -> 0,
++Inf -> 65504 (DESIGN 3.2).
+
+A frame with whole rows of -Inf, +Inf and NaN must denoise exactly like the same frame with those
+values replaced by hand: finite, and non-negative (no -Inf becomes negative energy that the
+kernels spread over their footprint).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from denoiser.buffers import native_channels
+from denoiser.checkpoint import build_net, compose_net_config
+from denoiser.commands.netstats import frame_inputs
+
+H, W = 16, 20
+#: (non-finite value, the row of the frame that gets it, the value the rule replaces it by)
+ROWS = [(float("-inf"), 2, 0.0), (float("inf"), 7, 65504.0), (float("nan"), 11, 0.0)]
+GUIDES = ["albedo", "normal", "depth", "motion"]
+
+
+@pytest.fixture(scope="module")
+def net():
+    torch.manual_seed(0)
+    return build_net(compose_net_config("tiny", "student")).eval()
+
+
+def frames(buffers: list[str], seed: int, samples: int = 2) -> tuple[dict, dict]:
+    """``(bad frame, the same frame with the rule applied by hand)`` with the rows of ``ROWS`` in ``buffers``."""
+    base = frame_inputs(1, H, W, samples=samples, seed=seed)
+    bad = {k: v.clone() for k, v in base.items()}
+    fixed = {k: v.clone() for k, v in base.items()}
+    for k in buffers:
+        for value, row, replacement in ROWS:
+            bad[k][..., row, :] = value
+            fixed[k][..., row, :] = replacement
+    return bad, fixed
+
+
+@pytest.mark.parametrize("buffers", [["color"], ["samples"], GUIDES, ["color", "samples", *GUIDES]],
+                         ids=["color", "samples", "guides", "all"])
+def test_step_applies_the_rule(net, buffers):
+    state_bad = state_fixed = None
+    with torch.no_grad():
+        for t in range(2):  # the second step also runs the history through warp and blend
+            bad, fixed = frames(buffers, seed=t)
+            out_bad, state_bad, _ = net.step(bad, state_bad)
+            out_fixed, state_fixed, _ = net.step(fixed, state_fixed)
+            assert torch.isfinite(out_bad).all()
+            assert torch.equal(out_bad, out_fixed), (out_bad - out_fixed).abs().max()
+            assert out_bad.min() >= 0, f"negative output {out_bad.min():.4g} from non-negative radiance"
+            for k in state_bad:
+                assert torch.equal(state_bad[k], state_fixed[k]), k
+
+
+def test_reader_and_network_share_the_rule():
+    """The numpy version (EXR reader) and the torch version (network) replace every value alike."""
+    from denoiser.data import exr
+    from denoiser.nn.inputs import sanitize
+    from denoiser.nonfinite import POSINF, replace_array, replace_tensor
+
+    for dtype in (np.float32, np.float16):
+        big = float(np.finfo(dtype).max)  # finite HDR, however large, is kept
+        arr = np.array([np.nan, -np.inf, np.inf, -big, big, -2.5, 0.0, 3.0], dtype)
+        want = np.array([0, 0, POSINF, -big, big, -2.5, 0, 3], dtype)
+        got = arr.copy()
+        assert replace_array(got) == 3 and got.dtype == dtype
+        np.testing.assert_array_equal(got, want)
+        reader = arr.copy()
+        assert exr.sanitize(reader) == 3
+        np.testing.assert_array_equal(reader, want)
+        for fn in (replace_tensor, sanitize):
+            out = fn(torch.from_numpy(arr.copy()))
+            assert out.dtype == torch.float32
+            np.testing.assert_array_equal(out.numpy(), want.astype(np.float32))
+    assert exr.POS_INF_REPLACEMENT == POSINF
+
+
+def test_frame_read_from_exr_equals_raw_frame(net, tmp_path):
+    """Reading the bad frame from an EXR (the reader replaces) or giving it raw to the network: same output."""
+    from denoiser.data import exr
+
+    bad, _ = frames(["color", *GUIDES], seed=5, samples=0)
+    path = tmp_path / "bad.exr"
+    exr.write_frame(path, {k: v[0].permute(1, 2, 0).numpy() for k, v in bad.items()})
+    spec = {k: native_channels(k, v.shape[1]) for k, v in bad.items()}
+    arrays, replaced = exr.read_frame(path, spec)
+    assert replaced == 3 * W * sum(v.shape[1] for v in bad.values())
+    read = {k: torch.from_numpy(v).permute(2, 0, 1)[None] for k, v in arrays.items()}
+    with torch.no_grad():
+        assert torch.equal(net.step(read)[0], net.step(bad)[0])
+
+
+def test_onnx_export_applies_the_rule(net, tmp_path):
+    pytest.importorskip("onnxruntime")
+    from denoiser.step_graph import OnnxStep, export_onnx
+
+    path = export_onnx(net, tmp_path / "tiny.onnx")
+    runner = OnnxStep(path, threads=1)
+    state_torch = state_bad = state_fixed = None
+    with torch.no_grad():
+        for t in range(2):
+            bad, fixed = frames(["color", *GUIDES], seed=t, samples=0)
+            expected, state_torch, _ = net.step(bad, state_torch, torch.tensor([t == 0]))
+            got, state_bad = runner.step(bad, state_bad, reset=t == 0)
+            got_fixed, state_fixed = runner.step(fixed, state_fixed, reset=t == 0)
+            assert np.isfinite(got).all() and got.min() >= 0
+            np.testing.assert_array_equal(got, got_fixed)
+            scale = max(1.0, float(expected.abs().max()))
+            assert np.abs(got - expected.numpy()).max() <= 1e-4 * scale

@@ -123,9 +123,9 @@ def tiny_net() -> Denoiser:
 
 
 def frames(count: int = 3, size: int = 16):
-    from denoiser.step_graph import example_frame
+    from denoiser.frames import random_frame
 
-    return [example_frame(1, size, size, seed=s) for s in range(count)]
+    return [random_frame(1, size, size, seed=s, kind="hard") for s in range(count)]
 
 
 def test_consumers_step_through_the_runner(step_callers, tmp_path):

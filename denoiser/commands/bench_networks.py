@@ -146,12 +146,13 @@ def run_net(job: dict) -> dict:
     """Worker: time ``step`` of one net/size/variant; returns ms per run and the RSS growth."""
     import torch
 
-    from denoiser.commands.netstats import build_net, compose_net_config, frame_inputs
+    from denoiser.commands.netstats import build_net, compose_net_config
+    from denoiser.frames import random_frame
     from denoiser.runner import RecurrentRunner
 
     torch.set_flush_denormal(True)
     net = build_net(compose_net_config(NETS[job["net"]])).eval()
-    frame = frame_inputs(1, job["height"], job["width"])
+    frame = random_frame(1, job["height"], job["width"])
     net, frame, context = VARIANTS[job["variant"]](net, frame)
     base = start_peak()
     times, cpu = [], []

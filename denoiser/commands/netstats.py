@@ -75,23 +75,6 @@ def build_net(cfg):
         raise ConfigError(f"net: {str(exc).splitlines()[0]}") from exc
 
 
-def frame_inputs(batch: int, height: int, width: int, samples: int = 0, seed: int = 0) -> dict:
-    """A random frame dict (``[B, C, H, W]`` tensors) with plausible value ranges."""
-    import torch
-
-    g = torch.Generator().manual_seed(seed)
-    frame = {
-        "color": torch.rand(batch, 3, height, width, generator=g) * 2,
-        "albedo": torch.rand(batch, 3, height, width, generator=g),
-        "normal": torch.nn.functional.normalize(torch.randn(batch, 3, height, width, generator=g), dim=1),
-        "depth": torch.rand(batch, 1, height, width, generator=g) * 10 + 1,
-        "motion": torch.randn(batch, 2, height, width, generator=g),
-    }
-    if samples:
-        frame["samples"] = torch.rand(batch, samples, 3, height, width, generator=g) * 2
-    return frame
-
-
 def count_flops(net, height: int, width: int) -> int:
     """FLOPs of one ``step`` on a ``1 x height x width`` frame with history.
 
@@ -102,8 +85,10 @@ def count_flops(net, height: int, width: int) -> int:
     from torch._subclasses.fake_tensor import FakeTensorMode
     from torch.utils.flop_counter import FlopCounterMode
 
+    from denoiser.frames import random_frame
+
     with FakeTensorMode(allow_non_fake_inputs=True) as mode, torch.inference_mode():
-        frame = {k: mode.from_tensor(v) for k, v in frame_inputs(1, height, width).items()}
+        frame = {k: mode.from_tensor(v) for k, v in random_frame(1, height, width).items()}
         _, state, _ = net.step(frame, None)
         with FlopCounterMode(display=False) as counter:
             net.step(frame, state)

@@ -12,7 +12,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
 from denoiser.backends import Stepper
-from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.checkpoint import save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, read_csv, time_steps
 from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows

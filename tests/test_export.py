@@ -9,7 +9,8 @@ import onnx
 import pytest
 import torch
 
-from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.checkpoint import save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
 from denoiser.step_graph import OnnxStep, StepGraph, check_export

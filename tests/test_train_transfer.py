@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from denoiser.checkpoint import build_net, compose_net_config
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.transfer import L1ChannelTransfer, plan_transfer, transfer_parameters

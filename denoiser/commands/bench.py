@@ -87,7 +87,8 @@ def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: i
 
 def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
     """``{label: {"net": module, "kind": "checkpoint"|"variant"}}`` from ``ckpt`` and ``variants``."""
-    from denoiser.checkpoint import build_net, checkpoint_paths, compose_net_config, load_denoiser
+    from denoiser.checkpoint import checkpoint_paths, load_denoiser
+    from denoiser.configs import build_net, compose_net_config
 
     out: OrderedDict[str, dict] = OrderedDict()
     for name, path in checkpoint_paths(cfg.get("ckpt")).items():

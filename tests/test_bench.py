@@ -112,8 +112,9 @@ def test_time_steps_carries_state_and_resets_once():
     assert [c[1] for c in calls[1:]] == [0, 1, 2, 3]
 
 
-def test_peak_rss_sees_an_allocation():
-    with PeakRss() as mem:
+@pytest.mark.parametrize("method", ["sample", "hwm"])
+def test_peak_rss_sees_an_allocation(method):
+    with PeakRss(method=method) as mem:
         block = np.ones(64 * 2**20 // 8)  # 64 MiB, touched
         block += 1
     del block

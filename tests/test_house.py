@@ -133,7 +133,7 @@ def test_consumers_step_through_the_runner(step_callers, tmp_path):
     ONNX export check, and the training/validation unroll all reach Denoiser.step via the runner."""
     from denoiser.backends import TorchBackend
     from denoiser.baselines import NetworkMethod
-    from denoiser.measure import count_gflop, time_steps
+    from denoiser.measure import count_flops, time_steps
     from denoiser.step_graph import check_export, export_onnx
 
     net = tiny_net()
@@ -141,7 +141,7 @@ def test_consumers_step_through_the_runner(step_callers, tmp_path):
     for i, f in enumerate(frames()):
         method(f, reset=i == 0)
     time_steps(TorchBackend().prepare(net, frames()[0], 1), frames(), warmup=1, repeats=2)
-    count_gflop(net, frames()[0])
+    count_flops(net, 16, 16)
     export_onnx(net, tmp_path / "net.onnx", trace_size=(13, 21))
     calls_before_export_check = len(step_callers)
     check_export(net, tmp_path / "net.onnx", size=(16, 24))

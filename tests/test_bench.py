@@ -121,6 +121,18 @@ def test_peak_rss_sees_an_allocation(method):
     assert mem.megabytes > 40
 
 
+@pytest.mark.slow
+def test_bench_networks_measures_in_a_subprocess(capsys):
+    """python -m denoiser.commands.bench_networks, tiny: the parent passes each job to a fresh process."""
+    from denoiser.commands.bench_networks import run
+
+    rows = run(compose("bench_networks", ["nets=[tiny]", "sizes=[24x16]", "variants=[eager]", "repeats=2",
+                                          "kernels=false"]))
+    assert [(r["net"], r["variant"], r["size"], r["runs"]) for r in rows] == [("tiny", "eager", "24x16", 2)]
+    assert rows[0]["ms"] > 0 and rows[0]["peak_mb"] >= 0 and 0 < rows[0]["gflop"] < 1
+    assert "| tiny |" in capsys.readouterr().out
+
+
 def test_default_student_for_the_ratio():
     from denoiser.commands.bench import default_student
 

@@ -46,7 +46,6 @@ def test_library_never_imports_a_command():
     assert not {k: v for k, v in offenders.items() if v}
 
 
-@pytest.mark.xfail(strict=True, reason="bench_networks still takes net helpers from netstats (next commit)")
 def test_commands_do_not_import_each_other():
     """Commands share library modules, never each other's code (``app`` is their shared start-up)."""
     offenders = {}

@@ -6,13 +6,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from denoiser.commands.netstats import count_flops, main
 from denoiser.conf import CONF_DIR
 from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
+from denoiser.measure import count_flops
 from denoiser.nn.critic import PatchCritic
 from denoiser.nn.denoiser import Denoiser
 from denoiser.nn.filters import DirectColor, SingleKernelFilter
@@ -75,9 +76,11 @@ def test_config_mistakes_are_user_errors(net, overrides, message):
         build_net(compose_net_config(net, overrides=overrides))
 
 
-def test_netstats_prints_parameter_counts(capsys, monkeypatch):
-    monkeypatch.setattr("denoiser.commands.netstats.FLOPS_SIZE", 32)
-    main(["net=tiny", "kernel=k3"])
+def test_netstats_prints_parameter_counts(capsys):
+    from denoiser.commands.netstats import run
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        run(compose("netstats", overrides=["net=tiny", "kernel=k3", "flops_size=32"]))
     out = capsys.readouterr().out
     net = build_net(compose_net_config("tiny", "k3"))
     flops = count_flops(net, 32, 32)

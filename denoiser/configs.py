@@ -5,6 +5,8 @@ instantiating any ``_target_`` config, with one-line errors.
   mandatory value, an unknown ``_target_``, a misspelled argument) is a one-line
   :class:`~denoiser.errors.ConfigError` naming the key, and a
   :class:`~denoiser.errors.UserError` raised by a constructor comes out as itself;
+* :func:`compose_config`: any config of ``conf/`` with overrides, from anywhere (inside a
+  running Hydra app too);
 * :func:`compose_net_config`: the resolved net config of the groups ``net``, ``kernel`` and
   ``ablation`` plus overrides (what checkpoints store under ``hyper_parameters['net']``);
 * :func:`build_net`: that config instantiated, a :class:`~denoiser.nn.denoiser.Denoiser`.
@@ -89,6 +91,23 @@ def _full_key(exc: BaseException, key: str) -> str:
     return f"{key}.{full}" if full and not str(full).startswith(key) else (full or key)
 
 
+def compose_config(overrides: Sequence[str] = (), config_name: str | None = None):
+    """Compose ``conf/<config_name>.yaml`` (None: an empty config) with Hydra ``overrides`` -> DictConfig.
+
+    Works inside a running Hydra app too (its ``conf/`` is the same directory). Hydra's and
+    OmegaConf's exceptions propagate (callers name what they composed).
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from denoiser.conf import CONF_DIR
+
+    if GlobalHydra.instance().is_initialized():  # inside a Hydra app
+        return compose(config_name, overrides=list(overrides))
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name, overrides=list(overrides))
+
+
 def compose_net_config(net: str = "student", kernel: str | None = None, overrides: Sequence[str] = (),
                        ablation: str = "none") -> dict:
     """Resolved net config composed from ``conf/net/<net>.yaml``, ``conf/kernel/<kernel>.yaml``
@@ -96,11 +115,8 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
 
     ``kernel`` defaults to ``net``'s own name when such a kernel file exists, else ``student``.
     Returns the plain dict that :func:`build_net` instantiates and checkpoints store under
-    ``hyper_parameters['net']``. Composes inside a running Hydra app too (same ``conf/``).
-    A missing group option or a bad override is a one-line ConfigError.
+    ``hyper_parameters['net']``. A missing group option or a bad override is a one-line ConfigError.
     """
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
@@ -110,13 +126,8 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
     if kernel is None:
         kernel = net if (Path(CONF_DIR) / "kernel" / f"{net}.yaml").exists() else "student"
     groups = f"net={net} kernel={kernel}" + (f" ablation={ablation}" if ablation != "none" else "")
-    overrides = [f"+net={net}", f"+kernel={kernel}", f"+ablation={ablation}", *overrides]
     try:
-        if GlobalHydra.instance().is_initialized():  # inside a Hydra app (same conf/ directory)
-            cfg = compose(overrides=overrides)
-        else:
-            with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-                cfg = compose(overrides=overrides)
+        cfg = compose_config([f"+net={net}", f"+kernel={kernel}", f"+ablation={ablation}", *overrides])
         return OmegaConf.to_container(cfg.net, resolve=True)
     except (HydraException, OmegaConfBaseException) as exc:
         raise ConfigError(f"{groups}: {first_line(exc)}") from None

@@ -3,8 +3,9 @@ their medians, and tables (Markdown and CSV).
 
 * FLOPs: :func:`count_flops` (one recurrent step with history, shapes only);
 * the machine's matmul peak: :func:`matmul_peak`;
-* peak memory: :class:`PeakRss` (sampled, or the kernel's high-water mark; see there which
-  applies when);
+* peak memory: :class:`PeakRss` (of a block in this process: sampled, or the kernel's
+  high-water mark; see there which applies when) and :func:`run_process` (of a whole child
+  process);
 * timings: :class:`Clock` (wall and CPU seconds of a block), :func:`clock_steps` /
   :func:`time_steps` (recurrent steps through the runner), :func:`summarize` (median, min)
   and :func:`fastest`;
@@ -24,6 +25,7 @@ import statistics
 import threading
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -136,6 +138,32 @@ class PeakRss:
     @property
     def megabytes(self) -> float:
         return (self.peak - self.base) / 1024
+
+
+@dataclass
+class ProcessRun:
+    """A finished child process: exit ``returncode``, its ``stderr`` text, ``wall`` seconds and
+    ``peak_mb``, its peak resident set size in MiB (``ru_maxrss``)."""
+
+    returncode: int
+    stderr: str
+    wall: float
+    peak_mb: float
+
+
+def run_process(argv: Sequence[str]) -> ProcessRun:
+    """Run ``argv`` to its end (stdout discarded) and read its peak RSS from the kernel
+    (``os.wait4``): the third way to find a peak, for a whole command (interpreter, imports,
+    every read and write), e.g. ``bench_longseq``'s runs of ``denoiser-denoise``."""
+    import subprocess
+
+    with Clock() as clock:
+        proc = subprocess.Popen(list(argv), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        stderr = proc.stderr.read()  # drained while it runs (progress bars), so the pipe never blocks
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    proc.stderr.close()
+    return ProcessRun(proc.returncode, stderr.decode(errors="replace"), clock.wall, usage.ru_maxrss / 1024.0)
 
 
 # ----------------------------------------------------------------------------- time

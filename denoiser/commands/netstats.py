@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
+from denoiser.commands.app import hydra_runtime
 from denoiser.configs import build_net, plain
 from denoiser.measure import count_flops
 
@@ -32,18 +33,11 @@ def describe(net, flops_size: int) -> list[tuple[str, str]]:
     return rows
 
 
-def _overrides() -> list[str]:
-    """The command line's overrides when run as a Hydra app (empty otherwise)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-
-
 def run(cfg: DictConfig) -> list[tuple[str, str]]:
     """The ``netstats`` task: print the network's size; returns the rows of :func:`describe`."""
     net = build_net(plain(cfg.net))
     rows = describe(net, int(cfg.flops_size))
-    print(" ".join(["netstats", *_overrides()]))
+    print(" ".join(["netstats", *hydra_runtime()[0]]))
     print(f"kernel.sizes={list(cfg.kernel.sizes)} filter={cfg.net.filter._target_.rsplit('.', 1)[-1]} "
           f"temporal={'off' if cfg.net.temporal is None else 'on'}")
     for key, value in rows:

@@ -192,8 +192,9 @@ class Clock:
 
 
 def clock_steps(stepper: Stepper, frames: list[dict], warmup: int, repeats: int) -> tuple[list[Clock], list[Clock]]:
-    """Clocks of ``warmup`` then ``repeats`` recurrent steps of ``stepper`` (state carried by the
-    runner, reset on the first frame; ``frames`` are cycled; ``stepper.sync()`` ends each step).
+    """Clocks of ``warmup`` then ``repeats`` recurrent steps of ``stepper`` over ``frames``
+    (``{buffer: [B, C, H, W]}`` each, cycled; state carried by the runner, reset on the first
+    frame; ``stepper.sync()`` ends each step).
 
     Returns ``(warm-up clocks, timed clocks)``; each step's clock starts where the previous
     one stopped.

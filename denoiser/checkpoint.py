@@ -37,7 +37,8 @@ from typing import Any
 import torch
 
 from denoiser.atomic import atomic_path
-from denoiser.errors import ConfigError, UserError
+from denoiser.configs import build_net, plain
+from denoiser.errors import ConfigError, UserError, first_line
 
 NET_PREFIX = "net."
 #: config key that lets a command load a checkpoint the safe loader refuses (the default for ``trust_key``)
@@ -46,17 +47,6 @@ TRUST_KEY = "trust_checkpoint"
 SHOWN_GLOBALS = 3
 
 log = logging.getLogger(__name__)
-
-
-def _plain(obj: Any) -> Any:
-    """OmegaConf containers -> plain dicts/lists (anything else unchanged)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        return obj
-    if isinstance(obj, (DictConfig, ListConfig)):
-        return OmegaConf.to_container(obj, resolve=True)
-    return obj
 
 
 def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu", *, trust: bool = False,
@@ -74,7 +64,7 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         try:
             ckpt = torch.load(path, map_location=map_location, weights_only=False)
         except Exception as exc:  # noqa: BLE001 - any failure means "not a checkpoint"
-            raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
+            raise UserError(f"{path}: not a checkpoint ({first_line(exc)})") from None
     if not isinstance(ckpt, Mapping):
         raise UserError(f"{path}: not a Lightning checkpoint (top level is a {type(ckpt).__name__}, not a dict)")
     return dict(ckpt)
@@ -113,7 +103,7 @@ def _load_safe(path: Path, map_location, trust: bool, trust_key: str):
     except pickle.UnpicklingError as exc:  # what the weights-only unpickler raises for anything it does not allow
         error = exc
     except Exception as exc:  # noqa: BLE001 - any other failure means "not a checkpoint"
-        raise UserError(f"{path}: not a checkpoint ({_first_line(exc)})") from None
+        raise UserError(f"{path}: not a checkpoint ({first_line(exc)})") from None
     refused = _refused_globals(path, error)
     if refused:
         shown = ", ".join(refused[:SHOWN_GLOBALS]) + (f", ... {len(refused)} in all" if len(refused) > SHOWN_GLOBALS
@@ -145,21 +135,16 @@ def _unpickler_reason(exc: BaseException) -> str:
     """The line of a weights-only UnpicklingError that says what was refused."""
     text = str(exc)
     match = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
-    return match.group(1).strip()[:200] if match else _first_line(exc)
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0][:200] if text else type(exc).__name__
+    return match.group(1).strip()[:200] if match else first_line(exc)
 
 
 def net_config(ckpt: Mapping, path: str | os.PathLike) -> dict:
     """The resolved net config (plain dict with ``_target_``) stored in a checkpoint dict."""
-    hparams = _plain(ckpt.get("hyper_parameters"))
+    hparams = plain(ckpt.get("hyper_parameters"))
     if not isinstance(hparams, Mapping) or "state_dict" not in ckpt:
         raise UserError(f"{path}: not a Lightning checkpoint (keys: {', '.join(sorted(map(str, ckpt))) or 'none'}; "
                         "need 'state_dict' and 'hyper_parameters')")
-    cfg = _plain(hparams.get("net"))
+    cfg = plain(hparams.get("net"))
     if not isinstance(cfg, Mapping) or "_target_" not in cfg:
         raise UserError(f"{path}: checkpoint has no net config (hyper_parameters['net'] with _target_); "
                         f"hyper_parameters keys: {', '.join(sorted(map(str, hparams))) or 'none'}")
@@ -195,19 +180,6 @@ def describe_mismatch(model: torch.nn.Module, state: Mapping[str, torch.Tensor])
     return "; ".join(parts) if parts else None
 
 
-def build_net(cfg: Mapping, path: str | os.PathLike = "<config>") -> torch.nn.Module:
-    """Instantiate a net config (``_target_``) with Hydra; UserError naming ``path`` on failure."""
-    from hydra.utils import instantiate
-
-    try:
-        net = instantiate(dict(cfg), _convert_="all")
-    except Exception as exc:  # noqa: BLE001 - a bad config is the user's mistake
-        raise UserError(f"{path}: net config cannot be instantiated ({_first_line(exc)})") from None
-    if not isinstance(net, torch.nn.Module):
-        raise UserError(f"{path}: net config builds a {type(net).__name__}, not a torch module")
-    return net
-
-
 def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "cpu", *, trust: bool = False,
                   trust_key: str = TRUST_KEY):
     """Build the checkpoint's ``Denoiser`` from its stored config and load its weights.
@@ -219,7 +191,12 @@ def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "c
     ckpt = read_checkpoint(path, map_location, trust=trust, trust_key=trust_key)
     cfg = net_config(ckpt, path)
     state = net_state_dict(ckpt, path)
-    net = build_net(cfg, path)
+    try:
+        net = build_net(cfg, path)
+    except UserError as exc:  # a constructor's own message (e.g. kernel.sizes): say which file
+        if str(exc).startswith(str(path)):
+            raise
+        raise UserError(f"{path}: net config: {exc}") from None
     problem = describe_mismatch(net, state)
     if problem:
         raise UserError(f"{path}: checkpoint weights do not fit the architecture of its net config "
@@ -238,7 +215,7 @@ def save_checkpoint(path: str | os.PathLike, net: torch.nn.Module, net_cfg: Mapp
     path = Path(path)
     ckpt = {
         "state_dict": {NET_PREFIX + k: v.detach().cpu() for k, v in net.state_dict().items()},
-        "hyper_parameters": {"net": dict(_plain(net_cfg))},
+        "hyper_parameters": {"net": dict(plain(net_cfg))},
         "epoch": 0,
         "global_step": 0,
         "pytorch-lightning_version": _lightning_version(),
@@ -258,41 +235,13 @@ def _lightning_version() -> str:
         return ""
 
 
-def compose_net_config(net: str = "student", kernel: str | None = None, overrides=()) -> dict:
-    """Resolved net config composed from ``conf/net/<net>.yaml`` and ``conf/kernel/<kernel>.yaml``.
-
-    ``kernel`` defaults to ``net``'s own name when such a kernel file exists, else ``student``.
-    ``overrides``: extra Hydra overrides (e.g. ``["net.unet.encoder=[8,8,8]"]``). Returns the
-    plain dict that ``build_net`` instantiates and checkpoints store under ``hyper_parameters['net']``.
-    """
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-
-    from denoiser.conf import CONF_DIR
-
-    if kernel is None:
-        kernel = net if (Path(CONF_DIR) / "kernel" / f"{net}.yaml").exists() else "student"
-    overrides = [f"+net={net}", f"+kernel={kernel}", *overrides]
-    try:
-        if GlobalHydra.instance().is_initialized():  # inside a Hydra app (same conf/ directory)
-            cfg = compose(overrides=overrides)
-        else:
-            with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-                cfg = compose(overrides=overrides)
-    except HydraException as exc:
-        raise UserError(f"net={net} kernel={kernel}: {_first_line(exc)}") from None
-    return OmegaConf.to_container(cfg.net, resolve=True)
-
-
 def checkpoint_paths(spec) -> OrderedDict[str, Path]:
     """``ckpt`` config -> ordered ``{name: path}``.
 
     ``spec``: None/empty, one path, a list of paths (names are the file stems, made unique
     with the parent directory when two stems clash) or a mapping ``{name: path}``.
     """
-    spec = _plain(spec)
+    spec = plain(spec)
     if spec is None or spec == "" or spec == []:
         return OrderedDict()
     if isinstance(spec, (str, os.PathLike)):

@@ -21,3 +21,9 @@ class ExrError(UserError):
 
 class ConfigError(UserError):
     """A configuration value is invalid (names the key or file)."""
+
+
+def first_line(exc: BaseException, limit: int = 200) -> str:
+    """The first line of an exception's message (at most ``limit`` characters), else its type name."""
+    text = str(exc).strip()
+    return text.splitlines()[0][:limit] if text else type(exc).__name__

@@ -1,5 +1,18 @@
-"""The measurement kit every benchmark uses: FLOPs, the matmul peak, peak memory, timing
-medians, and tables (Markdown and CSV).
+"""The measurement kit every benchmark uses: FLOPs, the matmul peak, peak memory, timings and
+their medians, and tables (Markdown and CSV).
+
+* FLOPs: :func:`count_flops` (one recurrent step with history, shapes only);
+* the machine's matmul peak: :func:`matmul_peak`;
+* peak memory: :class:`PeakRss` (of a block in this process: sampled, or the kernel's
+  high-water mark; see there which applies when) and :func:`run_process` (of a whole child
+  process);
+* timings: :class:`Clock` (wall and CPU seconds of a block), :func:`clock_steps` /
+  :func:`time_steps` (recurrent steps through the runner), :func:`summarize` (median, min)
+  and :func:`fastest`;
+* tables: :func:`markdown_table`, :func:`write_csv` / :func:`read_csv`.
+
+Used by ``denoiser-bench``, ``denoiser-eval`` and the tools ``netstats``, ``bench_networks``,
+``bench_data``, ``bench_longseq`` and ``bench_render`` (:mod:`denoiser.commands`).
 """
 
 from __future__ import annotations
@@ -8,9 +21,11 @@ import csv
 import io
 import math
 import os
+import statistics
 import threading
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -23,24 +38,80 @@ from denoiser.runner import RecurrentRunner
 if TYPE_CHECKING:
     from denoiser.backends import Stepper
 
+# ----------------------------------------------------------------------------- memory
+
+_PAGE_KIB = (os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096) // 1024
+
+
+def _proc_kib(what: str) -> int | None:
+    """This process's resident set size in KiB from procfs, None where there is none.
+
+    ``what``: ``"rss"`` (now; ``/proc/self/statm``, cheap enough to sample every few ms) or
+    ``"hwm"`` (the peak since the process started or since :func:`reset_peak_rss`; ``VmHWM`` of
+    ``/proc/self/status``).
+    """
+    try:
+        if what == "rss":
+            with open("/proc/self/statm") as fh:
+                return int(fh.read().split()[1]) * _PAGE_KIB
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def _max_rss_kib() -> int:
+    """Peak RSS of the process's whole life in KiB (``ru_maxrss``; cannot be reset)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+def reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS mark (``VmHWM``) of this process to its current RSS through
+    ``/proc/self/clear_refs`` (Linux); False where that is not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
 
 class PeakRss:
-    """Peak resident set size above the starting level, sampled every ``interval`` seconds."""
+    """Peak resident set size of this process during a ``with`` block above its level at entry:
+    ``megabytes`` (MiB).
 
-    def __init__(self, interval: float = 0.002):
+    Two ways to find the peak (``method``):
+
+    * ``"sample"`` (default): a thread reads the RSS every ``interval`` seconds. It touches
+      nothing process-wide, so it suits a process that measures many things in turn
+      (``denoiser-bench``); a spike shorter than ``interval`` can be missed.
+    * ``"hwm"``: the kernel's own high-water mark, reset at entry (:func:`reset_peak_rss`) and
+      read at exit: exact, spikes included, but there is one mark per process, so use it in a
+      process of its own that measures one thing (``bench_networks`` runs every configuration
+      in a fresh subprocess). Where the mark cannot be reset, it samples instead.
+
+    Without procfs (not Linux) both read ``ru_maxrss``, which cannot be reset: the growth is
+    then only seen when the block sets a new peak for the whole process.
+    """
+
+    def __init__(self, interval: float = 0.002, method: str = "sample"):
+        if method not in ("sample", "hwm"):
+            raise ValueError(f"PeakRss method: 'sample' or 'hwm', got {method!r}")
         self.interval = interval
-        self.page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-        self.peak = 0
+        self.method = method
+        self.base = self.peak = 0  # KiB
         self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
 
-    def _rss(self) -> int:
-        try:
-            with open("/proc/self/statm") as fh:
-                return int(fh.read().split()[1]) * self.page
-        except OSError:  # not Linux: resource's max RSS is the best we have
-            import resource
-
-            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    @staticmethod
+    def _rss() -> int:
+        rss = _proc_kib("rss")
+        return _max_rss_kib() if rss is None else rss
 
     def _run(self):
         while not self._stop.is_set():
@@ -48,62 +119,151 @@ class PeakRss:
             time.sleep(self.interval)
 
     def __enter__(self):
-        self.base = self._rss()
-        self.peak = self.base
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        hwm = self.method == "hwm" and reset_peak_rss()
+        self.base = self.peak = self._rss()
+        if not hwm:
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
         return self
 
     def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, self._rss())
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self.peak = max(self.peak, self._rss())
+        else:
+            hwm = _proc_kib("hwm")
+            self.peak = max(self.peak, self._rss() if hwm is None else hwm)
 
     @property
     def megabytes(self) -> float:
-        return (self.peak - self.base) / 2**20
+        return (self.peak - self.base) / 1024
+
+
+@dataclass
+class ProcessRun:
+    """A finished child process: exit ``returncode``, its ``stderr`` text, ``wall`` seconds and
+    ``peak_mb``, its peak resident set size in MiB (``ru_maxrss``)."""
+
+    returncode: int
+    stderr: str
+    wall: float
+    peak_mb: float
+
+
+def run_process(argv: Sequence[str]) -> ProcessRun:
+    """Run ``argv`` to its end (stdout discarded) and read its peak RSS from the kernel
+    (``os.wait4``): the third way to find a peak, for a whole command (interpreter, imports,
+    every read and write), e.g. ``bench_longseq``'s runs of ``denoiser-denoise``."""
+    import subprocess
+
+    with Clock() as clock:
+        proc = subprocess.Popen(list(argv), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        stderr = proc.stderr.read()  # drained while it runs (progress bars), so the pipe never blocks
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    proc.stderr.close()
+    return ProcessRun(proc.returncode, stderr.decode(errors="replace"), clock.wall, usage.ru_maxrss / 1024.0)
+
+
+# ----------------------------------------------------------------------------- time
+
+
+class Clock:
+    """Wall and CPU seconds (``wall``, ``cpu``: all threads of this process) between ``start()``
+    and ``stop()``, or of a ``with`` block."""
+
+    wall: float = 0.0
+    cpu: float = 0.0
+
+    def start(self) -> Clock:
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+        return self
+
+    def stop(self) -> Clock:
+        self.wall, self.cpu = time.perf_counter() - self._wall, time.process_time() - self._cpu
+        return self
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def clock_steps(stepper: Stepper, frames: list[dict], warmup: int, repeats: int) -> tuple[list[Clock], list[Clock]]:
+    """Clocks of ``warmup`` then ``repeats`` recurrent steps of ``stepper`` over ``frames``
+    (``{buffer: [B, C, H, W]}`` each, cycled; state carried by the runner, reset on the first
+    frame; ``stepper.sync()`` ends each step).
+
+    Returns ``(warm-up clocks, timed clocks)``; each step's clock starts where the previous
+    one stopped.
+    """
+    runner = RecurrentRunner(stepper.step)
+    sequence = ((frames[i % len(frames)], i == 0) for i in range(warmup + repeats))
+    clocks = []
+    clock = Clock().start()
+    for _ in runner.run(sequence):
+        stepper.sync()
+        clocks.append(clock.stop())
+        clock = Clock().start()
+    return clocks[:warmup], clocks[warmup:]
 
 
 def time_steps(stepper: Stepper, frames: list[dict], warmup: int, repeats: int) -> list[float]:
-    """Seconds of each of ``repeats`` recurrent steps after ``warmup`` steps (state carried by
-    the runner, reset on the first frame; ``frames`` are cycled)."""
-    runner = RecurrentRunner(stepper.step)
-    sequence = ((frames[i % len(frames)], i == 0) for i in range(warmup + repeats))
-    times = []
-    start = time.perf_counter()
-    for i, _ in enumerate(runner.run(sequence)):
-        stepper.sync()
-        if i >= warmup:
-            times.append(time.perf_counter() - start)
-        start = time.perf_counter()
-    return times
+    """Wall seconds of each of ``repeats`` recurrent steps after ``warmup`` steps (:func:`clock_steps`)."""
+    return [c.wall for c in clock_steps(stepper, frames, warmup, repeats)[1]]
 
 
-def measure_matmul_peak(threads: int, size: int = 1024, repeats: int = 5) -> float:
-    """fp32 GFLOP/s of a ``size`` x ``size`` matrix product on the CPU (best of ``repeats``)."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
-    torch.mm(a, b)
-    best = min(_timed(lambda: torch.mm(a, b)) for _ in range(repeats))
-    return 2 * size**3 / best / 1e9
+def summarize(times: Sequence[float]) -> dict[str, float]:
+    """``{"median", "min", "runs"}`` of repeated timings (any unit; an even count's median is the
+    mean of the middle two). What every benchmark reports of its repeats."""
+    return {"median": statistics.median(times), "min": min(times), "runs": len(times)}
 
 
-def _timed(fn) -> float:
-    start = time.perf_counter()
-    fn()
-    return time.perf_counter() - start
+def fastest(clocks: Sequence[Clock]) -> Clock:
+    """The run with the least wall time (its CPU time belongs to the same run)."""
+    return min(clocks, key=lambda c: c.wall)
 
 
-def count_gflop(net: torch.nn.Module, frame: Mapping[str, torch.Tensor]) -> float:
-    """GFLOP of one recurrent step (with history) of ``net`` on ``frame`` (conv and matmul)."""
+# ----------------------------------------------------------------------------- compute
+
+
+def matmul_peak(size: int = 1024, repeats: int = 5, dtype: torch.dtype = torch.float32, warmup: int = 1) -> float:
+    """GFLOP/s of a ``size`` x ``size`` matrix product ``torch.mm`` on the CPU in ``dtype``
+    (fastest of ``repeats`` after ``warmup`` untimed products): the machine's practical peak."""
+    a, b = torch.randn(size, size).to(dtype), torch.randn(size, size).to(dtype)
+    for _ in range(warmup):
+        torch.mm(a, b)
+    runs = []
+    for _ in range(repeats):
+        with Clock() as clock:
+            torch.mm(a, b)
+        runs.append(clock.wall)
+    return 2 * size**3 / summarize(runs)["min"] / 1e9
+
+
+def count_flops(net: torch.nn.Module, height: int, width: int, batch: int = 1) -> int:
+    """FLOPs (convolutions and matrix products) of one recurrent step with history of ``net`` on
+    a ``batch x C x height x width`` frame.
+
+    Steps through :class:`~denoiser.runner.RecurrentRunner` (a reset step, then the counted
+    one) under ``FakeTensorMode``: shapes only, no arithmetic and no memory for activations,
+    so even 1080p counts in about a second; the count depends only on the shapes.
+    """
+    from torch._subclasses.fake_tensor import FakeTensorMode
     from torch.utils.flop_counter import FlopCounterMode
 
-    net = net.to("cpu").float().to(memory_format=torch.contiguous_format)
+    from denoiser.buffers import CHANNELS, FRAME_INPUTS
+
+    device = next(net.parameters()).device
     runner = RecurrentRunner(net.step)
-    with torch.inference_mode():
-        runner(dict(frame), reset=True)
+    with FakeTensorMode(allow_non_fake_inputs=True), torch.inference_mode():
+        frame = {k: torch.empty(batch, CHANNELS[k], height, width, device=device) for k in FRAME_INPUTS}
+        runner(frame, reset=True)
         with FlopCounterMode(display=False) as counter:
-            runner(dict(frame))
-    return counter.get_total_flops() / 1e9
+            runner(frame)
+    return counter.get_total_flops()
 
 
 # ----------------------------------------------------------------------------- tables
@@ -161,12 +321,18 @@ def format_value(value, fmt: str | None = None) -> str:
 
 
 def markdown_table(rows: Sequence[Mapping], columns: Sequence[str], formats: Mapping[str, str] | None = None,
-                   headers: Mapping[str, str] | None = None) -> str:
-    """A Markdown table of ``rows`` with ``columns``; ``formats``: column -> format spec."""
+                   headers: Mapping[str, str] | None = None, align: bool = False) -> str:
+    """A Markdown table of ``rows`` (dicts) with ``columns``: the first column left-aligned, the
+    others right-aligned. ``formats``: column -> format spec for floats (:func:`format_value`;
+    strings are written as they are); ``headers``: column -> title; ``align``: pad every column
+    to its widest cell, so the table also reads well as plain text (console output)."""
     formats = dict(formats or {})
     headers = dict(headers or {})
-    lines = ["| " + " | ".join(headers.get(c, c) for c in columns) + " |",
-             "|" + "|".join("---" if i == 0 else "---:" for i, _ in enumerate(columns)) + "|"]
-    for r in rows:
-        lines.append("| " + " | ".join(format_value(r.get(c), formats.get(c)) for c in columns) + " |")
-    return "\n".join(lines) + "\n"
+    lines = [[headers.get(c, c) for c in columns]]
+    lines += [[format_value(r.get(c), formats.get(c)) for c in columns] for r in rows]
+    widths = [max(3, *(len(line[i]) for line in lines)) if align else 0 for i in range(len(columns))]
+    rule = ["-" * max(3, w + 2) if i == 0 else "-" * max(3, w + 1) + ":" for i, w in enumerate(widths)]
+    cells = [[c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(line, widths))] for line in lines]
+    text = ["| " + " | ".join(cells[0]) + " |", "|" + "|".join(rule) + "|"]
+    text += ["| " + " | ".join(line) + " |" for line in cells[1:]]
+    return "\n".join(text) + "\n"

@@ -44,6 +44,7 @@ from torch import nn
 
 from denoiser.atomic import atomic_path
 from denoiser.buffers import CHANNELS, FRAME_INPUTS
+from denoiser.frames import random_frame
 from denoiser.runner import RecurrentRunner
 
 
@@ -84,23 +85,6 @@ class StepGraph(nn.Module):
         return (output, *[new_state[k] for k in self.keys])
 
 
-def example_frame(batch: int, height: int, width: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """A plausible random frame ``{buffer: [B, C, H, W]}``: HDR color with fireflies, unit
-    normals, depth with sky (1e10), motion up to a quarter of the frame size."""
-    g = torch.Generator().manual_seed(seed)
-    color = torch.rand(batch, 3, height, width, generator=g) ** 2 * 4
-    color = torch.where(torch.rand(batch, 1, height, width, generator=g) < 0.01, color * 50, color)
-    depth = torch.rand(batch, 1, height, width, generator=g) * 20 + 0.5
-    depth = torch.where(torch.rand(batch, 1, height, width, generator=g) < 0.1, torch.full_like(depth, 1e10), depth)
-    return {
-        "color": color,
-        "albedo": torch.rand(batch, 3, height, width, generator=g),
-        "normal": nn.functional.normalize(torch.randn(batch, 3, height, width, generator=g), dim=1),
-        "depth": depth,
-        "motion": torch.randn(batch, 2, height, width, generator=g) * 0.25 * max(height, width),
-    }
-
-
 def graph_inputs(graph: StepGraph, frame: dict, state: dict | None, reset: bool) -> tuple:
     """Positional inputs of :class:`StepGraph` (zero state when ``state`` is None)."""
     args = [frame[k] for k in FRAME_INPUTS]
@@ -121,7 +105,7 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
 
     graph = StepGraph(net.eval()).eval()
     h, w = (int(v) for v in trace_size)
-    frame = example_frame(batch, h, w)
+    frame = random_frame(batch, h, w, kind="hard")
     args = graph_inputs(graph, frame, None, reset=False)
     dynamic = {n: {2: "height", 3: "width"} for n in graph.input_names() + graph.output_names() if n != "reset"}
     path = Path(path)
@@ -190,7 +174,8 @@ def check_export(net: nn.Module, path: str | os.PathLike, size=(72, 104), batch:
                  threads: int | None = None) -> OrderedDict[str, tuple[float, float]]:
     """Largest absolute error of ONNX Runtime vs PyTorch per output over ``steps`` recurrent steps.
 
-    Frames are random (:func:`example_frame`) at ``size`` ``(H, W)``; the first step resets.
+    Frames are random (:func:`~denoiser.frames.random_frame`, ``kind="hard"``: fireflies, sky, large
+    motion) at ``size`` ``(H, W)``; the first step resets.
     Returns ``{"output": (err, scale), "next_state_<k>": (err, scale), ...}``: the largest
     absolute error and the largest magnitude of the PyTorch value (max over steps).
     """
@@ -199,7 +184,7 @@ def check_export(net: nn.Module, path: str | os.PathLike, size=(72, 104), batch:
     h, w = (int(v) for v in size)
     errors: OrderedDict[str, tuple[float, float]] = OrderedDict()
     for t in range(steps):
-        frame = example_frame(batch, h, w, seed=100 + t)
+        frame = random_frame(batch, h, w, seed=100 + t, kind="hard")
         expected = torch_runner(frame, reset=t == 0)
         got = onnx_runner(frame, reset=t == 0)
         pairs = [("output", expected, got)] + [(f"next_state_{k}", torch_runner.state[k], onnx_runner.state[k])

@@ -40,6 +40,7 @@ from torch import nn
 from torch.overrides import TorchFunctionMode
 
 from denoiser.errors import ConfigError
+from denoiser.frames import random_frame
 from denoiser.runner import RecurrentRunner
 
 
@@ -66,19 +67,6 @@ class _Recorder(TorchFunctionMode):
         if isinstance(result, torch.Tensor):
             self.calls.append(_Call(func, args, kwargs, result))
         return result
-
-
-def probe_frame(size: int = 32, batch: int = 1, seed: int = 0) -> dict[str, torch.Tensor]:
-    """A synthetic frame for tracing: ``color/albedo/normal [B,3,S,S]``, ``depth [B,1,S,S]``, ``motion [B,2,S,S]``."""
-    g = torch.Generator().manual_seed(seed)
-    normal = F.normalize(torch.randn(batch, 3, size, size, generator=g), dim=1)
-    return {
-        "color": torch.rand(batch, 3, size, size, generator=g) * 2,
-        "albedo": torch.rand(batch, 3, size, size, generator=g),
-        "normal": normal,
-        "depth": 1 + torch.rand(batch, 1, size, size, generator=g) * 5,
-        "motion": torch.randn(batch, 2, size, size, generator=g),
-    }
 
 
 @torch.no_grad()
@@ -144,7 +132,7 @@ def plan_transfer(teacher: nn.Module, student: nn.Module, frame: dict[str, torch
     Raises ConfigError when a student convolution has no counterpart of the same name in the
     teacher's data flow (the two are not the same architecture).
     """
-    frame = frame if frame is not None else probe_frame()
+    frame = frame if frame is not None else random_frame(1, 32, 32, kind="probe")
     names_t = {id(p): n for n, p in teacher.named_parameters()}
     names_s = {id(p): n for n, p in student.named_parameters()}
     params_s = dict(student.named_parameters())
@@ -233,10 +221,12 @@ def transfer_parameters(teacher: nn.Module, student: nn.Module,
 
 class L1ChannelTransfer:
     """Config-friendly callable ``(teacher, student) -> report`` applying :func:`transfer_parameters`
-    on a synthetic ``probe_size`` x ``probe_size`` frame."""
+    on a random ``probe_size`` x ``probe_size`` frame (:func:`~denoiser.frames.random_frame`,
+    ``kind="probe"``)."""
 
     def __init__(self, probe_size: int = 32):
         self.probe_size = int(probe_size)
 
     def __call__(self, teacher: nn.Module, student: nn.Module) -> dict[str, str]:
-        return transfer_parameters(teacher, student, probe_frame(self.probe_size))
+        frame = random_frame(1, self.probe_size, self.probe_size, kind="probe")
+        return transfer_parameters(teacher, student, frame)

@@ -12,7 +12,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
 from denoiser.backends import Stepper
-from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.checkpoint import save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, read_csv, time_steps
 from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
@@ -111,12 +112,25 @@ def test_time_steps_carries_state_and_resets_once():
     assert [c[1] for c in calls[1:]] == [0, 1, 2, 3]
 
 
-def test_peak_rss_sees_an_allocation():
-    with PeakRss() as mem:
+@pytest.mark.parametrize("method", ["sample", "hwm"])
+def test_peak_rss_sees_an_allocation(method):
+    with PeakRss(method=method) as mem:
         block = np.ones(64 * 2**20 // 8)  # 64 MiB, touched
         block += 1
     del block
     assert mem.megabytes > 40
+
+
+@pytest.mark.slow
+def test_bench_networks_measures_in_a_subprocess(capsys):
+    """python -m denoiser.commands.bench_networks, tiny: the parent passes each job to a fresh process."""
+    from denoiser.commands.bench_networks import run
+
+    rows = run(compose("bench_networks", ["nets=[tiny]", "sizes=[24x16]", "variants=[eager]", "repeats=2",
+                                          "kernels=false"]))
+    assert [(r["net"], r["variant"], r["size"], r["runs"]) for r in rows] == [("tiny", "eager", "24x16", 2)]
+    assert rows[0]["ms"] > 0 and rows[0]["peak_mb"] >= 0 and 0 < rows[0]["gflop"] < 1
+    assert "| tiny |" in capsys.readouterr().out
 
 
 def test_default_student_for_the_ratio():

@@ -23,7 +23,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
-from denoiser.checkpoint import build_net, compose_net_config, load_denoiser, read_checkpoint, save_checkpoint
+from denoiser.checkpoint import load_denoiser, read_checkpoint, save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 
 VENV_BIN = Path(sys.executable).parent

@@ -43,7 +43,8 @@ def uninterrupted(ckpt: Path, src: Path, out: Path) -> None:
 
 
 def test_denoise_killed_and_resumed_is_identical(tmp_path):
-    from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+    from denoiser.checkpoint import save_checkpoint
+    from denoiser.configs import build_net, compose_net_config
     from denoiser.data.exr import read_channels
     from denoiser.data.synthetic import write_synthetic_sequence
 

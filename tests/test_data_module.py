@@ -214,7 +214,7 @@ def test_precache_fills_the_cache_once(root, tmp_path):
 def test_benchmark_runs_small():
     from denoiser.commands import bench_data as bench
 
-    rows = bench.run(size=32, crop=16, window=2, sequences=1, frames=3, workers=[0], batch=2, repeat=1)
+    rows = bench.measure_loader(size=32, crop=16, window=2, sequences=1, frames=3, workers=[0], batch=2, repeat=1)
     assert [r["mode"].split()[0] for r in rows] == ["cold", "fill", "warm"]
     assert all(r["frames"] == 2 * 2 and r["seconds"] > 0 for r in rows)
     assert "| warm (from cache, median of 1) | 0 | 4 |" in bench.table(rows, type("A", (), {

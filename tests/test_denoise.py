@@ -11,7 +11,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_sequence
 
-from denoiser.checkpoint import build_net, compose_net_config, load_denoiser, save_checkpoint
+from denoiser.checkpoint import load_denoiser, save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.data.exr import list_channels, read_channels, write_channels
 from denoiser.errors import UserError
 

@@ -12,7 +12,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
-from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.checkpoint import save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 from denoiser.measure import read_csv
 

@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from denoiser.checkpoint import build_net, compose_net_config, load_denoiser, save_checkpoint
+from denoiser.checkpoint import load_denoiser, save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 
 

@@ -9,9 +9,11 @@ import onnx
 import pytest
 import torch
 
-from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+from denoiser.checkpoint import save_checkpoint
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
-from denoiser.step_graph import OnnxStep, StepGraph, check_export, example_frame
+from denoiser.frames import random_frame
+from denoiser.step_graph import OnnxStep, StepGraph, check_export
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -56,7 +58,7 @@ def test_state_carries_history(tiny):
     """The second step depends on the state: feeding a reset or another state changes the output."""
     _, _, _, path, _ = tiny
     runner = OnnxStep(path)
-    f0, f1 = example_frame(1, 16, 16, seed=1), example_frame(1, 16, 16, seed=2)
+    f0, f1 = random_frame(1, 16, 16, seed=1, kind="hard"), random_frame(1, 16, 16, seed=2, kind="hard")
     for f in (f0, f1):
         f["motion"].zero_()
     _, state = runner.step(f0, None, reset=True)

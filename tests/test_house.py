@@ -46,7 +46,6 @@ def test_library_never_imports_a_command():
     assert not {k: v for k, v in offenders.items() if v}
 
 
-@pytest.mark.xfail(strict=True, reason="bench_networks still takes net helpers from netstats (next commit)")
 def test_commands_do_not_import_each_other():
     """Commands share library modules, never each other's code (``app`` is their shared start-up)."""
     offenders = {}
@@ -123,9 +122,9 @@ def tiny_net() -> Denoiser:
 
 
 def frames(count: int = 3, size: int = 16):
-    from denoiser.step_graph import example_frame
+    from denoiser.frames import random_frame
 
-    return [example_frame(1, size, size, seed=s) for s in range(count)]
+    return [random_frame(1, size, size, seed=s, kind="hard") for s in range(count)]
 
 
 def test_consumers_step_through_the_runner(step_callers, tmp_path):
@@ -133,7 +132,7 @@ def test_consumers_step_through_the_runner(step_callers, tmp_path):
     ONNX export check, and the training/validation unroll all reach Denoiser.step via the runner."""
     from denoiser.backends import TorchBackend
     from denoiser.baselines import NetworkMethod
-    from denoiser.measure import count_gflop, time_steps
+    from denoiser.measure import count_flops, time_steps
     from denoiser.step_graph import check_export, export_onnx
 
     net = tiny_net()
@@ -141,7 +140,7 @@ def test_consumers_step_through_the_runner(step_callers, tmp_path):
     for i, f in enumerate(frames()):
         method(f, reset=i == 0)
     time_steps(TorchBackend().prepare(net, frames()[0], 1), frames(), warmup=1, repeats=2)
-    count_gflop(net, frames()[0])
+    count_flops(net, 16, 16)
     export_onnx(net, tmp_path / "net.onnx", trace_size=(13, 21))
     calls_before_export_check = len(step_callers)
     check_export(net, tmp_path / "net.onnx", size=(16, 24))

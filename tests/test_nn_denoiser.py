@@ -7,13 +7,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from denoiser.commands.netstats import build_net, compose_net_config, frame_inputs
+from denoiser.configs import build_net, compose_net_config
+from denoiser.frames import random_frame
 from denoiser.nn.inputs import sanitize
 
 
-def make_net(*args, gain=1.0, seed=0):
+def make_net(ablation="none", gain=1.0, seed=0):
     torch.manual_seed(seed)
-    net = build_net(compose_net_config(["net=tiny", *args]))
+    net = build_net(compose_net_config("tiny", ablation=ablation))
     if gain != 1.0:  # exaggerated weights make the heads produce extreme logits
         with torch.no_grad():
             for p in net.parameters():
@@ -51,7 +52,7 @@ def assert_within(out, lo, hi):
 
 
 def hard_frame(kind, h, w, seed):
-    f = frame_inputs(2, h, w, seed=seed)
+    f = random_frame(2, h, w, seed=seed)
     g = torch.Generator().manual_seed(seed)
     if kind == "black":
         f["color"].zero_()
@@ -104,7 +105,7 @@ def test_hard_inputs_finite_and_bounded(wild, kind, size, dtype, seed):
 @pytest.mark.parametrize("size", [(1, 1), (37, 53), (16, 8)])
 def test_output_size_and_features(net, size):
     h, w = size
-    out, state, extras = net.step(frame_inputs(1, h, w), None)
+    out, state, extras = net.step(random_frame(1, h, w), None)
     assert out.shape == (1, 3, h, w)
     assert {k: v.shape[-2:] for k, v in state.items()} == {k: (h, w) for k in state}
     feats = extras["features"]
@@ -114,8 +115,8 @@ def test_output_size_and_features(net, size):
 
 
 def test_forward_equals_repeated_step(net):
-    frames = {k: torch.stack([frame_inputs(1, 12, 10, seed=s)[k] for s in range(3)], 1)
-              for k in frame_inputs(1, 1, 1)}
+    frames = {k: torch.stack([random_frame(1, 12, 10, seed=s)[k] for s in range(3)], 1)
+              for k in random_frame(1, 1, 1)}
     outs, state, extras = net(frames)
     s = None
     for t in range(3):
@@ -125,8 +126,8 @@ def test_forward_equals_repeated_step(net):
 
 
 def test_reset_forgets_previous_sequence(net):
-    a0, a1 = frame_inputs(2, 16, 16, seed=1), frame_inputs(2, 16, 16, seed=2)
-    x = frame_inputs(2, 16, 16, seed=3)
+    a0, a1 = random_frame(2, 16, 16, seed=1), random_frame(2, 16, 16, seed=2)
+    x = random_frame(2, 16, 16, seed=3)
     x["motion"].zero_()
     _, state, _ = net.step(a0, None)
     _, state, _ = net.step(a1, state)
@@ -136,15 +137,15 @@ def test_reset_forgets_previous_sequence(net):
     assert not torch.allclose(out[1], fresh[1])  # item 1 kept its history
     assert extras["weights"]["valid"][0].abs().max() == 0 and extras["weights"]["valid"][1].min() > 0
     # a different previous sequence gives the same result after the reset
-    _, other, _ = net.step(frame_inputs(2, 16, 16, seed=9), None)
+    _, other, _ = net.step(random_frame(2, 16, 16, seed=9), None)
     other = {k: v * 1e6 for k, v in other.items()}
     out2, _, _ = net.step(x, other, reset=torch.tensor([True, True]))
     assert torch.equal(out2, fresh)
 
 
 def test_reset_from_batch_in_forward(net):
-    frames = {k: torch.stack([frame_inputs(1, 8, 8, seed=s)[k] for s in (0, 1, 2)], 1)
-              for k in frame_inputs(1, 1, 1)}
+    frames = {k: torch.stack([random_frame(1, 8, 8, seed=s)[k] for s in (0, 1, 2)], 1)
+              for k in random_frame(1, 1, 1)}
     frames["reset"] = torch.tensor([[True, False, True]])
     outs, _, _ = net(frames)
     fresh, _, _ = net.step({k: v[:, 2] for k, v in frames.items() if k != "reset"}, None)
@@ -152,7 +153,7 @@ def test_reset_from_batch_in_forward(net):
 
 
 def test_history_is_used_for_static_scene(net):
-    f = frame_inputs(1, 16, 16)
+    f = random_frame(1, 16, 16)
     f["motion"].zero_()
     out0, state, _ = net.step(f, None)
     out1, _, extras = net.step(f, state)
@@ -161,8 +162,8 @@ def test_history_is_used_for_static_scene(net):
 
 
 def test_truncated_bptt_detaches_state(net):
-    frames = {k: torch.stack([frame_inputs(1, 8, 8, seed=s)[k] for s in range(3)], 1)
-              for k in frame_inputs(1, 1, 1)}
+    frames = {k: torch.stack([random_frame(1, 8, 8, seed=s)[k] for s in range(3)], 1)
+              for k in random_frame(1, 1, 1)}
     for every, reaches_first in ((0, True), (1, False)):
         frames["color"] = frames["color"].detach().requires_grad_(True)
         outs, _, _ = net(frames, detach_every=every)
@@ -173,7 +174,7 @@ def test_truncated_bptt_detaches_state(net):
 
 
 def test_identical_samples_equal_per_pixel_path(net):
-    f = frame_inputs(1, 16, 16)
+    f = random_frame(1, 16, 16)
     g = dict(f, samples=f["color"].unsqueeze(1).repeat(1, 4, 1, 1, 1))
     assert torch.allclose(net.step(f, None)[0], net.step(g, None)[0], atol=1e-5)
     h = dict(f, samples=torch.rand(1, 4, 3, 16, 16) * 2)
@@ -182,7 +183,7 @@ def test_identical_samples_equal_per_pixel_path(net):
 
 @pytest.mark.parametrize("ablation", ["no_pyramid", "direct", "no_temporal"])
 def test_ablations_run_and_stay_finite(ablation):
-    net = make_net(f"ablation={ablation}", gain=3.0)
+    net = make_net(ablation, gain=3.0)
     f = hard_frame("fireflies", 13, 11, 0)
     out0, state, extras = net.step(f, None)
     out1, state, _ = net.step(f, state)
@@ -196,5 +197,5 @@ def test_ablations_run_and_stay_finite(ablation):
 
 def test_copy_keeps_behaviour(net):
     """Deep copies (used for EMA / teacher init by the training code) behave identically."""
-    f = frame_inputs(1, 8, 8)
+    f = random_frame(1, 8, 8)
     assert torch.equal(copy.deepcopy(net).step(f, None)[0], net.step(f, None)[0])

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from denoiser.buffers import native_channels
-from denoiser.checkpoint import build_net, compose_net_config
-from denoiser.commands.netstats import frame_inputs
+from denoiser.buffers import FRAME_INPUTS, native_channels
+from denoiser.configs import build_net, compose_net_config
+from denoiser.frames import random_frame
 
 H, W = 16, 20
 #: (non-finite value, the row of the frame that gets it, the value the rule replaces it by)
 ROWS = [(float("-inf"), 2, 0.0), (float("inf"), 7, 65504.0), (float("nan"), 11, 0.0)]
-GUIDES = ["albedo", "normal", "depth", "motion"]
+GUIDES = [b for b in FRAME_INPUTS if b != "color"]
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def net():
 
 def frames(buffers: list[str], seed: int, samples: int = 2) -> tuple[dict, dict]:
     """``(bad frame, the same frame with the rule applied by hand)`` with the rows of ``ROWS`` in ``buffers``."""
-    base = frame_inputs(1, H, W, samples=samples, seed=seed)
+    base = random_frame(1, H, W, seed=seed, samples=samples)
     bad = {k: v.clone() for k, v in base.items()}
     fixed = {k: v.clone() for k, v in base.items()}
     for k in buffers:

@@ -173,9 +173,15 @@ def test_unknown_light_keys_and_shape_params_are_errors(mi):
 
 @pytest.mark.slow
 def test_bench_prints_one_row_per_effect(mi, capsys):
-    from denoiser.commands.bench_render import main
+    from hydra import compose, initialize_config_dir
 
-    main(["--width", "16", "--height", "16", "--spp", "1", "--ref-spp", "4", "--effects", "area_light,indirect,glossy"])
+    from denoiser.commands.bench_render import run
+    from denoiser.conf import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("bench_render", overrides=["width=16", "height=16", "spp=1", "ref_spp=4",
+                                                 "effects=[area_light,indirect,glossy]"])
+    run(cfg)
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| +")]
     assert [r.split("|")[1].strip() for r in rows] == ["+area_light", "+indirect", "+glossy"]

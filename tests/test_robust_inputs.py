@@ -155,7 +155,8 @@ def write_good(directory: Path, seed: int) -> None:
 @pytest.fixture(scope="module")
 def work(tmp_path_factory) -> Path:
     """Datasets (one per data case), checkpoints and scene files shared by all cases."""
-    from denoiser.checkpoint import build_net, compose_net_config, save_checkpoint
+    from denoiser.checkpoint import save_checkpoint
+    from denoiser.configs import build_net, compose_net_config
 
     root = tmp_path_factory.mktemp("robust")
     for case, (mutate, _) in DATA_CASES.items():

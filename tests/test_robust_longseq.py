@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import pytest
 
-from denoiser.commands.bench_longseq import run, table
+from denoiser.commands.bench_longseq import measure_lengths, table
 
 TOLERANCE_MIB = 16.0
 
 
 @pytest.mark.slow
 def test_peak_memory_is_flat_over_sequence_length(tmp_path):
-    rows = run([20, 150], size=64, net="tiny", threads=1, workdir=tmp_path)
+    rows = measure_lengths([20, 150], size=64, net="tiny", threads=1, workdir=tmp_path)
     print("\n" + table(rows, 64, "tiny"))
     assert [r["frames"] for r in rows] == [20, 150]
     assert [r["written"] for r in rows] == [20, 150]

@@ -17,6 +17,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from denoiser.checkpoint import load_denoiser
 from denoiser.conf import CONF_DIR
+from denoiser.configs import instantiate_config
 from denoiser.data.synthetic import write_synthetic_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -222,11 +223,11 @@ def test_validation_carries_the_state_across_sequence_pieces(data_root, teacher_
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             cfg = compose("train", overrides=[*FAST, f"data.root={data_root}", "output_dir=/tmp/unused",
                                               "model=teacher", f"data.val_window={window}"])
-        model = train_script.build(cfg.model, "model")
+        model = instantiate_config(cfg.model, "model")
         state = torch.load(teacher_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
         model.load_state_dict(state["state_dict"])
         trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
                              enable_model_summary=False)
-        results.append(trainer.validate(model, datamodule=train_script.build(cfg.data, "data"), verbose=False)[0])
+        results.append(trainer.validate(model, datamodule=instantiate_config(cfg.data, "data"), verbose=False)[0])
     assert results[0]["val/psnr"] == pytest.approx(results[1]["val/psnr"], abs=1e-4)
     assert results[0]["val/tpsnr"] == pytest.approx(results[1]["val/tpsnr"], abs=1e-4)

@@ -5,9 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from denoiser.checkpoint import build_net, compose_net_config
+from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
-from denoiser.transfer import L1ChannelTransfer, plan_transfer, probe_frame, transfer_parameters
+from denoiser.frames import random_frame
+from denoiser.transfer import L1ChannelTransfer, plan_transfer, transfer_parameters
 
 STUDENT = ["net.embed.hidden=4", "net.embed.out_channels=4", "net.unet.encoder=[4,6,8]",
            "net.unet.bottleneck=8", "net.unet.decoder=[6,4]"]
@@ -61,7 +62,7 @@ def test_student_computes_the_teacher_function_when_discarded_channels_are_dead(
     L1ChannelTransfer(probe_size=32)(teacher, student)
     g = torch.Generator().manual_seed(3)
     frames = {k: torch.stack([v, v * 1.1, v * 0.9], dim=1) + 0.05 * torch.rand(1, 3, *v.shape[1:], generator=g)
-              for k, v in probe_frame(24, seed=5).items()}
+              for k, v in random_frame(1, 24, 24, seed=5, kind="probe").items()}
     teacher.eval()
     student.eval()
     with torch.no_grad():

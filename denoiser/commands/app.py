@@ -68,6 +68,17 @@ def _config_error_text(cfg, exc: BaseException) -> str:
     return f"{key or 'config'}: {first}"
 
 
+def hydra_runtime() -> tuple[list[str], dict[str, str]]:
+    """``(command-line overrides, chosen option per config group)`` of the running Hydra app;
+    empty outside one (e.g. a task called with a composed config)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return [], {}
+    hc = HydraConfig.get()
+    return list(hc.overrides.task), {k: v for k, v in hc.runtime.choices.items() if v is not None}
+
+
 def hydra_command(task: Callable, config_name: str) -> Callable[[], None]:
     """Build a console-script entry point running ``task`` as a Hydra app."""
     import hydra

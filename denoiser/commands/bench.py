@@ -40,7 +40,6 @@ import contextlib
 import math
 import os
 import platform
-import statistics
 from collections import OrderedDict
 from pathlib import Path
 
@@ -55,10 +54,11 @@ from denoiser.errors import ConfigError, UserError
 from denoiser.frames import resize_frame
 from denoiser.measure import (
     PeakRss,
-    count_gflop,
+    count_flops,
     markdown_table,
-    measure_matmul_peak,
+    matmul_peak,
     read_csv,
+    summarize,
     time_steps,
     write_csv,
 )
@@ -87,7 +87,8 @@ def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: i
 
 def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
     """``{label: {"net": module, "kind": "checkpoint"|"variant"}}`` from ``ckpt`` and ``variants``."""
-    from denoiser.checkpoint import build_net, checkpoint_paths, compose_net_config, load_denoiser
+    from denoiser.checkpoint import checkpoint_paths, load_denoiser
+    from denoiser.configs import build_net, compose_net_config
 
     out: OrderedDict[str, dict] = OrderedDict()
     for name, path in checkpoint_paths(cfg.get("ckpt")).items():
@@ -124,7 +125,8 @@ def bench_row(method: str, backend: str, device: str, size, times: list[float] |
     row = {"method": method, "backend": backend, "device": device, "height": size[0], "width": size[1],
            "ms_median": float("nan"), "ms_min": float("nan"), "repeats": 0}
     if times:
-        row.update(ms_median=1000 * statistics.median(times), ms_min=1000 * min(times), repeats=len(times))
+        stats = summarize(times)
+        row.update(ms_median=1000 * stats["median"], ms_min=1000 * stats["min"], repeats=stats["runs"])
     row.update(extra)
     return row
 
@@ -162,7 +164,7 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
                                       peak_mb=mem.megabytes, kind="baseline"))
                 continue
             net, kind = nets[label]["net"], nets[label]["kind"]
-            gflop = count_gflop(net, sized[0])
+            gflop = count_flops(net, *size) / 1e9
             allowed = (cfg.get("method_backends") or {}).get(label)
             for key, backend in backends.items():
                 if allowed is not None and key not in allowed:
@@ -284,7 +286,7 @@ def run(cfg: DictConfig) -> list[dict]:
     out_dir = Path(cfg.out_dir)
     quality = quality_from_eval(cfg.get("eval_csv"))
     seq_name, frames = load_frames(cfg.data, cfg.split, cfg.get("sequence"), int(cfg.warmup) + int(cfg.repeats))
-    peak = measure_matmul_peak(threads)
+    peak = matmul_peak()
     rows = run_benchmark(cfg, frames, threads, peak)
     for r in rows:
         q = quality.get(r["method"])

@@ -1,14 +1,21 @@
 """CPU benchmark of the denoiser networks: ``python -m denoiser.commands.bench_networks``.
 
-For the student and the teacher (``conf/net/{student,teacher}.yaml`` with their kernel sizes) at
-256x256, 1280x720 and 1920x1080 it prints, per variant: parameters, FLOPs per frame
-(``FlopCounterMode`` on fake tensors), median milliseconds per frame (one ``step`` with history,
-``torch.inference_mode``, after warm-up), peak memory (the process's peak RSS during the steps above
-its RSS before them, with the peak mark reset through ``/proc/self/clear_refs``; every
-configuration runs in its own subprocess), achieved GFLOP/s and that as a fraction of the fp32 matmul peak measured in the
-same run (best of several 2048x2048 ``torch.mm``). Then the kernel application (fast shifted-view
-accumulation against ``F.unfold``) at 1080p, and the student before and after the CPU
-optimisations.
+::
+
+    python -m denoiser.commands.bench_networks
+    python -m denoiser.commands.bench_networks nets=[student] sizes=[1920x1080] repeats=2 kernels=false
+
+A Hydra app over ``conf/bench_networks.yaml``. For the networks of ``nets`` (default student and
+teacher: ``conf/net/<name>.yaml`` with their own kernel sizes) at every size of ``sizes``
+(default 256x256, 1280x720 and 1920x1080) it prints, per variant: parameters, FLOPs per frame
+(:func:`denoiser.measure.count_flops`), median milliseconds per frame (one recurrent step with
+history, ``torch.inference_mode``, after warm-up), peak memory (the kernel's peak-RSS mark of
+the process during the steps above its RSS before them: :class:`denoiser.measure.PeakRss`
+``method="hwm"``; every configuration runs in its own subprocess for that), achieved GFLOP/s
+and that as a fraction of the fp32 matmul peak measured in the same run (best of several
+2048x2048 ``torch.mm``). Then the kernel application (fast shifted-view accumulation against
+``F.unfold``) at 1080p (``kernels``), and the student before and after the CPU optimisations.
+The tables are Markdown, padded for the console.
 
 Variants (how a network is prepared and run; ``VARIANTS``):
 
@@ -22,31 +29,30 @@ Variants (how a network is prepared and run; ``VARIANTS``):
   dtype and still filters in float32;
 * ``channels_last_bf16_weights_compiled``: the same with ``torch.compile(net.step)`` (inductor
   fuses the elementwise work); compiling takes minutes on 2 cores, so it is not in the default
-  ``--variants`` and its warm-up (3 steps, compiling both the first-frame and the recurrent
+  ``variants`` and its warm-up (3 steps, compiling both the first-frame and the recurrent
   graph) is reported separately as ``warm-up s``.
 
-Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant.
-
-Options: ``--nets student,teacher`` ``--sizes 256x256,1280x720,1920x1080``
-``--variants eager,channels_last,...`` ``--repeats N`` (student; the teacher
-always runs 1 warm-up + 1 timed step, it takes many seconds per frame on 2 cores) ``--no-kernels``.
+Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant. ``repeats``
+applies to the student; the teacher always runs 1 warm-up + 1 timed step, it takes many seconds
+per frame on 2 cores. Each measurement is a job ``{kind: net|kernel, ...}`` that the parent
+passes to a fresh ``python -m denoiser.commands.bench_networks job={...}``, which prints its
+result as one JSON line.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
-import resource
-import statistics
 import subprocess
 import sys
 import time
 from contextlib import nullcontext
 
-SIZES = {"256x256": (256, 256), "1280x720": (720, 1280), "1920x1080": (1080, 1920)}
-NETS = {"student": ["net=student", "kernel=student"], "teacher": ["net=teacher", "kernel=teacher"]}
+from omegaconf import DictConfig, OmegaConf
+
+from denoiser.errors import ConfigError, first_line
+from denoiser.measure import Clock, PeakRss, clock_steps, markdown_table, summarize
 
 
 def _eager(net, frame):
@@ -92,82 +98,31 @@ VARIANTS = {"eager": _eager, "channels_last": _channels_last, "channels_last_bf1
 #: warm-up steps per variant (default 1): a compiled step compiles one graph for the first
 #: frame (no state) and one for later frames
 WARMUP = {"channels_last_bf16_weights_compiled": 3}
-#: variants run by default (compiling takes minutes on 2 cores: ask for it with --variants)
-DEFAULT_VARIANTS = ["eager", "channels_last", "channels_last_bf16", "channels_last_bf16_weights"]
+#: the network that runs eager only, 1 warm-up + 1 timed step
+SLOW_NET = "teacher"
+#: matmul peak: matrix size, warm-up products, timed products (the best counts)
+MATMUL = {"size": 2048, "warmup": 2, "repeats": 5}
 
 
-def _status_mb(key: str) -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) / 1024.0
-    raise KeyError(key)
-
-
-def start_peak() -> float:
-    """Reset the process's peak-RSS mark (Linux ``/proc/self/clear_refs``); returns the RSS in MB.
-
-    Without procfs, falls back to ``ru_maxrss`` (which cannot be reset: peaks of earlier
-    allocations may then hide smaller ones).
-    """
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-        return _status_mb("VmRSS")
-    except OSError:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def peak_mb() -> float:
-    """Peak RSS in MB since :func:`start_peak`."""
-    try:
-        return _status_mb("VmHWM")
-    except OSError:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def matmul_peak(n: int = 2048, repeats: int = 5, dtype_name: str = "float32") -> float:
-    """Best GFLOP/s of ``torch.mm`` on two ``n x n`` matrices."""
-    import torch
-
-    dtype = getattr(torch, dtype_name)
-    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
-    for _ in range(2):
-        torch.mm(a, b)
-    best = float("inf")
-    for _ in range(repeats):
-        t = time.perf_counter()
-        torch.mm(a, b)
-        best = min(best, time.perf_counter() - t)
-    return 2 * n**3 / best / 1e9
+# ----------------------------------------------------------------------------- workers (one per process)
 
 
 def run_net(job: dict) -> dict:
     """Worker: time ``step`` of one net/size/variant; returns ms per run and the RSS growth."""
     import torch
 
-    from denoiser.commands.netstats import build_net, compose_net_config, frame_inputs
-    from denoiser.runner import RecurrentRunner
+    from denoiser.backends import Stepper
+    from denoiser.configs import build_net, compose_net_config
+    from denoiser.frames import random_frame
 
     torch.set_flush_denormal(True)
-    net = build_net(compose_net_config(NETS[job["net"]])).eval()
-    frame = frame_inputs(1, job["height"], job["width"])
+    net = build_net(compose_net_config(job["net"])).eval()
+    frame = random_frame(1, job["height"], job["width"])
     net, frame, context = VARIANTS[job["variant"]](net, frame)
-    base = start_peak()
-    times, cpu = [], []
-    runner = RecurrentRunner(net.step)
-    with torch.inference_mode(), context():
-        started = time.perf_counter()
-        for _ in runner.run((frame, i == 0) for i in range(job["warmup"])):
-            pass
-        warmup_s = time.perf_counter() - started
-        t, c = time.perf_counter(), time.process_time()
-        for _ in runner.run((frame, False) for _ in range(job["repeats"])):
-            times.append(time.perf_counter() - t)
-            cpu.append(time.process_time() - c)
-            t, c = time.perf_counter(), time.process_time()
-    return {"ms": [x * 1e3 for x in times], "cpu_ms": [x * 1e3 for x in cpu], "peak_mb": peak_mb() - base,
-            "warmup_s": warmup_s}
+    with PeakRss(method="hwm") as mem, torch.inference_mode(), context():
+        warm, timed = clock_steps(Stepper(net.step), [frame], job["warmup"], job["repeats"])
+    return {"ms": [c.wall * 1e3 for c in timed], "cpu_ms": [c.cpu * 1e3 for c in timed], "peak_mb": mem.megabytes,
+            "warmup_s": sum(c.wall for c in warm)}
 
 
 def run_kernel(job: dict) -> dict:
@@ -181,160 +136,187 @@ def run_kernel(job: dict) -> dict:
     k, h, w = job["k"], job["height"], job["width"]
     x = torch.rand(1, job["channels"], h, w)
     logits = torch.randn(1, k * k, h, w)
-    base = start_peak()
     times = []
-    with torch.inference_mode():
+    with PeakRss(method="hwm") as mem, torch.inference_mode():
         impl(x, logits)
         for _ in range(job["repeats"]):
-            t = time.perf_counter()
-            impl(x, logits)
-            times.append(time.perf_counter() - t)
-    return {"ms": [x * 1e3 for x in times], "peak_mb": peak_mb() - base}
+            with Clock() as clock:
+                impl(x, logits)
+            times.append(clock.wall)
+    return {"ms": [t * 1e3 for t in times], "peak_mb": mem.megabytes}
 
 
 WORKERS = {"net": run_net, "kernel": run_kernel}
 
 
+def run_job(job: dict) -> dict:
+    """Run one job in this process and print its result as the last line of stdout (JSON)."""
+    try:
+        result = WORKERS[job["kind"]](job)
+    except Exception as exc:  # noqa: BLE001 - reported in the parent's table, not fatal
+        result = {"error": f"{type(exc).__name__}: {first_line(exc)}"}
+    print(json.dumps(result))
+    return result
+
+
 def in_subprocess(job: dict) -> dict:
     """Run one job in a fresh interpreter (clean peak-RSS accounting)."""
-    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.bench_networks", "--worker", json.dumps(job)],
+    override = "job={" + ",".join(f"{k}:{v}" for k, v in job.items()) + "}"
+    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.bench_networks", override],
                           capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["(no output)"]
+    lines = proc.stdout.strip().splitlines()
+    if proc.returncode != 0 or not lines:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [f"exit status {proc.returncode}"]
         return {"error": tail[0]}
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(lines[-1])
 
 
-def fmt_row(cells, widths):
-    return "| " + " | ".join(str(c).rjust(w) if i else str(c).ljust(w)
-                             for i, (c, w) in enumerate(zip(cells, widths))) + " |"
+# ----------------------------------------------------------------------------- parent
 
 
-def print_table(header, rows):
-    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
-    print(fmt_row(header, widths))
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in rows:
-        print(fmt_row(r, widths))
-    print()
+def parse_size(name: str) -> tuple[int, int]:
+    """``"WxH"`` -> ``(H, W)``."""
+    try:
+        w, h = (int(v) for v in str(name).lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"sizes: {name!r} is not WxH (e.g. 1280x720)") from None
+    return h, w
 
 
-def net_rows(args, peak, flops, params):
+def net_jobs(cfg: DictConfig) -> list[dict]:
+    jobs = []
+    for name in cfg.nets:
+        slow = name == SLOW_NET
+        for size in cfg.sizes:
+            h, w = parse_size(size)
+            for variant in (["eager"] if slow else cfg.variants):
+                jobs.append({"kind": "net", "net": name, "height": h, "width": w, "variant": variant,
+                             "warmup": WARMUP.get(variant, 1), "repeats": 1 if slow else int(cfg.repeats)})
+    return jobs
+
+
+def size_name(job: dict) -> str:
+    return f"{job['width']}x{job['height']}"
+
+
+def net_rows(results: list[tuple[dict, dict]], peak: float, flops: dict, params: dict) -> list[dict]:
+    rows = []
+    for job, res in results:
+        f = flops[(job["net"], size_name(job))]
+        row = {"net": job["net"], "variant": job["variant"], "size": size_name(job), "params": f"{params[job['net']]:,}",
+               "gflop": f / 1e9}
+        if "error" in res:
+            row["ms"] = "error"
+        else:
+            ms = summarize(res["ms"])["median"]
+            row.update(ms=ms, cpu_ms=summarize(res["cpu_ms"])["median"], runs=len(res["ms"]), peak_mb=res["peak_mb"],
+                       gflops=f / (ms / 1e3) / 1e9, warmup_s=res["warmup_s"])
+            row["of_peak"] = row["gflops"] / peak
+        rows.append(row)
+    return rows
+
+
+NET_COLUMNS = ["net", "variant", "size", "params", "gflop", "ms", "cpu_ms", "runs", "peak_mb", "gflops", "of_peak",
+               "warmup_s"]
+FORMATS = {"gflop": ".1f", "ms": ".0f", "cpu_ms": ".0f", "peak_mb": ".0f", "gflops": ".1f", "of_peak": ".1%",
+           "warmup_s": ".0f", "before_ms": ".0f", "after_ms": ".0f", "speedup": ".2f"}
+HEADERS = {"gflop": "GFLOP/frame", "ms": "ms/frame", "cpu_ms": "CPU ms", "peak_mb": "peak MB", "gflops": "GFLOP/s",
+           "of_peak": "of fp32 mm peak", "warmup_s": "warm-up s", "before_ms": "before ms", "after_ms": "after ms",
+           "speedup": "speed-up (x)", "impl": "implementation"}
+
+
+def before_after(rows: list[dict], sizes: list[str], variants: list[str]) -> list[dict]:
+    """The student at each size: eager fp32 against its fastest variant."""
+    by = {(r["net"], r["size"], r["variant"]): r for r in rows if r["ms"] != "error"}
+    out = []
+    for size in sizes:
+        base = by.get(("student", size, "eager"))
+        cands = [by[("student", size, v)] for v in variants if ("student", size, v) in by]
+        if base is None or not cands:
+            continue
+        best = min(cands, key=lambda r: r["ms"])
+        out.append({"size": size, "before_ms": base["ms"], "variant": best["variant"], "after_ms": best["ms"],
+                    "speedup": base["ms"] / best["ms"], "of_peak": best["of_peak"]})
+    return out
+
+
+def kernel_rows() -> list[dict]:
     from tqdm import tqdm
 
-    jobs = []
-    for name in args.nets:
-        variants = args.variants if name == "student" else ["eager"]
-        for size in args.sizes:
-            for variant in variants:
-                h, w = SIZES[size]
-                teacher = name == "teacher"
-                jobs.append({"kind": "net", "net": name, "height": h, "width": w, "variant": variant,
-                             "warmup": WARMUP.get(variant, 1), "repeats": 1 if teacher else args.repeats, "size": size})
+    rows = []
+    jobs = [{"kind": "kernel", "impl": impl, "k": k, "channels": 4, "height": 1080, "width": 1920, "repeats": 3}
+            for k in (5, 9) for impl in ("fast", "unfold")]
+    for job in tqdm(jobs, desc="kernels", file=sys.stderr):
+        res = in_subprocess(job)
+        row = {"impl": job["impl"], "k": job["k"]}
+        row.update({"ms": "error", "peak_mb": res["error"][:40]} if "error" in res else
+                   {"ms": summarize(res["ms"])["median"], "peak_mb": res["peak_mb"]})
+        rows.append(row)
+    return rows
+
+
+def run(cfg: DictConfig) -> list[dict]:
+    """The ``bench_networks`` task (or, with ``job``, one measurement); returns the network rows."""
+    if cfg.get("job") is not None:
+        return [run_job(OmegaConf.to_container(cfg.job))]
+    import torch
+    from tqdm import tqdm
+
+    from denoiser.configs import build_net, compose_net_config
+    from denoiser.measure import count_flops, matmul_peak
+
+    unknown = [v for v in cfg.variants if v not in VARIANTS]
+    if unknown:
+        raise ConfigError(f"variants: unknown {unknown}, choose from {list(VARIANTS)}")
+    sizes = {str(s): parse_size(s) for s in cfg.sizes}
+    flops, params = {}, {}
+    for name in cfg.nets:
+        net = build_net(compose_net_config(name), f"nets: {name}")
+        params[name] = net.num_parameters()
+        for size, (h, w) in sizes.items():
+            flops[(name, size)] = count_flops(net, h, w)
+        del net
+
+    started = time.time()
+    peak = matmul_peak(**MATMUL)
+    peak_bf16 = matmul_peak(**MATMUL, dtype=torch.bfloat16)
+    print(f"# bench_networks: torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"{platform.processor() or platform.machine()}, load average {os.getloadavg()[0]:.1f}")
+    print(f"# matmul peak ({MATMUL['size']}x{MATMUL['size']} torch.mm, best of {MATMUL['repeats']}): "
+          f"fp32 {peak:.1f} GFLOP/s, bf16 {peak_bf16:.1f} GFLOP/s\n")
+
     results = []
-    for job in tqdm(jobs, desc="networks", file=sys.stderr):
+    for job in tqdm(net_jobs(cfg), desc="networks", file=sys.stderr):
         res = in_subprocess(job)
         results.append((job, res))
         if "error" in res:
-            print(f"  {job['net']} {job['size']} {job['variant']}: {res['error']}", file=sys.stderr)
-    rows = []
-    for job, res in results:
-        f = flops[(job["net"], job["size"])]
-        if "error" in res:
-            rows.append([job["net"], job["variant"], job["size"], f"{params[job['net']]:,}", f"{f / 1e9:.1f}",
-                         "error", "", "", "", "", "", ""])
-            continue
-        ms = statistics.median(res["ms"])
-        gflops = f / (ms / 1e3) / 1e9
-        rows.append([job["net"], job["variant"], job["size"], f"{params[job['net']]:,}", f"{f / 1e9:.1f}",
-                     f"{ms:.0f}", f"{statistics.median(res['cpu_ms']):.0f}", f"{len(res['ms'])}",
-                     f"{res['peak_mb']:.0f}", f"{gflops:.1f}",
-                     f"{100 * gflops / peak:.1f}%", f"{res['warmup_s']:.0f}"])
-    return results, rows
-
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m denoiser.commands.bench_networks", description=__doc__.splitlines()[0])
-    parser.add_argument("--worker", help=argparse.SUPPRESS)
-    parser.add_argument("--nets", default="student,teacher")
-    parser.add_argument("--sizes", default=",".join(SIZES))
-    parser.add_argument("--variants", default=",".join(DEFAULT_VARIANTS),
-                        help=f"student variants, from {list(VARIANTS)}")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--no-kernels", action="store_true")
-    args = parser.parse_args(argv)
-    if args.worker:
-        job = json.loads(args.worker)
-        print(json.dumps(WORKERS[job["kind"]](job)))
-        return
-    args.nets, args.sizes, args.variants = (s.split(",") for s in (args.nets, args.sizes, args.variants))
-    for group, names, known in (("--nets", args.nets, NETS), ("--sizes", args.sizes, SIZES),
-                                ("--variants", args.variants, VARIANTS)):
-        unknown = [n for n in names if n not in known]
-        if unknown:
-            parser.error(f"{group}: unknown {unknown}, choose from {list(known)}")
-
-    import torch
-
-    from denoiser.commands.netstats import build_net, compose_net_config, count_flops
-
-    started = time.time()
-    peak = matmul_peak()
-    peak_bf16 = matmul_peak(dtype_name="bfloat16")
-    print(f"# nn_bench: torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"{platform.processor() or platform.machine()}, load average {os.getloadavg()[0]:.1f}")
-    print(f"# matmul peak (2048x2048 torch.mm, best of 5): fp32 {peak:.1f} GFLOP/s, bf16 {peak_bf16:.1f} GFLOP/s\n")
-
-    flops, params = {}, {}
-    for name in args.nets:
-        net = build_net(compose_net_config(NETS[name]))
-        params[name] = net.num_parameters()
-        for size in args.sizes:
-            flops[(name, size)] = count_flops(net, *SIZES[size])
-        del net
-
-    results, rows = net_rows(args, peak, flops, params)
+            print(f"  {job['net']} {size_name(job)} {job['variant']}: {res['error']}", file=sys.stderr)
+    rows = net_rows(results, peak, flops, params)
     print("## Networks (one step with history, batch 1, CPU, inference mode)\n")
     print("ms/frame: median wall clock; CPU ms: process CPU time of the same step (both threads; on an\n"
           "idle machine about threads x wall, lower when other processes compete for the cores)\n")
-    print_table(["net", "variant", "size", "params", "GFLOP/frame", "ms/frame", "CPU ms", "runs", "peak MB",
-                 "GFLOP/s", "of fp32 mm peak", "warm-up s"], rows)
-    if "student" in params and "teacher" in params:
-        ratios = ", ".join(f"{s} {flops[('teacher', s)] / flops[('student', s)]:.1f}x" for s in args.sizes)
-        print(f"teacher/student FLOPs: {ratios}; parameters {params['teacher'] / params['student']:.1f}x\n")
+    print(markdown_table(rows, NET_COLUMNS, FORMATS, HEADERS, align=True))
+    if "student" in params and SLOW_NET in params:
+        ratios = ", ".join(f"{s} {flops[(SLOW_NET, s)] / flops[('student', s)]:.1f}x" for s in sizes)
+        print(f"teacher/student FLOPs: {ratios}; parameters {params[SLOW_NET] / params['student']:.1f}x\n")
 
-    by = {(j["net"], j["size"], j["variant"]): r for j, r in results if "error" not in r}
-    if "student" in params and len(args.variants) > 1 and "eager" in args.variants:
+    if "student" in params and len(cfg.variants) > 1 and "eager" in cfg.variants:
         print("## Student: before (eager fp32) and after (best variant)\n")
-        out = []
-        for size in args.sizes:
-            base = by.get(("student", size, "eager"))
-            cands = {v: statistics.median(by[("student", size, v)]["ms"]) for v in args.variants
-                     if ("student", size, v) in by}
-            if base is None or not cands:
-                continue
-            best = min(cands, key=cands.get)
-            b_ms = statistics.median(base["ms"])
-            f = flops[("student", size)]
-            out.append([size, f"{b_ms:.0f}", best, f"{cands[best]:.0f}", f"{b_ms / cands[best]:.2f}x",
-                        f"{100 * f / (cands[best] / 1e3) / 1e9 / peak:.1f}%"])
-        print_table(["size", "before ms", "best variant", "after ms", "speed-up", "after, of fp32 mm peak"], out)
+        print(markdown_table(before_after(rows, list(sizes), list(cfg.variants)),
+                             ["size", "before_ms", "variant", "after_ms", "speedup", "of_peak"], FORMATS,
+                             {**HEADERS, "variant": "best variant", "of_peak": "after, of fp32 mm peak"}, align=True))
 
-    if not args.no_kernels:
-        from tqdm import tqdm
-
+    if cfg.kernels:
         print("## Kernel application at 1920x1080, 4 channels (color + the pyramid's constant channel)\n")
-        krows = []
-        jobs = [{"kind": "kernel", "impl": impl, "k": k, "channels": 4, "height": 1080, "width": 1920,
-                 "repeats": 3} for k in (5, 9) for impl in ("fast", "unfold")]
-        for job in tqdm(jobs, desc="kernels", file=sys.stderr):
-            res = in_subprocess(job)
-            if "error" in res:
-                krows.append([job["impl"], job["k"], "error", res["error"][:40]])
-                continue
-            krows.append([job["impl"], job["k"], f"{statistics.median(res['ms']):.0f}", f"{res['peak_mb']:.0f}"])
-        print_table(["implementation", "k", "ms", "peak MB"], krows)
+        print(markdown_table(kernel_rows(), ["impl", "k", "ms", "peak_mb"], FORMATS, HEADERS, align=True))
     print(f"# total benchmark time {time.time() - started:.0f} s, load average now {os.getloadavg()[0]:.1f}")
+    return rows
+
+
+def main() -> None:
+    from denoiser.commands.app import hydra_command
+
+    hydra_command(run, "bench_networks")()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,12 @@
 """Cost of each simulated effect: ``python -m denoiser.commands.bench_render``.
 
-One Cornell-room scene; effects are switched on one at a time, cumulatively, in the order of
+::
+
+    python -m denoiser.commands.bench_render
+    python -m denoiser.commands.bench_render width=64 height=64 effects=[area_light,indirect,glossy]
+    python -m denoiser.commands.bench_render effects=[area_light] scenes=all
+
+A Hydra app over ``conf/bench_render.yaml``. One Cornell-room scene; effects are switched on one at a time, cumulatively, in the order of
 ``LADDER``. For every step frame 0 is rendered first and reported as ``frame 0``; then
 seconds per frame of the noisy pass (``spp``) and of the auxiliary buffers + motion vectors
 (each the fastest of frames 1-3, scene loading included), and of the reference pass
@@ -11,16 +17,16 @@ time; CPU seconds (all threads) are given too, since wall time on a shared machi
 the load (on an idle machine, wall ~= CPU / cores for the parallel passes). The reference's
 own noise is measured too: two references with different seeds give ``PSNR(ref_a, ref_b)``
 on tonemapped values ``x / (1 + x)``; each one's PSNR to the converged image is about 3 dB
-higher (independent errors add), reported as ``ref PSNR``.
+higher (independent errors add), reported as ``ref PSNR``. ``scenes`` (a list, or ``all``) adds
+the reference noise of repository scenes (``conf/scene/``).
 """
 
 from __future__ import annotations
 
-import argparse
-import time
-
 import numpy as np
+from omegaconf import DictConfig
 
+from denoiser.measure import Clock, fastest, markdown_table
 from denoiser.render.motion import backward_motion
 from denoiser.render.passes import FrameRenderer
 from denoiser.render.spec import build_scene
@@ -71,39 +77,27 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
-class _Clock:
-    """Wall and CPU seconds (all threads of this process) of a block."""
-
-    def __enter__(self):
-        self.wall, self.cpu = time.perf_counter(), time.process_time()
-        return self
-
-    def __exit__(self, *exc):
-        self.wall, self.cpu = time.perf_counter() - self.wall, time.process_time() - self.cpu
-
-
 def measure(mi, effects: list[str], width: int, height: int, spp: int, ref_spp: int) -> dict:
     """Timings and reference noise of the bench scene with ``effects``."""
     from denoiser.render.effects import path_depth
 
     spec = build_scene(bench_scene(effects), seed=0)
     fr = FrameRenderer(mi, spec, width, height)
-    with _Clock() as warm:
+    with Clock() as warm:
         fr.radiance(0, spp, 1)
         fr.aux(0)
         fr.reference(0, ref_spp, 2)
     noisy_runs, aux_runs = [], []
     for t in (1, 2, 3):  # cheap passes: the fastest of 3 frames (a shared CPU adds spikes)
-        with _Clock() as t_noisy:
+        with Clock() as t_noisy:
             noisy = fr.radiance(t, spp, 3 + t)
-        with _Clock() as t_aux:
+        with Clock() as t_aux:
             aux = fr.aux(t)
             backward_motion(spec, aux, t, width, height)
         noisy_runs.append(t_noisy)
         aux_runs.append(t_aux)
-    t_noisy = min(noisy_runs, key=lambda c: c.wall)
-    t_aux = min(aux_runs, key=lambda c: c.wall)
-    with _Clock() as t_ref:
+    t_noisy, t_aux = fastest(noisy_runs), fastest(aux_runs)
+    with Clock() as t_ref:
         ref_a = fr.reference(3, ref_spp, 10)
     ref_b = fr.reference(3, ref_spp, 11)
     return {"effect": f"+{effects[-1]}", "depth": path_depth(spec.effects), "warm": warm.wall,
@@ -112,66 +106,68 @@ def measure(mi, effects: list[str], width: int, height: int, spp: int, ref_spp: 
             "noisy_psnr": psnr(noisy, ref_a)}
 
 
-def table(rows: list[dict], args) -> str:
-    head = (f"| effect added | max_depth | noisy s ({args.spp} spp) | noisy CPU s | aux+motion s | "
-            f"reference s ({args.ref_spp} spp) | reference CPU s | ref CPU x base | ref PSNR dB | noisy PSNR dB "
-            f"| frame 0 s |")
-    lines = [head, "|" + "---|" * 11]
+#: columns of the effect table: key -> (title, format)
+COLUMNS = {"effect": ("effect added", None), "depth": ("max_depth", None), "noisy": ("noisy s ({spp} spp)", ".3f"),
+           "noisy_cpu": ("noisy CPU s", ".3f"), "aux": ("aux+motion s", ".3f"),
+           "ref": ("reference s ({ref_spp} spp)", ".2f"), "ref_cpu": ("reference CPU s", ".2f"),
+           "ref_x": ("ref CPU x base", ".2f"), "ref_psnr": ("ref PSNR dB", ".1f"),
+           "noisy_psnr": ("noisy PSNR dB", ".1f"), "warm": ("frame 0 s", ".2f")}
+
+
+def table(rows: list[dict], cfg) -> str:
+    """The Markdown table of :func:`measure`'s rows (``cfg``: ``spp``, ``ref_spp``)."""
     base = rows[0]["ref_cpu"]
-    for r in rows:
-        lines.append(f"| {r['effect']} | {r['depth']} | {r['noisy']:.3f} | {r['noisy_cpu']:.3f} | {r['aux']:.3f} | "
-                     f"{r['ref']:.2f} | {r['ref_cpu']:.2f} | {r['ref_cpu'] / base:.2f} | {r['ref_psnr']:.1f} | "
-                     f"{r['noisy_psnr']:.1f} | {r['warm']:.2f} |")
-    return "\n".join(lines)
+    shown = [{**r, "ref_x": r["ref_cpu"] / base} for r in rows]
+    headers = {k: title.format(spp=cfg.spp, ref_spp=cfg.ref_spp) for k, (title, _) in COLUMNS.items()}
+    return markdown_table(shown, list(COLUMNS), {k: f for k, (_, f) in COLUMNS.items() if f}, headers)
 
 
 def scene_noise(mi, names: list[str], width: int, height: int, spp: int, ref_spp: int) -> str:
     """Table: per repository scene, reference noise (two seeds) and the noisy input's PSNR."""
     from denoiser.render.catalog import load_scene_config
 
-    lines = [f"| scene | reference s | reference CPU s | ref PSNR dB ({ref_spp} spp) | noisy PSNR dB ({spp} spp) |",
-             "|---|---|---|---|---|"]
+    rows = []
     for name in names:
         fr = FrameRenderer(mi, build_scene(load_scene_config(name), seed=0), width, height)
         noisy = fr.radiance(1, spp, 1)
-        with _Clock() as c:
+        with Clock() as c:
             ref_a = fr.reference(1, ref_spp, 2)
         ref_b = fr.reference(1, ref_spp, 3)
-        lines.append(f"| {name} | {c.wall:.2f} | {c.cpu:.2f} | {psnr(ref_a, ref_b) + 10 * np.log10(2):.1f} | "
-                     f"{psnr(noisy, ref_a):.1f} |")
-    return "\n".join(lines)
+        rows.append({"scene": name, "ref": c.wall, "ref_cpu": c.cpu, "ref_psnr": psnr(ref_a, ref_b) + 10 * np.log10(2),
+                     "noisy_psnr": psnr(noisy, ref_a)})
+    return markdown_table(rows, ["scene", "ref", "ref_cpu", "ref_psnr", "noisy_psnr"],
+                          {"ref": ".2f", "ref_cpu": ".2f", "ref_psnr": ".1f", "noisy_psnr": ".1f"},
+                          {"ref": "reference s", "ref_cpu": "reference CPU s", "ref_psnr": f"ref PSNR dB ({ref_spp} spp)",
+                           "noisy_psnr": f"noisy PSNR dB ({spp} spp)"})
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--width", type=int, default=128)
-    ap.add_argument("--height", type=int, default=128)
-    ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--ref-spp", type=int, default=256)
-    ap.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | scalar_rgb")
-    ap.add_argument("--effects", default=",".join(LADDER), help="comma-separated ladder (first must be a light)")
-    ap.add_argument("--scenes", default="", help="also measure reference noise of these repository scenes "
-                    "(comma-separated, or 'all')")
-    args = ap.parse_args(argv)
+def run(cfg: DictConfig) -> list[dict]:
+    """The ``bench_render`` task: print the effect table (and the scenes' noise); returns its rows."""
     from tqdm import tqdm
 
-    from denoiser.render.variant import activate
+    from denoiser.render.variant import activate, active_variant
 
-    mi = activate(args.variant)
-    ladder = [e for e in args.effects.split(",") if e]
-    rows = [measure(mi, ladder[: i + 1], args.width, args.height, args.spp, args.ref_spp)
+    mi = activate(cfg.variant)
+    ladder = list(cfg.effects) if cfg.get("effects") else LADDER
+    w, h = int(cfg.width), int(cfg.height)
+    rows = [measure(mi, ladder[: i + 1], w, h, int(cfg.spp), int(cfg.ref_spp))
             for i in tqdm(range(len(ladder)), desc="bench", unit="step")]
-    from denoiser.render.variant import active_variant
-
-    print(f"Mitsuba {mi.__version__} variant {active_variant()}, {args.width}x{args.height}, effects added "
+    print(f"Mitsuba {mi.__version__} variant {active_variant()}, {w}x{h}, effects added "
           f"cumulatively (frame 0 includes JIT compilation)")
-    print(table(rows, args))
-    if args.scenes:
+    print(table(rows, cfg), end="")
+    if cfg.get("scenes"):
         from denoiser.render.catalog import available_scenes
 
-        names = available_scenes() if args.scenes == "all" else args.scenes.split(",")
-        print(f"\nReference noise of the repository scenes (seed 0, frame 1, {args.width}x{args.height}):")
-        print(scene_noise(mi, names, args.width, args.height, args.spp, args.ref_spp))
+        names = available_scenes() if cfg.scenes == "all" else [str(n) for n in cfg.scenes]
+        print(f"\nReference noise of the repository scenes (seed 0, frame 1, {w}x{h}):")
+        print(scene_noise(mi, names, w, h, int(cfg.spp), int(cfg.ref_spp)), end="")
+    return rows
+
+
+def main() -> None:
+    from denoiser.commands.app import hydra_command
+
+    hydra_command(run, "bench_render")()
 
 
 if __name__ == "__main__":

@@ -24,55 +24,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from denoiser.commands.app import guarded
 from denoiser.conf import CONF_DIR
-from denoiser.errors import ConfigError, UserError
+from denoiser.configs import instantiate_config
+from denoiser.errors import ConfigError
 
 #: prefix of the final validation metrics logged together with the hyperparameters
 FINAL_PREFIX = "final/"
-
-
-def build(node: Any, key: str, **kwargs: Any) -> Any:
-    """``hydra.utils.instantiate(node, **kwargs)``; config mistakes become a one-line ConfigError naming ``key``.
-
-    A UserError raised inside a constructor (e.g. a missing teacher checkpoint) is re-raised as is.
-    """
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-    from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
-
-    try:
-        return instantiate(node, **kwargs)
-    except MissingMandatoryValue as exc:
-        raise ConfigError(f"{_full_key(exc, key)}: missing mandatory value (give it on the command line)") from None
-    except OmegaConfBaseException as exc:
-        raise ConfigError(f"{key}: {_first_line(exc)}") from None
-    except InstantiationException as exc:
-        chain: list[BaseException] = []
-        cause: BaseException | None = exc
-        while cause is not None and len(chain) < 20:
-            chain.append(cause)
-            cause = cause.__cause__ or cause.__context__
-        for cause in chain:
-            if isinstance(cause, UserError):
-                raise cause from None
-            if isinstance(cause, MissingMandatoryValue):
-                raise ConfigError(f"{_full_key(cause, key)}: missing mandatory value (give it on the command line)") \
-                    from None
-        for cause in chain:  # config mistakes: unknown _target_, misspelled argument
-            text = str(cause)
-            if "Error locating target" in text or isinstance(cause, (ImportError, AttributeError)) or (
-                    isinstance(cause, TypeError) and "argument" in text):
-                raise ConfigError(f"{key}: {_first_line(cause)}") from None
-        raise
-
-
-def _full_key(exc: BaseException, key: str) -> str:
-    full = getattr(exc, "full_key", None)
-    return f"{key}.{full}" if full and not str(full).startswith(key) else (full or key)
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0][:300] if text else type(exc).__name__
 
 
 def resolve_ckpt_path(ckpt_path: str | None, output_dir: str) -> str | None:
@@ -117,13 +73,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
     pl.seed_everything(int(cfg.seed), workers=True)
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), cfg.output_dir)
     weights_only = resume_weights_only(ckpt_path, trust=bool(cfg.get("trust_checkpoint")))  # refuses pickled code
-    datamodule = build(cfg.data, "data")
+    datamodule = instantiate_config(cfg.data, "data")
     if hasattr(datamodule, "setup"):  # index and validate the data before any log or checkpoint is written
         datamodule.setup("fit")
-    model = build(cfg.model, "model")
-    callbacks = [build(c, f"callbacks.{name}") for name, c in (cfg.get("callbacks") or {}).items() if c is not None]
-    logger = build(cfg.logger, "logger") if cfg.get("logger") else False
-    trainer = build(cfg.trainer, "trainer", callbacks=callbacks, logger=logger)
+    model = instantiate_config(cfg.model, "model")
+    callbacks = [instantiate_config(c, f"callbacks.{name}") for name, c in (cfg.get("callbacks") or {}).items()
+                 if c is not None]
+    logger = instantiate_config(cfg.logger, "logger") if cfg.get("logger") else False
+    trainer = instantiate_config(cfg.trainer, "trainer", callbacks=callbacks, logger=logger)
 
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=weights_only)
     if trainer.interrupted:

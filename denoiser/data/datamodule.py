@@ -26,6 +26,7 @@ from torch.utils.data import ConcatDataset, DataLoader
 from tqdm.auto import tqdm
 
 from denoiser.buffers import FRAME_INPUTS
+from denoiser.configs import instantiate_config
 from denoiser.data.augment import Augment
 from denoiser.data.collate import collate_items
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
@@ -35,18 +36,16 @@ from denoiser.data.sampler import MixedSampler
 from denoiser.errors import ConfigError
 
 
-def _instantiate(obj, cls):
-    """Accept an object of ``cls`` or a Hydra config for one (``_target_``)."""
+def _instantiate(obj, cls, key: str):
+    """Accept an object of ``cls`` or a Hydra config for one (``_target_``); ``key`` names it in errors."""
     if obj is None or isinstance(obj, cls):
         return obj
     if isinstance(obj, Mapping):
         if "_target_" in obj:
-            from hydra.utils import instantiate
-
-            return instantiate(obj)
+            return instantiate_config(obj, key)
         if cls is Augment:
             return Augment(**dict(obj))
-    raise ConfigError(f"data: expected a {cls.__name__} or its config, got {type(obj).__name__}")
+    raise ConfigError(f"{key}: expected a {cls.__name__} or its config, got {type(obj).__name__}")
 
 
 class SequenceDataModule(L.LightningDataModule):
@@ -78,7 +77,7 @@ class SequenceDataModule(L.LightningDataModule):
     ):
         super().__init__()
         self.root = str(root)
-        self.layout = _instantiate(layout, Layout)
+        self.layout = _instantiate(layout, Layout, "data.layout")
         self.buffers = tuple(buffers)
         self.samples = bool(samples)
         self.window = int(window)
@@ -90,7 +89,7 @@ class SequenceDataModule(L.LightningDataModule):
         self.pin_memory = bool(pin_memory)
         self.cache_dir = str(cache_dir) if cache_dir else None
         self.precache = bool(precache)
-        self.augment = _instantiate(augment, Augment)
+        self.augment = _instantiate(augment, Augment, "data.augment")
         self.use_unlabeled = bool(use_unlabeled)
         self.unlabeled_ratio = float(unlabeled_ratio)
         self.splits = {"train": train_split, "val": val_split, "test": test_split, "unlabeled": unlabeled_split}

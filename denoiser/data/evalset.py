@@ -18,11 +18,10 @@ from denoiser.errors import UserError
 
 def open_test_split(data_cfg: DictConfig, split: str, sequences=None):
     """``(layout, sources, dataset)`` for the labeled sequences of ``<data.root>/<split>``."""
-    from hydra.utils import instantiate
-
+    from denoiser.configs import instantiate_config
     from denoiser.data.dataset import SequenceDataset, index_split
 
-    layout = instantiate(data_cfg.layout)
+    layout = instantiate_config(data_cfg.layout, "data.layout")
     sources = index_split(layout, data_cfg.root, split)
     if sequences:
         wanted = [str(s) for s in sequences]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from denoiser.transfer import probe_frame
+from denoiser.frames import random_frame
 
 
 @torch.no_grad()
@@ -18,7 +18,7 @@ def feature_shapes(net: nn.Module, size: int = 32) -> list[tuple[int, int, int]]
     """``(channels, height, width)`` of each map in ``net.step(...)[2]["features"]`` on a probe frame."""
     was_training = net.training
     net.eval()
-    _, _, extras = net.step(probe_frame(size), None)
+    _, _, extras = net.step(random_frame(1, size, size, kind="probe"), None)
     net.train(was_training)
     return [tuple(int(v) for v in f.shape[1:]) for f in extras["features"]]
 

@@ -20,20 +20,13 @@ from typing import Any
 import lightning.pytorch as pl
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
 
 from denoiser.buffers import NETWORK_INPUTS
+from denoiser.configs import build_net, plain
 from denoiser.metrics import MetricAccumulator, tonemap
 
 #: Metrics computed in validation (names of denoiser.metrics.METRICS); logged as ``val/<name>``.
 VAL_METRICS = ("psnr", "ssim", "tpsnr", "smape")
-
-
-def plain(cfg: Any) -> Any:
-    """A resolved plain-Python copy of a config node (DictConfig/ListConfig), else ``cfg`` itself."""
-    if isinstance(cfg, (DictConfig,)) or OmegaConf.is_config(cfg):
-        return OmegaConf.to_container(cfg, resolve=True)
-    return cfg
 
 
 def network_inputs(batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
@@ -77,7 +70,7 @@ class DenoiserModule(pl.LightningModule):
                  scheduler_interval: str = "step", detach_every: int = 0, warmup_frames: int = 2,
                  image_interval: int = 100, grad_clip: float = 0.0):
         super().__init__()
-        self.net = instantiate(plain(net))
+        self.net = build_net(net, "model.net")
         self._optimizer_factory = self._factory(optimizer)
         self._scheduler_factory = self._factory(scheduler)
         self.scheduler_interval = scheduler_interval

@@ -41,9 +41,10 @@ import torch
 from torch import nn
 
 from denoiser.checkpoint import load_denoiser
+from denoiser.configs import plain
 from denoiser.errors import ConfigError
 from denoiser.lit.adapters import FeatureAdapters
-from denoiser.lit.common import DenoiserModule, labeled_mask, plain
+from denoiser.lit.common import DenoiserModule, labeled_mask
 from denoiser.losses import feature_loss, log_compress, masked_mean
 
 DEFAULT_LOSS = {"kd_weight": 1.0, "gt_weight": 1.0, "feature_weight": 0.0, "adversarial_weight": 0.0,

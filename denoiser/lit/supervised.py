@@ -19,7 +19,8 @@ from typing import Any
 
 import torch
 
-from denoiser.lit.common import DenoiserModule, labeled_mask, plain
+from denoiser.configs import plain
+from denoiser.lit.common import DenoiserModule, labeled_mask
 from denoiser.losses import DenoiseLoss, masked_mean
 
 

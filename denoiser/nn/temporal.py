@@ -48,10 +48,16 @@ class TemporalRecurrence(nn.Module):
     def __init__(self, state_features: int = 8):
         super().__init__()
         self.state_features = int(state_features)
-        #: channels added to the U-Net input
-        self.input_channels = 3 + 3 + GUIDE_CHANNELS + self.state_features + 1
-        #: channels the level-0 head must predict: h_in, h_out, features
-        self.head_channels = 2 + self.state_features
+        #: channels added to the U-Net input, in order: ``(part, channels)`` (see :meth:`inputs`)
+        self.input_layout = (("output", 3), ("color", 3), ("guide", GUIDE_CHANNELS),
+                             ("features", self.state_features), ("valid", 1))
+        self.input_channels = sum(n for _, n in self.input_layout)
+        #: channels the level-0 head must predict, in order: ``(part, channels)``; the blend
+        #: logits h_in, h_out, then the next state features
+        self.head_layout = (("history_in", 1), ("history_out", 1), ("features", self.state_features))
+        self.head_channels = sum(n for _, n in self.head_layout)
+        starts = [sum(n for _, n in self.head_layout[:i]) for i in range(len(self.head_layout))]
+        self._head = {part: slice(s, s + n) for (part, n), s in zip(self.head_layout, starts)}
 
     def state_channels(self) -> dict[str, int]:
         return {"output": 3, "color": 3, "features": self.state_features, "guide": GUIDE_CHANNELS}
@@ -95,8 +101,9 @@ class TemporalRecurrence(nn.Module):
 
         scale: ``[B, 1, 1, 1]`` current color scale.
         """
-        return torch.cat([color_feature(history["output"], scale), color_feature(history["color"], scale),
-                          history["guide"], history["features"], history["valid"]], dim=1)
+        parts = {"output": color_feature(history["output"], scale), "color": color_feature(history["color"], scale),
+                 "guide": history["guide"], "features": history["features"], "valid": history["valid"]}
+        return torch.cat([parts[part] for part, _ in self.input_layout], dim=1)
 
     def blend_in(self, color: torch.Tensor, history: dict[str, torch.Tensor], head: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,17 +111,17 @@ class TemporalRecurrence(nn.Module):
 
         Returns ``(filter input [B, 3, H, W], weight a [B, 1, H, W])``.
         """
-        a = torch.sigmoid(head[:, 0:1].float()) * history["valid"]
+        a = torch.sigmoid(head[:, self._head["history_in"]].float()) * history["valid"]
         return color + a * (history["color"] - color), a
 
     def blend_out(self, filtered: torch.Tensor, history: dict[str, torch.Tensor], head: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """Blend the history output into the filtered frame; returns ``(output, weight b)``."""
-        b = torch.sigmoid(head[:, 1:2].float()) * history["valid"]
+        b = torch.sigmoid(head[:, self._head["history_out"]].float()) * history["valid"]
         return filtered + b * (history["output"] - filtered), b
 
     def next_state(self, output: torch.Tensor, color: torch.Tensor, head: torch.Tensor,
                    guide: torch.Tensor) -> dict[str, torch.Tensor]:
         """State for the next step (tensors ``[B, C, H, W]``, see module docstring)."""
-        return {"output": output, "color": color, "features": torch.tanh(head[:, 2:].float()),
-                "guide": guide}
+        features = torch.tanh(head[:, self._head["features"]].float())
+        return {"output": output, "color": color, "features": features, "guide": guide}

@@ -191,3 +191,15 @@ def test_the_model_base_is_not_an_option():
     for base in options("base"):
         assert "_global_" not in (Path(CONF_DIR) / "base" / f"{base}.yaml").read_text()
 
+
+@pytest.mark.parametrize("size", ["k3", "k7"])
+def test_kernel_ablations_select_the_kernel_variant(size):
+    """ablation=k3|k7 merge conf/kernel/k3|k7.yaml (one home for kernel variants); like every
+    ablation they come after experiments and the kernel group, so they win over both."""
+    sizes = OmegaConf.to_container(compose_train(f"kernel={size}").kernel)
+    assert sizes == {"sizes": [int(size[1])] * 3}
+    for extra in ([], ["model=teacher"], ["experiment=demo_teacher"], ["kernel=teacher"]):
+        cfg = compose_train(f"ablation={size}", *extra)
+        assert OmegaConf.to_container(cfg.kernel) == sizes and list(cfg.net.filter.kernel_sizes) == sizes["sizes"]
+    assert "sizes" not in (Path(CONF_DIR) / "ablation" / f"{size}.yaml").read_text()
+

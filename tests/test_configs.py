@@ -203,3 +203,22 @@ def test_kernel_ablations_select_the_kernel_variant(size):
         assert OmegaConf.to_container(cfg.kernel) == sizes and list(cfg.net.filter.kernel_sizes) == sizes["sizes"]
     assert "sizes" not in (Path(CONF_DIR) / "ablation" / f"{size}.yaml").read_text()
 
+
+def compose_entry(name: str, *overrides: str, hydra_cfg: bool = False):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(name, overrides=list(overrides), return_hydra_config=hydra_cfg)
+
+
+def test_one_baseline_list_for_eval_and_bench():
+    """conf/baselines/default.yaml is composed by eval and bench; bench times every baseline but
+    the noisy input (its config sets `baselines.noisy: null`, which the benchmark skips)."""
+    assert options("baselines") == ["default"]
+    ev, bench = compose_entry("eval", "threads=3"), compose_entry("bench", "threads=3")
+    assert list(ev.baselines) == ["noisy", "oidn_fast", "oidn_balanced", "oidn_high"]
+    assert ev.baselines.noisy._target_ == "denoiser.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"
+    assert bench.baselines.noisy is None
+    for key in ("oidn_fast", "oidn_balanced", "oidn_high"):
+        assert ev.baselines[key] == bench.baselines[key]
+        assert ev.baselines[key].quality == key[5:] and ev.baselines[key].threads == 3 == bench.baselines[key].threads
+    for name in ("eval.yaml", "bench.yaml"):
+        assert "OidnDenoiser" not in (Path(CONF_DIR) / name).read_text()

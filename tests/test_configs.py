@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from denoiser.conf import CONF_DIR
 
-GROUPS = ["data", "data/layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
+GROUPS = ["data", "layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
           "experiment", "debug"]
 
 
@@ -207,6 +207,26 @@ def test_kernel_ablations_select_the_kernel_variant(size):
 def compose_entry(name: str, *overrides: str, hydra_cfg: bool = False):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return compose(name, overrides=list(overrides), return_hydra_config=hydra_cfg)
+
+
+def test_one_layout_group_chosen_with_layout_everywhere():
+    """conf/layout/ is the only layout group: `layout=native|blender` chooses the data module's
+    layout (train, eval, bench; package data.layout) and denoiser-denoise's input layout (at `layout`)."""
+    assert options("layout") == ["blender", "native"] and not (Path(CONF_DIR) / "data" / "layout").exists()
+    for name in ("train", "eval", "bench"):
+        native = compose_entry(name, *(["output_dir=x"] if name == "train" else []))
+        blender = compose_entry(name, "layout=blender", *(["output_dir=x"] if name == "train" else []))
+        assert native.data.layout._target_.endswith("NativeLayout") and native.data.layout.require_meta is True
+        assert blender.data.layout._target_.endswith("BlenderLayout") and "layout" not in blender
+    demo = compose_train("experiment=demo", "layout=blender")
+    assert demo.data.crop == 64 and demo.data.layout._target_.endswith("BlenderLayout")
+    for layout, target in (("native", "NativeLayout"), ("blender", "BlenderLayout")):
+        cfg = compose_entry("denoise", f"layout={layout}", hydra_cfg=True)
+        assert cfg.layout._target_.endswith(target) and "data" not in cfg
+        assert cfg.layout.require_meta is False  # a folder of frames needs no sequence.json
+        assert cfg.hydra.runtime.choices.layout == layout
+    same = {k: v for k, v in compose_entry("denoise", "layout=blender").layout.items() if k != "require_meta"}
+    assert same == dict(compose_train("layout=blender").data.layout)
 
 
 def test_one_baseline_list_for_eval_and_bench():

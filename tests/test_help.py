@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import logging
 import re
 import sys
 from pathlib import Path
@@ -31,6 +32,24 @@ COMMANDS = {
 }
 #: Hydra's own groups a command's help also lists (only training runs multiruns)
 HYDRA_GROUPS = {"denoiser-train": {"hydra/launcher"}}
+
+
+@pytest.fixture(autouse=True)
+def restore_logging():
+    """Hydra configures logging for --help too (handlers on this test's captured stdout): undo it,
+    or later tests' log records would go to a closed stream."""
+    loggers = [logging.getLogger(), *(lg for lg in logging.Logger.manager.loggerDict.values()
+                                       if isinstance(lg, logging.Logger))]
+    saved = [(lg, lg.handlers[:], lg.level, lg.propagate, lg.disabled) for lg in loggers]
+    yield
+    for lg, handlers, level, propagate, disabled in saved:
+        lg.handlers[:] = handlers
+        lg.setLevel(level)
+        lg.propagate, lg.disabled = propagate, disabled
+    known = {id(lg) for lg in loggers}
+    for lg in list(logging.Logger.manager.loggerDict.values()):  # loggers created meanwhile
+        if isinstance(lg, logging.Logger) and id(lg) not in known:
+            lg.handlers.clear()
 
 
 def run_help(script: str, monkeypatch, capsys, *overrides: str) -> str:

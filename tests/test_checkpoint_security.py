@@ -150,14 +150,14 @@ def _denoise(ckpt: Path, data: Path, out: Path, *extra: str):
 def _eval(ckpt: Path, data: Path, out: Path, *extra: str):
     from denoiser.commands.evaluate import run
 
-    return run(compose("eval", ["data=tiny", f"data.root={data}", f"ckpt=[{ckpt}]", "baselines=null",
+    return run(compose("eval", ["data=tiny", f"data.root={data}", f"ckpt=[{ckpt}]", "~baselines",
                                 "metrics=[psnr]", "images.frame=null", "threads=1", f"out_dir={out}", *extra]))
 
 
 def _bench(ckpt: Path, data: Path, out: Path, *extra: str):
     from denoiser.commands.bench import run
 
-    return run(compose("bench", ["data=tiny", f"data.root={data}", f"ckpt=[{ckpt}]", "baselines=null",
+    return run(compose("bench", ["data=tiny", f"data.root={data}", f"ckpt=[{ckpt}]", "~baselines",
                                  "sizes=[[16,16]]", "use_backends=[eager]", "warmup=0", "repeats=1", "threads=1",
                                  f"out_dir={out}", *extra]))
 

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from denoiser.conf import CONF_DIR
 
-GROUPS = ["data", "data/layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
+GROUPS = ["data", "layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
           "experiment", "debug"]
 
 
@@ -120,3 +120,126 @@ def test_logger_and_callbacks_instantiate(tmp_path):
     callbacks = {name: instantiate(c) for name, c in cfg.callbacks.items()}
     assert callbacks["last"].save_last and callbacks["best"].monitor == "val/psnr"
     assert {"best", "last", "final", "lr_monitor", "progress"} <= set(callbacks)
+
+
+# ----------------------------------------------------------------------------- composed, not copied
+
+#: what every model shares (conf/base/model.yaml), as the three model files spelled it out before
+SHARED_MODEL = {
+    "_recursive_": False, "net": "${net}",
+    "optimizer": {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 2e-3, "weight_decay": 1e-5},
+    "scheduler": {"_target_": "denoiser.lit.schedule.ProgressCosineLR", "_partial_": True,
+                  "total_steps": "${trainer.max_steps}", "final_ratio": 0.01, "warmup_steps": 20},
+    "scheduler_interval": "step", "detach_every": 0, "warmup_frames": 2, "image_interval": 100, "grad_clip": 1.0,
+}
+DENOISE_LOSS = {"_target_": "denoiser.losses.DenoiseLoss", "smape_weight": 1.0, "gradient_weight": 0.5,
+                "temporal_weight": 0.25}
+SUPERVISED_MODEL = {**SHARED_MODEL, "_target_": "denoiser.lit.supervised.SupervisedModule", "loss": DENOISE_LOSS}
+DISTILL_MODEL = {
+    **SHARED_MODEL, "_target_": "denoiser.lit.distill.DistillationModule", "teacher_ckpt": None,
+    "trust_teacher_ckpt": False,
+    "loss": {"kd_weight": 1.0, "gt_weight": 1.0, "feature_weight": 0.1, "adversarial_weight": 0.01,
+             "kd": DENOISE_LOSS, "gt": DENOISE_LOSS},
+    "critic": {"_target_": "denoiser.nn.critic.PatchCritic", "in_channels": 3, "widths": [32, 64, 128],
+               "spectral_norm": True},
+    "adversarial": {"_target_": "denoiser.losses.HingeAdversarial"},
+    "critic_optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 2e-4, "betas": [0.5, 0.9]},
+    "critic_steps": 1,
+    "param_transfer": {"_target_": "denoiser.transfer.L1ChannelTransfer", "probe_size": 32, "outer_tap_logit": -1.0e4},
+}
+
+
+def merged(base: dict, changes: dict) -> dict:
+    out = dict(base)
+    for k, v in changes.items():
+        out[k] = merged(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+    return out
+
+
+@pytest.mark.parametrize("overrides,expected", [
+    (["model=teacher"], SUPERVISED_MODEL),
+    (["model=student"], SUPERVISED_MODEL),
+    (["model=distill"], DISTILL_MODEL),
+    (["model=teacher", "net=tiny", "kernel=k3"], SUPERVISED_MODEL),
+    (["model=student", "model.optimizer.lr=1e-4", "trainer=gpu"], merged(SUPERVISED_MODEL, {"optimizer": {"lr": 1e-4}})),
+    (["model=distill", "ablation=no_kd"], merged(DISTILL_MODEL, {"loss": {"kd_weight": 0.0, "feature_weight": 0.0,
+                                                                         "adversarial_weight": 0.0},
+                                                                "param_transfer": None})),
+    (["experiment=demo_teacher"], merged(SUPERVISED_MODEL, {"optimizer": {"lr": 2e-3}})),
+    (["experiment=demo"], merged(SUPERVISED_MODEL, {"optimizer": {"lr": 3e-3}})),
+    (["experiment=demo_distill"], merged(DISTILL_MODEL, {"optimizer": {"lr": 3e-3}, "critic": {"widths": [16, 32, 64]}})),
+    (["experiment=paper_distill"], merged(DISTILL_MODEL, {"optimizer": {"lr": 1e-3}, "detach_every": 4,
+                                                          "image_interval": 1000})),
+])
+def test_models_compose_the_shared_base_into_the_same_values(overrides, expected):
+    """teacher/student/distill compose conf/base/{model,supervised}.yaml; the composed `model` node
+    holds exactly the values the three files spelled out before they shared a base."""
+    cfg = compose_train(*overrides)
+    assert OmegaConf.to_container(cfg.model, resolve=False) == expected
+
+
+def test_teacher_and_student_differ_only_in_their_network():
+    teacher, student = compose_train("model=teacher"), compose_train("model=student")
+    assert OmegaConf.to_container(teacher.model) == OmegaConf.to_container(student.model)  # net: ${net}
+    assert (list(teacher.kernel.sizes), list(student.kernel.sizes)) == ([5, 7, 9], [5, 5, 5])
+    assert teacher.net.embed.hidden == 256 and student.net.embed.hidden == 32
+
+
+def test_the_model_base_is_not_an_option():
+    """The shared base lives outside the model group (conf/base/): `model` offers real modules only."""
+    assert options("model") == ["distill", "student", "teacher"]
+    assert not [p for p in (Path(CONF_DIR) / "model").rglob("*") if p.is_dir()]
+    for base in options("base"):
+        assert "_global_" not in (Path(CONF_DIR) / "base" / f"{base}.yaml").read_text()
+
+
+@pytest.mark.parametrize("size", ["k3", "k7"])
+def test_kernel_ablations_select_the_kernel_variant(size):
+    """ablation=k3|k7 merge conf/kernel/k3|k7.yaml (one home for kernel variants); like every
+    ablation they come after experiments and the kernel group, so they win over both."""
+    sizes = OmegaConf.to_container(compose_train(f"kernel={size}").kernel)
+    assert sizes == {"sizes": [int(size[1])] * 3}
+    for extra in ([], ["model=teacher"], ["experiment=demo_teacher"], ["kernel=teacher"]):
+        cfg = compose_train(f"ablation={size}", *extra)
+        assert OmegaConf.to_container(cfg.kernel) == sizes and list(cfg.net.filter.kernel_sizes) == sizes["sizes"]
+    assert "sizes" not in (Path(CONF_DIR) / "ablation" / f"{size}.yaml").read_text()
+
+
+def compose_entry(name: str, *overrides: str, hydra_cfg: bool = False):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(name, overrides=list(overrides), return_hydra_config=hydra_cfg)
+
+
+def test_one_layout_group_chosen_with_layout_everywhere():
+    """conf/layout/ is the only layout group: `layout=native|blender` chooses the data module's
+    layout (train, eval, bench; package data.layout) and denoiser-denoise's input layout (at `layout`)."""
+    assert options("layout") == ["blender", "native"] and not (Path(CONF_DIR) / "data" / "layout").exists()
+    for name in ("train", "eval", "bench"):
+        native = compose_entry(name, *(["output_dir=x"] if name == "train" else []))
+        blender = compose_entry(name, "layout=blender", *(["output_dir=x"] if name == "train" else []))
+        assert native.data.layout._target_.endswith("NativeLayout") and native.data.layout.require_meta is True
+        assert blender.data.layout._target_.endswith("BlenderLayout") and "layout" not in blender
+    demo = compose_train("experiment=demo", "layout=blender")
+    assert demo.data.crop == 64 and demo.data.layout._target_.endswith("BlenderLayout")
+    for layout, target in (("native", "NativeLayout"), ("blender", "BlenderLayout")):
+        cfg = compose_entry("denoise", f"layout={layout}", hydra_cfg=True)
+        assert cfg.layout._target_.endswith(target) and "data" not in cfg
+        assert cfg.layout.require_meta is False  # a folder of frames needs no sequence.json
+        assert cfg.hydra.runtime.choices.layout == layout
+    same = {k: v for k, v in compose_entry("denoise", "layout=blender").layout.items() if k != "require_meta"}
+    assert same == dict(compose_train("layout=blender").data.layout)
+
+
+def test_one_baseline_list_for_eval_and_bench():
+    """conf/baselines/default.yaml is composed by eval and bench; bench times every baseline but
+    the noisy input (its config sets `baselines.noisy: null`, which the benchmark skips)."""
+    assert options("baselines") == ["default"]
+    ev, bench = compose_entry("eval", "threads=3"), compose_entry("bench", "threads=3")
+    assert list(ev.baselines) == ["noisy", "oidn_fast", "oidn_balanced", "oidn_high"]
+    assert ev.baselines.noisy._target_ == "denoiser.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"
+    assert bench.baselines.noisy is None
+    for key in ("oidn_fast", "oidn_balanced", "oidn_high"):
+        assert ev.baselines[key] == bench.baselines[key]
+        assert ev.baselines[key].quality == key[5:] and ev.baselines[key].threads == 3 == bench.baselines[key].threads
+    for name in ("eval.yaml", "bench.yaml"):
+        assert "OidnDenoiser" not in (Path(CONF_DIR) / name).read_text()

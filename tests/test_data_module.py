@@ -25,7 +25,7 @@ from denoiser.data.synthetic import write_synthetic_sequence
 from denoiser.errors import UserError
 
 DATA_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data").glob("*.yaml"))
-LAYOUT_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data" / "layout").glob("*.yaml"))
+LAYOUT_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "layout").glob("*.yaml"))
 REQUIRED_KEYS = {"root", "layout", "window", "crop", "batch_size", "num_workers", "persistent_workers",
                  "pin_memory", "cache_dir", "augment", "use_unlabeled", "unlabeled_ratio", "val_split",
                  "test_split"}
@@ -55,7 +55,7 @@ def make(root, *overrides, option="tiny"):
 def test_every_data_option_composes(option, layout, root, tmp_path):
     assert {"default", "demo", "tiny"} <= set(DATA_OPTIONS) and {"native", "blender"} <= set(LAYOUT_OPTIONS)
     with initialize_config_dir(CONF_DIR, version_base="1.3"):
-        cfg = compose(overrides=[f"+data={option}", f"data/layout={layout}"])
+        cfg = compose(overrides=[f"+data={option}", f"layout={layout}"])
     assert REQUIRED_KEYS <= set(cfg.data)
     assert cfg.data.layout._target_.endswith({"native": "NativeLayout", "blender": "BlenderLayout"}[layout])
     cfg.data.root = str(root)

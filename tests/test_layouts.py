@@ -27,8 +27,8 @@ DX, DY = 2, 1  # content motion per frame, image axes (x right, y down)
 @pytest.fixture(scope="module")
 def layouts():
     with initialize_config_dir(CONF_DIR, version_base="1.3"):
-        blender = instantiate(compose(overrides=["+data/layout=blender"]).data.layout)
-        native = instantiate(compose(overrides=["+data/layout=native"]).data.layout)
+        blender = instantiate(compose(overrides=["+layout=blender"]).data.layout)
+        native = instantiate(compose(overrides=["+layout=native"]).data.layout)
     assert isinstance(blender, BlenderLayout) and isinstance(native, NativeLayout)
     return blender, native
 
@@ -155,6 +155,20 @@ def test_folder_of_frames_and_pairing_errors(tmp_path, layouts):
     exr.write_channels(tmp_path / "empty" / "0001.exr", {"ViewLayer.Depth.Z": np.ones((4, 4))})
     with pytest.raises(UserError, match=r"0001.exr: no noisy color \(Noisy Image.R or Combined.R"):
         blender.open_sequence(tmp_path / "empty")
+
+
+
+def test_blender_sequence_json_is_optional_unless_required(tmp_path, layouts):
+    """``require_meta`` as in the native layout: off by default for Blender renders (the config
+    leaves it so), on it makes a directory without sequence.json an error naming the file."""
+    blender, _ = layouts
+    seq = tmp_path / "seq"
+    write_blender_sequence(seq, with_reference=False)
+    assert not blender.require_meta and blender.open_sequence(seq).frames == FRAMES
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        strict = instantiate(compose(overrides=["+layout=blender"]).data.layout, require_meta=True)
+    with pytest.raises(UserError, match=r"seq/sequence.json: file does not exist"):
+        strict.open_sequence(seq)
 
 
 def test_blender_and_native_give_the_same_windows(tmp_path, layouts):

@@ -248,7 +248,7 @@ def cases(work: Path, command: str) -> dict[str, dict]:
         ev("classifier_ckpt", data / "truncated_exr", "classifier.ckpt", ckpt=work / "classifier.ckpt")
         ev("not_a_ckpt", data / "truncated_exr", "notes.ckpt", ckpt=work / "notes.ckpt")
         ev("unknown_key", data / "truncated_exr", "warmpu", "warmpu=3", hydra_error=True)
-        ev("unknown_option", data / "truncated_exr", "data/layout/exotic", "data/layout=exotic", hydra_error=True)
+        ev("unknown_option", data / "truncated_exr", "layout/exotic", "layout=exotic", hydra_error=True)
         ev("missing_interpolation_key", data / "truncated_exr", "warmup: Interpolation key 'no_such_key'",
            "warmup=${no_such_key}")
     elif command == "denoise":

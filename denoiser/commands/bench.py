@@ -5,11 +5,13 @@
     denoiser-bench 'ckpt={teacher: t.ckpt, student: s.ckpt}' eval_csv=eval/metrics.csv data=demo
     denoiser-bench ckpt=[s.ckpt] sizes=[[256,256]] repeats=5 use_backends=[eager,onnxruntime]
 
-For every method (OIDN fast/balanced/high from ``baselines``, each checkpoint of ``ckpt`` and
-each untrained config variant of ``variants``), every size of ``sizes`` ``[H, W]`` and, for
-networks, every backend of ``use_backends`` (Hydra ``_target_`` entries of ``backends``:
-PyTorch eager fp32, channels_last, bfloat16 autocast, ``torch.compile``, ONNX Runtime; and
-CUDA backends that run only where a GPU is present), the benchmark measures:
+For every method (OIDN fast/balanced/high from ``baselines``, denoiser-eval's list in
+``conf/baselines/default.yaml`` whose noisy input ``conf/bench.yaml`` sets to null, as it costs
+nothing to time; each checkpoint of ``ckpt`` and each untrained config variant of
+``variants``), every size of ``sizes`` ``[H, W]`` and, for networks, every backend of
+``use_backends`` (Hydra ``_target_`` entries of ``backends``: PyTorch eager fp32, channels_last,
+bfloat16 autocast, ``torch.compile``, ONNX Runtime; and CUDA backends that run only where a GPU
+is present), the benchmark measures:
 
 * the **median ms per frame** of ``repeats`` recurrent steps after ``warmup`` steps (state
   carried, as in real use), with one thread count for everyone (``threads``; torch, OIDN's

@@ -6,11 +6,12 @@
     denoiser-eval 'ckpt={teacher: t.ckpt, student: s.ckpt}' out_dir=eval/  # names from a dict
     denoiser-eval ckpt=s.ckpt '~baselines.oidn_balanced' metrics=[psnr,ssim] max_frames=8
 
-Config: ``conf/eval.yaml`` (composes the ``data`` group: root, layout, test split).
-Methods: the baselines of ``baselines`` (Hydra ``_target_`` entries: the noisy input and
-OIDN fast/balanced/high, see :mod:`denoiser.baselines`) followed by the checkpoints, in the
-order given. Every method sees the same frames; networks run recurrently over each whole
-sequence in order (state carried, reset at the first frame and at camera cuts).
+Config: ``conf/eval.yaml`` (composes the groups ``data``: root and test split, ``layout``, and
+``baselines``). Methods: the baselines of ``baselines`` (``conf/baselines/default.yaml``, Hydra
+``_target_`` entries: the noisy input and OIDN fast/balanced/high, see :mod:`denoiser.baselines`)
+followed by the checkpoints, in the order given. Every method sees the same frames; networks
+run recurrently over each whole sequence in order (state carried, reset at the first frame and
+at camera cuts).
 
 Frames stream from disk one at a time (memory does not grow with sequence length); the
 reference is read once more beforehand when FLIP is requested, to fix the sequence's FLIP

@@ -122,3 +122,7 @@ def run(cfg: DictConfig) -> None:
 
 
 main = hydra_command(run, "render")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,4 +1,4 @@
-"""Layouts: how logical buffers map to files and EXR channels (``conf/data/layout/*.yaml``)."""
+"""Layouts: how logical buffers map to files and EXR channels (``conf/layout/*.yaml``)."""
 
 from denoiser.data.layouts.base import BufferSpec, Layout, SequenceSource, image_size
 from denoiser.data.layouts.blender import BlenderLayout, vector_to_motion

@@ -2,7 +2,7 @@
 
 A *layout* maps the logical buffers of docs/design.md §3.1 (``color``, ``albedo``, ``normal``,
 ``depth``, ``motion``, ``reference``, ``samples``) to files and EXR channel names. It is built
-by Hydra from ``conf/data/layout/*.yaml`` (``_target_``) and answers three questions:
+by Hydra from ``conf/layout/*.yaml`` (``_target_``) and answers three questions:
 
 * which sequence directories a split holds (:meth:`Layout.list_sequences`);
 * what one sequence holds (:meth:`Layout.open_sequence` -> :class:`SequenceSource`: metadata,

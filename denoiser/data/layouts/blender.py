@@ -13,7 +13,7 @@ reference frames are paired by file name; frames are ordered by the number in th
 Facts about Cycles 4.x files (docs/design.md §3.1): single-part scanline EXR, float32, channels
 ``<ViewLayer>.<Pass>.<chan>``. ``Combined.RGBA`` is the raw noisy image when Cycles' denoiser is
 off; ``Noisy Image.RGBA`` exists only when the denoiser ran (and then ``Combined`` is denoised),
-so the alias table of ``conf/data/layout/blender.yaml`` tries ``Noisy Image`` first for
+so the alias table of ``conf/layout/blender.yaml`` tries ``Noisy Image`` first for
 ``color``. ``Denoising Normal`` is camera space in our axes, ``Denoising Albedo`` is the albedo,
 ``Depth.Z`` / ``Denoising Depth.Z`` are planar depth (no hit = 1e10).
 
@@ -69,17 +69,22 @@ def exr_files(directory: Path) -> list[Path]:
 
 
 class BlenderLayout(Layout):
-    """Cycles multilayer EXRs; ``noisy_dir`` and ``reference_dir`` are sub-folder names."""
+    """Cycles multilayer EXRs; ``noisy_dir`` and ``reference_dir`` are sub-folder names.
+
+    ``require_meta``: a directory without ``sequence.json`` is an error; by default (``False``)
+    the file is optional (sizes from the frames, no cuts), as for ``NativeLayout(require_meta=False)``.
+    """
 
     name = "blender"
     samples_role = "noisy"
 
     def __init__(self, buffers: Mapping[str, object], noisy_dir: str = "noisy", reference_dir: str = "reference",
-                 layer_prefixes: Sequence[str] = ("ViewLayer.", "")):
+                 layer_prefixes: Sequence[str] = ("ViewLayer.", ""), require_meta: bool = False):
         super().__init__(buffers, default_file="noisy")
         self.noisy_dir = noisy_dir
         self.reference_dir = reference_dir
         self.layer_prefixes = tuple(layer_prefixes)
+        self.require_meta = bool(require_meta)
 
     def list_sequences(self, split_dir):
         return list_sequence_dirs(split_dir)
@@ -123,7 +128,7 @@ class BlenderLayout(Layout):
 
         buffers = self._buffers(files)
         json_path = directory / SEQUENCE_JSON
-        if json_path.exists():
+        if json_path.exists() or self.require_meta:
             meta = load_sequence_json(json_path)
             check_frames_on_disk(meta, json_path, noisy)
             meta = dataclasses.replace(meta, buffers=buffers)

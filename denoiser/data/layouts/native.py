@@ -62,7 +62,7 @@ def check_sizes(files: list[Path], width: int, height: int, what: str) -> None:
 class NativeLayout(Layout):
     """``frame_XXXX.exr`` files with native channel names and a ``sequence.json``.
 
-    ``buffers``: logical buffer -> channel names (``conf/data/layout/native.yaml``); per-sample
+    ``buffers``: logical buffer -> channel names (``conf/layout/native.yaml``); per-sample
     radiance ``samples`` is always ``sample.k.R/G/B`` for ``k < sample_count``.
     ``require_meta``: a directory without ``sequence.json`` is an error (datasets) or indexed
     from its files alone (``False``, e.g. for denoising a folder of frames).

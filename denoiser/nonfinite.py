@@ -1,4 +1,4 @@
-"""The one rule for non-finite values (DESIGN 3.2): NaN -> 0, -Inf -> 0, +Inf -> ``POSINF`` = 65504.
+"""The one rule for non-finite values (docs/design.md §3.2): NaN -> 0, -Inf -> 0, +Inf -> ``POSINF`` = 65504.
 
 65504 is the largest finite float16: "very bright" stays very bright and everything downstream
 fits half precision; -Inf becomes 0, never negative energy that a filter kernel would spread

@@ -52,6 +52,10 @@ train_run() {  # train_run <run name> <overrides...>: train unless DONE; resume 
     local resume=()
     [ -f "$dir/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
     stage "$name" "$PY" train.py "$@" "threads=$THREADS" "hydra.run.dir=$dir" "${resume[@]}"
+    if [ -f "$dir/COLLAPSED" ]; then  # written by the CollapseDetector callback
+        echo "error: [$name] $(cat "$dir/COLLAPSED")" >&2
+        exit 3
+    fi
     touch "$dir/DONE"
 }
 

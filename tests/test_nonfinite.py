@@ -1,5 +1,5 @@
 """One rule for non-finite inputs, in the EXR reader, the network and its ONNX export: NaN -> 0, -Inf -> 0,
-+Inf -> 65504 (DESIGN 3.2).
++Inf -> 65504 (docs/design.md §3.2).
 
 A frame with whole rows of -Inf, +Inf and NaN must denoise exactly like the same frame with those
 values replaced by hand: finite, and non-negative (no -Inf becomes negative energy that the

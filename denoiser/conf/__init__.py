@@ -2,7 +2,7 @@
 
 ``CONF_DIR`` is this directory: every command composes from it, and so do the library helpers
 that compose configs by name (net configs, scene configs). Groups and entry configs are listed
-in ``docs/configs.md``.
+in the README (Layout) and docs/design.md §4.
 """
 
 from pathlib import Path

@@ -168,19 +168,18 @@ class SequenceDataModule(L.LightningDataModule):
             return self._loader(mixed, self.batch_size, sampler=sampler)
         return self._loader(self.train_set, self.batch_size, shuffle=True)
 
+    def _sequence_loader(self, attr: str, stage: str) -> DataLoader | list:
+        """Loader of whole sequences (or their pieces, in order) of the split held in ``attr``."""
+        if getattr(self, attr) is None:
+            self.setup(stage)
+        dataset = getattr(self, attr)
+        return [] if dataset is None else self._loader(dataset, 1)
+
     def val_dataloader(self) -> DataLoader:
-        if self.val_set is None:
-            self.setup("validate")
-        if self.val_set is None:
-            return []
-        return self._loader(self.val_set, 1)
+        return self._sequence_loader("val_set", "validate")
 
     def test_dataloader(self) -> DataLoader:
-        if self.test_set is None:
-            self.setup("test")
-        if self.test_set is None:
-            return []
-        return self._loader(self.test_set, 1)
+        return self._sequence_loader("test_set", "test")
 
     def predict_dataloader(self) -> DataLoader:
         return self.test_dataloader()

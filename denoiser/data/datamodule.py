@@ -10,6 +10,8 @@ live at ``<root>/<split>/<sequence>/`` in the configured layout. Loaders:
   ``reference`` (zeros when unlabeled) and ``labeled: bool[B]`` says which are real;
 * ``val_dataloader`` / ``test_dataloader``: :class:`~denoiser.data.dataset.SequenceDataset`,
   whole frames in order, batch size 1; ``val_window: null`` gives one whole sequence per batch.
+  Under DDP each rank gets whole sequences (all their pieces, in order):
+  :class:`~denoiser.data.sampler.SequenceShardSampler`, which Lightning leaves in place.
 
 Streaming: datasets hold only the index; ``num_workers``, ``persistent_workers`` and
 ``pin_memory`` go to every DataLoader; ``cache_dir`` (or null) enables the decoded-frame cache;
@@ -32,7 +34,7 @@ from denoiser.data.collate import collate_items
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
 from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
-from denoiser.data.sampler import MixedSampler
+from denoiser.data.sampler import MixedSampler, SequenceShardSampler
 from denoiser.errors import ConfigError
 
 
@@ -173,14 +175,14 @@ class SequenceDataModule(L.LightningDataModule):
             self.setup("validate")
         if self.val_set is None:
             return []
-        return self._loader(self.val_set, 1)
+        return self._loader(self.val_set, 1, sampler=SequenceShardSampler.for_current_process(self.val_set.pieces))
 
     def test_dataloader(self) -> DataLoader:
         if self.test_set is None:
             self.setup("test")
         if self.test_set is None:
             return []
-        return self._loader(self.test_set, 1)
+        return self._loader(self.test_set, 1, sampler=SequenceShardSampler.for_current_process(self.test_set.pieces))
 
     def predict_dataloader(self) -> DataLoader:
         return self.test_dataloader()

@@ -1,7 +1,9 @@
 """Distributed (DDP) correctness on the CPU with 2 gloo processes (docs/scaling.md):
 
 * validation sharded by whole sequences: 2 ranks give the same val PSNR / tPSNR as 1 process on
-  the same data and weights, with sequences of uneven length cut in ``val_window`` pieces.
+  the same data and weights, with sequences of uneven length cut in ``val_window`` pieces;
+
+and the distillation critic under ``16-mixed`` (its steps go through Lightning's precision plugin).
 """
 
 from __future__ import annotations
@@ -92,3 +94,59 @@ def test_two_rank_validation_equals_one_process(uneven_root):
     for key in ("val/psnr", "val/tpsnr", "val/ssim", "val/input_psnr"):
         assert single[key] == pytest.approx(whole[key], abs=1e-4), key  # pieces carry the state
         assert double[key] == pytest.approx(single[key], abs=1e-4), key
+
+
+#: a student narrower than net=tiny, and a small critic
+NARROW = ["net.embed.hidden=4", "net.embed.out_channels=4", "net.unet.encoder=[4,6,8]", "net.unet.bottleneck=8",
+          "net.unet.decoder=[6,4]", "model.critic.widths=[4,8]"]
+QUIET = ["threads=1", "trainer.enable_progress_bar=false", "callbacks.progress=null",
+         "trainer.enable_model_summary=false", "trainer.log_every_n_steps=1", "model.image_interval=0"]
+
+
+@pytest.fixture(scope="module")
+def teacher_ckpt(uneven_root, tmp_path_factory) -> Path:
+    from denoiser.commands import train as train_script
+
+    out = tmp_path_factory.mktemp("teacher")
+    cfg = _compose(uneven_root, *QUIET, f"output_dir={out}", "trainer.max_steps=1", "trainer.val_check_interval=1",
+                   "trainer.limit_val_batches=1", "final_validation=false")
+    train_script.train(cfg)
+    return out / "checkpoints" / "last.ckpt"
+
+
+def _distill_fit(root: Path, teacher: Path, scale: float, *overrides: str):
+    """2 distillation steps under 16-mixed on the CPU (an explicit plugin: Lightning would turn the
+    string ``16-mixed`` into ``bf16-mixed`` on a CPU), returning (model, critic before, scaler)."""
+    from lightning.pytorch.plugins import MixedPrecision
+
+    cfg = _compose(root, *QUIET, "model=distill", *NARROW, f"model.teacher_ckpt={teacher}",
+                   "model.loss.feature_weight=0", "model.loss.adversarial_weight=0.01", *overrides)
+    torch.manual_seed(0)
+    model = instantiate_config(cfg.model, "model")
+    model.configure_model()  # builds the critic now, to compare its weights
+    before = {k: v.detach().clone() for k, v in model.critic.named_parameters()}  # not the spectral-norm buffers
+    scaler = torch.amp.GradScaler("cpu", init_scale=scale)
+    trainer = pl.Trainer(accelerator="cpu", devices=1, max_steps=2, limit_val_batches=0, logger=False,
+                         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                         plugins=[MixedPrecision("16-mixed", "cpu", scaler)])
+    trainer.fit(model, datamodule=instantiate_config(cfg.data, "data"))
+    assert model.critic_updates == 2 and trainer.global_step == 2  # global_step counts student steps only
+    return model, before, scaler
+
+
+@pytest.mark.slow
+def test_critic_steps_under_16_mixed_are_unscaled_and_skip_non_finite_gradients(uneven_root, teacher_ckpt):
+    # a scale so large that the float16 gradients overflow: the scaler must skip every step
+    model, before, scaler = _distill_fit(uneven_root, teacher_ckpt, 2.0 ** 120)
+    after = dict(model.critic.named_parameters())
+    assert all(torch.isfinite(v).all() for v in after.values())
+    assert all(torch.equal(before[k], after[k]) for k in before), "the critic stepped on non-finite gradients"
+    assert scaler.get_scale() < 2.0 ** 120  # the scaler saw the overflow and backed off
+    # an ordinary scale: the critic steps, and by the unscaled gradient (SGD: the step is lr x gradient)
+    model, before, scaler = _distill_fit(uneven_root, teacher_ckpt, 2.0 ** 16,
+                                         "model.critic_optimizer._target_=torch.optim.SGD",
+                                         "~model.critic_optimizer.betas", "model.critic_optimizer.lr=1e-3")
+    after = dict(model.critic.named_parameters())
+    change = max(float((after[k] - before[k]).detach().abs().max()) for k in before)
+    assert all(torch.isfinite(v).all() for v in after.values())
+    assert 0 < change < 1e-2, change  # about 1.5e-5 here; the scaled gradients (x 65536) moved them by 8.7

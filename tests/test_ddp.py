@@ -3,11 +3,17 @@
 * validation sharded by whole sequences: 2 ranks give the same val PSNR / tPSNR as 1 process on
   the same data and weights, with sequences of uneven length cut in ``val_window`` pieces;
 
+* distillation with ``trainer=ddp`` (2 gloo ranks, ``train.py``): finite losses, the teacher
+  frozen, the critic stepped and the same on both ranks, resumable from ``last.ckpt``;
+
 and the distillation critic under ``16-mixed`` (its steps go through Lightning's precision plugin).
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -19,6 +25,7 @@ from denoiser.conf import CONF_DIR
 from denoiser.configs import instantiate_config
 from denoiser.data.synthetic import write_synthetic_sequence
 
+REPO = Path(__file__).resolve().parents[1]
 VAL_FRAMES = (5, 3, 6)  # uneven: 2-frame pieces 3 + 2 + 3, and an odd number of sequences for 2 ranks
 
 
@@ -150,3 +157,58 @@ def test_critic_steps_under_16_mixed_are_unscaled_and_skip_non_finite_gradients(
     change = max(float((after[k] - before[k]).detach().abs().max()) for k in before)
     assert all(torch.isfinite(v).all() for v in after.values())
     assert 0 < change < 1e-2, change  # about 1.5e-5 here; the scaled gradients (x 65536) moved them by 8.7
+
+
+class DumpWeights(pl.Callback):
+    """Writes ``weights_rank<r>.pt`` (student and critic parameters) into the run directory at the end of training."""
+
+    def on_train_end(self, trainer, pl_module):
+        params = {k: v.detach().cpu().clone() for k, v in pl_module.named_parameters() if not k.startswith("teacher.")}
+        torch.save(params, Path(trainer.default_root_dir) / f"weights_rank{trainer.global_rank}.pt")
+
+
+def _train_py(*args: str, cwd: Path) -> str:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    return proc.stdout + proc.stderr
+
+
+@pytest.mark.slow
+def test_distillation_on_two_ddp_ranks_trains_freezes_the_teacher_and_resumes(uneven_root, teacher_ckpt, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run_dir = tmp_path / "run"
+    args = ["data=tiny", "net=tiny", f"data.root={uneven_root}", *QUIET, "model=distill", *NARROW,
+            f"model.teacher_ckpt={teacher_ckpt}", "model.loss.adversarial_weight=0.01", f"hydra.run.dir={run_dir}",
+            "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
+            "trainer.benchmark=false", "+trainer.strategy.process_group_backend=gloo", "trainer.val_check_interval=2",
+            "trainer.limit_val_batches=2", "callbacks.last.every_n_train_steps=2", "final_validation=false",
+            "+callbacks.dump._target_=test_ddp.DumpWeights"]
+    out = _train_py(*args, "trainer.max_steps=2", cwd=tmp_path)
+    assert "GLOBAL_RANK: 1, MEMBER: 2/2" in out
+    last = run_dir / "checkpoints" / "last.ckpt"
+    first = torch.load(last, map_location="cpu", weights_only=True)
+    assert first["global_step"] == 2
+    out = _train_py(*args, "trainer.max_steps=4", "ckpt_path=last", cwd=tmp_path)
+    assert "Restoring states from the checkpoint" in out or "Restored all states" in out, out[-3000:]
+    second = torch.load(last, map_location="cpu", weights_only=True)
+    assert second["global_step"] == 4  # continued from step 2 (student steps; critic steps do not count)
+
+    state, state0 = second["state_dict"], first["state_dict"]
+    teacher = torch.load(teacher_ckpt, map_location="cpu", weights_only=True)["state_dict"]
+    for k, v in teacher.items():  # the teacher stayed frozen
+        assert torch.equal(state["teacher." + k[len("net."):]], v), k
+    critic = [k for k in state if k.startswith("critic.") and k.endswith("original")]
+    assert critic and any(not torch.equal(state[k], state0[k]) for k in critic)  # the critic stepped after the resume
+    assert any(not torch.equal(state[k], state0[k]) for k in state if k.startswith("net."))
+    ranks = [torch.load(run_dir / f"weights_rank{r}.pt", weights_only=True) for r in range(2)]
+    for k, v in ranks[0].items():  # DDP kept the ranks in step: student, adapters and critic alike
+        assert torch.allclose(v, ranks[1][k], atol=1e-6), k
+
+    acc = EventAccumulator(str(run_dir / "tb"), size_guidance={"scalars": 0})
+    acc.Reload()
+    losses = [e.value for tag in ("train/loss", "train/critic_loss") for e in acc.Scalars(tag)]
+    assert losses and all(torch.isfinite(torch.tensor(losses)))
+    assert {e.step for e in acc.Scalars("train/loss")} >= {1, 3}  # steps of both runs

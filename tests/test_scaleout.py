@@ -163,6 +163,7 @@ def test_slurm_ddp_preset_makes_the_expected_sbatch_script(tmp_path, monkeypatch
                       return_hydra_config=True)
     params = OmegaConf.to_container(cfg.hydra.launcher, resolve=True)
     assert params["nodes"] == 2 and params["tasks_per_node"] == params["gpus_per_node"] == 8
+    assert params["max_num_timeout"] == 3  # requeued after a timeout; the job resumes its last.ckpt
     assert cfg.trainer.strategy.start_method == "spawn" and cfg.trainer.devices == -1
 
     fake = tmp_path / "bin"

@@ -31,7 +31,9 @@ Aggregation (:class:`MetricAccumulator`): per-frame values; the first ``warmup``
 a reset (start of a sequence or window, camera cut) are excluded where history matters (a
 recurrent network has no history yet); a sequence's value is the mean over its kept frames;
 the overall value is the mean over sequences (each sequence weighs the same, whatever its
-length). NaN values (tPSNR on a first frame) are skipped in means.
+length). NaN values (tPSNR on a first frame) are skipped in means. Under DDP each process sends
+its per-sequence sums and counts (:meth:`MetricAccumulator.sequence_sums`) and every process
+averages them the same way (:func:`combine_sequence_sums`).
 """
 
 from __future__ import annotations
@@ -391,6 +393,38 @@ class MetricAccumulator:
         """Overall ``{metric: mean over sequences of the per-sequence means}``."""
         seqs = self.per_sequence()
         return {m: _nanmean(v[m] for v in seqs.values()) for m in self.metrics}
+
+    def sequence_sums(self) -> dict[str, dict[str, tuple[float, int]]]:
+        """``{sequence: {metric: (sum, count)}}`` over kept, non-NaN frames: what a process sends
+        to the others under DDP (picklable); :func:`combine_sequence_sums` averages it."""
+        result: dict[str, dict[str, tuple[float, int]]] = {}
+        for name, state in self._seqs.items():
+            kept = [r for r in state.rows if not r["warmup"]]
+            if not kept:
+                continue
+            sums = {}
+            for m in self.metrics:
+                vals = [r[m] for r in kept if r.get(m) is not None and not math.isnan(r[m])]
+                sums[m] = (float(sum(vals)), len(vals))
+            result[name] = sums
+        return result
+
+
+def combine_sequence_sums(parts: Iterable[dict[str, dict[str, tuple[float, int]]]],
+                          metrics: Sequence[str]) -> dict[str, float]:
+    """``{metric: mean over sequences of (sum / count)}`` from the :meth:`MetricAccumulator.sequence_sums`
+    of several processes. A sequence found in several parts counts once (the first part's), so a
+    sequence that a process re-ran as padding is not counted twice; the overall mean is taken over
+    the sequences in name order, the same whatever the number of processes."""
+    merged: dict[str, dict[str, tuple[float, int]]] = {}
+    for part in parts:
+        for name, sums in part.items():
+            merged.setdefault(name, sums)
+    result = {}
+    for m in metrics:
+        means = [merged[n][m][0] / merged[n][m][1] for n in sorted(merged) if merged[n][m][1] > 0]
+        result[m] = float(sum(means) / len(means)) if means else float("nan")
+    return result
 
     def __len__(self) -> int:
         return sum(len(s.rows) for s in self._seqs.values())

@@ -43,6 +43,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
+from denoiser.atomic import remove_stale_temporaries
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, ExrError
 from denoiser.runner import RecurrentRunner
@@ -129,6 +130,8 @@ def run(cfg: DictConfig) -> dict:
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     device = torch.device(cfg.get("device") or "cpu")
+    for stale in remove_stale_temporaries(out_dir):  # frames whose write was killed
+        log.warning("removed %s (a frame write that was killed)", stale)
 
     net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
     layout = instantiate(cfg.layout)

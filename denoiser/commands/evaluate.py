@@ -41,7 +41,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from denoiser.atomic import atomic_write_text
+from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.baselines import NetworkMethod
 from denoiser.checkpoint import checkpoint_paths, load_denoiser
 from denoiser.data.evalset import open_test_split
@@ -99,6 +99,8 @@ def run(cfg: DictConfig) -> dict:
         raise ConfigError(f"metrics: unknown {unknown}; known: {list(METRICS)}")
     threads = set_threads(cfg.get("threads"))
     out_dir = Path(cfg.out_dir)
+    for stale in remove_stale_temporaries(out_dir, partial_dirs=".eval-*.partial"):  # left by a killed run
+        log.warning("removed %s (left by an evaluation that was killed)", stale)
     _, sources, dataset = open_test_split(cfg.data, cfg.split, cfg.get("sequences"))
     methods = build_methods(cfg, cfg.get("device", "cpu"))
     max_frames = cfg.get("max_frames")

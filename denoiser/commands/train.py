@@ -15,6 +15,7 @@ composed config). See docs/training.md.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -31,11 +32,23 @@ from denoiser.errors import ConfigError
 FINAL_PREFIX = "final/"
 
 
+def in_submitit_job() -> bool:
+    """True inside a job started by submitit (SLURM, or its local executor): ``SUBMITIT_EXECUTOR`` is set."""
+    return bool(os.environ.get("SUBMITIT_EXECUTOR"))
+
+
 def resolve_ckpt_path(ckpt_path: str | None, output_dir: str) -> str | None:
-    """``None`` (fresh start), ``last`` (``<output_dir>/checkpoints/last.ckpt``) or an existing file."""
+    """``None`` (fresh start; in a submitit job the same as ``auto``), ``last``
+    (``<output_dir>/checkpoints/last.ckpt``, which must exist), ``auto`` (that file when it
+    exists, else a fresh start) or an existing file."""
     if ckpt_path in (None, "", "null"):
-        return None
-    path = Path(output_dir) / "checkpoints" / "last.ckpt" if ckpt_path == "last" else Path(ckpt_path)
+        if not in_submitit_job():
+            return None
+        ckpt_path = "auto"  # a requeued SLURM job (preemption, timeout) continues where it stopped
+    last = Path(output_dir) / "checkpoints" / "last.ckpt"
+    if ckpt_path == "auto":
+        return str(last) if last.is_file() else None
+    path = last if ckpt_path == "last" else Path(ckpt_path)
     if not path.is_file():
         hint = " (resume a run with hydra.run.dir=<its run dir> ckpt_path=last)" if ckpt_path == "last" else ""
         raise ConfigError(f"ckpt_path={ckpt_path}: {path} does not exist{hint}")
@@ -66,12 +79,17 @@ def train(cfg: DictConfig) -> dict[str, float]:
     import lightning.pytorch as pl
     import torch
 
+    from denoiser.atomic import remove_stale_temporaries
     from denoiser.checkpoint import resume_weights_only
 
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     pl.seed_everything(int(cfg.seed), workers=True)
+    for stale in remove_stale_temporaries(Path(cfg.output_dir) / "checkpoints"):  # left by a killed write
+        print(f"removed {stale} (a checkpoint write that was killed)", file=sys.stderr)
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), cfg.output_dir)
+    if ckpt_path:
+        print(f"resuming from {ckpt_path}", file=sys.stderr)
     weights_only = resume_weights_only(ckpt_path, trust=bool(cfg.get("trust_checkpoint")))  # refuses pickled code
     datamodule = instantiate_config(cfg.data, "data")
     if hasattr(datamodule, "setup"):  # index and validate the data before any log or checkpoint is written

@@ -10,6 +10,8 @@ live at ``<root>/<split>/<sequence>/`` in the configured layout. Loaders:
   ``reference`` (zeros when unlabeled) and ``labeled: bool[B]`` says which are real;
 * ``val_dataloader`` / ``test_dataloader``: :class:`~denoiser.data.dataset.SequenceDataset`,
   whole frames in order, batch size 1; ``val_window: null`` gives one whole sequence per batch.
+  Under DDP each rank gets whole sequences (all their pieces, in order):
+  :class:`~denoiser.data.sampler.SequenceShardSampler`, which Lightning leaves in place.
 
 Streaming: datasets hold only the index; ``num_workers``, ``persistent_workers`` and
 ``pin_memory`` go to every DataLoader; ``cache_dir`` (or null) enables the decoded-frame cache;
@@ -32,7 +34,7 @@ from denoiser.data.collate import collate_items
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
 from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
-from denoiser.data.sampler import MixedSampler
+from denoiser.data.sampler import MixedSampler, SequenceShardSampler
 from denoiser.errors import ConfigError
 
 
@@ -169,11 +171,14 @@ class SequenceDataModule(L.LightningDataModule):
         return self._loader(self.train_set, self.batch_size, shuffle=True)
 
     def _sequence_loader(self, attr: str, stage: str) -> DataLoader | list:
-        """Loader of whole sequences (or their pieces, in order) of the split held in ``attr``."""
+        """Loader of whole sequences (or their pieces, in order) of the split held in ``attr``; under
+        DDP each rank gets whole sequences (:class:`SequenceShardSampler`)."""
         if getattr(self, attr) is None:
             self.setup(stage)
         dataset = getattr(self, attr)
-        return [] if dataset is None else self._loader(dataset, 1)
+        if dataset is None:
+            return []
+        return self._loader(dataset, 1, sampler=SequenceShardSampler.for_current_process(dataset.pieces))
 
     def val_dataloader(self) -> DataLoader:
         return self._sequence_loader("val_set", "validate")

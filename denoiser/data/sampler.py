@@ -1,4 +1,6 @@
-"""Sampler mixing labeled and unlabeled training windows in a fixed proportion."""
+"""Samplers: labeled and unlabeled training windows mixed in a fixed proportion
+(:class:`MixedSampler`); validation/test sequences sharded whole over DDP ranks
+(:class:`SequenceShardSampler`)."""
 
 from __future__ import annotations
 
@@ -6,6 +8,7 @@ from collections.abc import Iterator
 
 import torch
 from torch.utils.data import Sampler
+from torch.utils.data.distributed import DistributedSampler
 
 from denoiser.errors import ConfigError
 
@@ -43,3 +46,60 @@ class MixedSampler(Sampler[int]):
         order = torch.cat([labeled, unlabeled + self.n_labeled])
         order = order[torch.randperm(len(order), generator=g)]
         return iter(order.tolist())
+
+
+class SequenceShardSampler(DistributedSampler):
+    """Validation/test items of :class:`~denoiser.data.dataset.SequenceDataset` for one DDP rank,
+    sharded by *whole sequences*: every piece (``val_window``) of a sequence goes to the same rank,
+    in order, so the recurrent state carried from piece to piece and tPSNR's frame-to-frame
+    contiguity hold under DDP.
+
+    Sequences are dealt out longest first to the rank with the fewest frames so far (ties: the
+    lower rank), then each rank visits its pieces in dataset order. A rank left without a
+    sequence (more ranks than sequences) re-runs the shortest one: its metrics are identical to
+    the first copy's and :func:`denoiser.lit.common.gather_sequence_sums` keeps one copy per
+    sequence name, so nothing is counted twice. Ranks may hold different numbers of batches;
+    nothing in ``validation_step`` communicates, only the epoch end does (once per rank).
+
+    A subclass of ``DistributedSampler`` so Lightning leaves it in place (it replaces only plain
+    samplers when ``use_distributed_sampler`` is on, Lightning 2.x ``_requires_distributed_sampler``).
+    """
+
+    def __init__(self, pieces: list[tuple[int, int, int]], num_replicas: int = 1, rank: int = 0):
+        if not 0 <= rank < num_replicas:
+            raise ValueError(f"rank {rank} outside [0, {num_replicas})")
+        self.num_replicas = int(num_replicas)
+        self.rank = int(rank)
+        self.epoch = 0
+        self.shuffle = False
+        self.drop_last = False
+        self.seed = 0
+        frames: dict[int, int] = {}
+        for seq, _, length in pieces:
+            frames[seq] = frames.get(seq, 0) + length
+        load = [0] * self.num_replicas
+        owner: dict[int, int] = {}
+        for seq in sorted(frames, key=lambda s: (-frames[s], s)):
+            r = min(range(self.num_replicas), key=lambda i: (load[i], i))
+            owner[seq] = r
+            load[r] += frames[seq]
+        mine = {s for s, r in owner.items() if r == self.rank}
+        if not mine and frames:  # an idle rank would skip the epoch-end gather: re-run the shortest sequence
+            mine = {min(frames, key=lambda s: (frames[s], s))}
+        self.indices = [i for i, (seq, _, _) in enumerate(pieces) if seq in mine]
+        self.num_samples = self.total_size = len(self.indices)
+
+    @classmethod
+    def for_current_process(cls, pieces: list[tuple[int, int, int]]) -> SequenceShardSampler:
+        """The shard of this process (rank and world size of ``torch.distributed``; 1 process without it)."""
+        import torch.distributed as dist
+
+        if dist.is_available() and dist.is_initialized():
+            return cls(pieces, dist.get_world_size(), dist.get_rank())
+        return cls(pieces)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)

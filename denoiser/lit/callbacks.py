@@ -11,7 +11,8 @@ import lightning.pytorch as pl
 
 
 class FinalCheckpoint(pl.Callback):
-    """Write ``<dirpath>/<filename>`` when training ends (``max_steps``, ``max_time``, Ctrl-C).
+    """Write ``<dirpath>/<filename>`` when training ends (``max_steps``, ``max_time``, Ctrl-C, and
+    in a one-process job a SLURM/submitit preemption or timeout).
 
     Lightning's ModelCheckpoint saves only at its intervals, so a run stopped by ``max_time``
     between two intervals would lose its last steps. The file is written under a temporary
@@ -34,7 +35,10 @@ class FinalCheckpoint(pl.Callback):
         self._save(trainer)
 
     def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
-        if isinstance(exception, KeyboardInterrupt):
+        # Ctrl-C; or submitit's preemption/timeout handler (SIGUSR2), which requeues the job and exits
+        # (SystemExit) in rank 0 only: with several ranks the save (a collective) could hang, so there
+        # the periodic last.ckpt is what the requeued job resumes from.
+        if isinstance(exception, KeyboardInterrupt) or (isinstance(exception, SystemExit) and trainer.world_size == 1):
             self._save(trainer)
 
 

@@ -5,7 +5,8 @@
   attribute ``net``; the config is saved in the hyperparameters under ``net``, see
   docs/contracts.md), runs validation over whole sequences with
   :class:`denoiser.metrics.MetricAccumulator` (PSNR, SSIM, tPSNR, SMAPE; the first
-  ``warmup_frames`` after a reset excluded; mean per sequence, then over sequences), logs
+  ``warmup_frames`` after a reset excluded; mean per sequence, then over sequences; under DDP
+  each rank validates whole sequences and the per-sequence sums are gathered), logs
   image panels (noisy | output | reference, tonemapped) to TensorBoard every
   ``image_interval`` training steps and once per validation, and builds optimizers and
   schedulers from ``_partial_: true`` configs.
@@ -23,7 +24,7 @@ from hydra.utils import instantiate
 
 from denoiser.buffers import NETWORK_INPUTS
 from denoiser.configs import build_net, plain
-from denoiser.metrics import MetricAccumulator, tonemap
+from denoiser.metrics import MetricAccumulator, combine_sequence_sums, tonemap
 
 #: Metrics computed in validation (names of denoiser.metrics.METRICS); logged as ``val/<name>``.
 VAL_METRICS = ("psnr", "ssim", "tpsnr", "smape")
@@ -44,6 +45,18 @@ def labeled_mask(batch: Mapping[str, Any]) -> torch.Tensor:
     if "labeled" in batch:
         return torch.as_tensor(batch["labeled"], device=device).bool().reshape(b)
     return torch.ones(b, dtype=torch.bool, device=device)
+
+
+def gather_objects(obj: Any) -> list[Any]:
+    """``[obj of rank 0, obj of rank 1, ...]`` (``torch.distributed.all_gather_object``); ``[obj]``
+    in a single process. A collective: every rank must call it."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return [obj]
+    parts: list[Any] = [None] * dist.get_world_size()
+    dist.all_gather_object(parts, obj)
+    return parts
 
 
 def image_panel(*images: torch.Tensor) -> torch.Tensor:
@@ -170,12 +183,17 @@ class DenoiserModule(pl.LightningModule):
             self.log_panel("val/panel", batch["color"][0, t], outputs[0, t], reference[0, t])
 
     def on_validation_epoch_end(self) -> None:
-        if len(self.val_metrics) == 0:
+        """Metrics over all processes' sequences (each process validated whole sequences, see
+        :class:`denoiser.data.sampler.SequenceShardSampler`): per-sequence sums and counts are
+        gathered, then averaged per sequence and over sequences, identically on every rank."""
+        parts = gather_objects((self.val_metrics.sequence_sums(), self.val_input_metrics.sequence_sums()))
+        if not any(out or inp for out, inp in parts):
             return
-        values = {f"val/{k}": v for k, v in self.val_metrics.compute().items()}
-        values.update({f"val/input_{k}": v for k, v in self.val_input_metrics.compute().items()})
+        values = {f"val/{k}": v for k, v in combine_sequence_sums([p[0] for p in parts], self.val_metrics.metrics).items()}
+        values.update({f"val/input_{k}": v for k, v in
+                       combine_sequence_sums([p[1] for p in parts], self.val_input_metrics.metrics).items()})
         values = {k: float(v) for k, v in values.items() if not math.isnan(v)}  # drop NaN (e.g. tPSNR on 1-frame sequences)
-        for k, v in values.items():
+        for k, v in values.items():  # the same values on every rank: sync_dist's mean leaves them unchanged
             self.log(k, v, prog_bar=k in ("val/psnr", "val/ssim"), sync_dist=True)
         if not getattr(self.trainer, "sanity_checking", False):
             self.validated_step = int(self.global_step)

@@ -21,9 +21,11 @@ is not computed, not logged and absent from :meth:`DistillationModule.loss_terms
   the student's outputs from the teacher's (both log-compressed, ``log1p(max(x, 0))``, frames
   flattened to ``[B*T, 3, H, W]``). The objective (``adversarial``: hinge or WGAN-GP) is a
   ``_target_`` config. The critic has its own optimizer (``critic_optimizer``) and takes
-  ``critic_steps`` steps per student step (manual optimization). Its steps do not advance
-  ``global_step``, which counts student steps only (so ``max_steps`` and resuming mean the
-  same as in supervised training).
+  ``critic_steps`` steps per student step (manual optimization). Its steps go through
+  Lightning's strategy and precision plugin (under ``16-mixed``: unscaled, skipped on
+  non-finite gradients) but do not advance ``global_step``, which counts student steps only
+  (so ``max_steps`` and resuming mean the same as in supervised training). ``grad_clip``
+  clips the student's gradients after unscaling (``on_before_optimizer_step``).
 
 ``param_transfer`` (a ``_target_`` config such as :class:`denoiser.transfer.L1ChannelTransfer`,
 or null) initializes the student from the teacher's weights before training.
@@ -49,6 +51,10 @@ from denoiser.losses import feature_loss, log_compress, masked_mean
 
 DEFAULT_LOSS = {"kd_weight": 1.0, "gt_weight": 1.0, "feature_weight": 0.0, "adversarial_weight": 0.0,
                 "kd": {"_target_": "denoiser.losses.DenoiseLoss"}, "gt": {"_target_": "denoiser.losses.DenoiseLoss"}}
+
+
+def _no_closure() -> None:
+    """The closure of a manual-optimization step: the backward pass already ran."""
 
 
 class DistillationModule(DenoiserModule):
@@ -165,8 +171,11 @@ class DistillationModule(DenoiserModule):
         for _ in range(self.critic_steps):
             loss = self.adversarial.critic_loss(self.critic, real, fake)
             optimizer.zero_grad()
-            self.manual_backward(loss)
-            optimizer.optimizer.step()  # raw step: does not advance global_step (student steps only)
+            self.manual_backward(loss)  # scaled by the precision plugin's GradScaler under 16-mixed
+            # Stepped through the strategy and its precision plugin (under 16-mixed: unscale, skip the
+            # step on non-finite gradients, update the scale), not through LightningOptimizer.step(),
+            # which would also count an optimizer step: global_step counts student steps only.
+            self.trainer.strategy.optimizer_step(optimizer.optimizer, closure=_no_closure, model=self)
             self.critic_updates += 1
         return loss.detach()
 
@@ -185,9 +194,7 @@ class DistillationModule(DenoiserModule):
         loss = torch.stack(list(terms.values())).sum()
         opt_student.zero_grad()
         self.manual_backward(loss)
-        if self.grad_clip > 0:
-            self.clip_gradients(opt_student, gradient_clip_val=self.grad_clip, gradient_clip_algorithm="norm")
-        opt_student.step()
+        opt_student.step()  # clipping: on_before_optimizer_step, after the precision plugin unscaled
         scheduler = self.lr_schedulers()
         if scheduler is not None and self.scheduler_interval == "step":
             scheduler.step()
@@ -197,6 +204,17 @@ class DistillationModule(DenoiserModule):
         target = batch.get("reference") if bool(labeled_mask(batch)[0]) else teacher
         self.maybe_log_train_panel(batch, student, target)
         return loss.detach()
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        """Clip the student's gradients (``grad_clip``; the critic is not clipped). Lightning calls
+        this inside the optimizer step, after the precision plugin has unscaled the gradients
+        (clipping before ``step()`` would clip the scaled gradients under 16-mixed)."""
+        if self.grad_clip > 0 and (self.critic is None or optimizer is self._student_optimizer()):
+            self.clip_gradients(optimizer, gradient_clip_val=self.grad_clip, gradient_clip_algorithm="norm")
+
+    def _student_optimizer(self):
+        optimizers = self.optimizers(use_pl_optimizer=False)
+        return optimizers[0] if isinstance(optimizers, list) else optimizers
 
     def on_train_epoch_end(self) -> None:
         scheduler = self.lr_schedulers()

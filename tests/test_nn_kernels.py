@@ -112,6 +112,7 @@ def test_backward_matches_autograd_reference():
         assert torch.allclose(a.double(), b, atol=1e-5)
 
 
+@pytest.mark.filterwarnings("ignore::torch.jit.TracerWarning")
 @pytest.mark.parametrize("scale", [None, 2.0])
 def test_traced_graph_is_a_few_convolutions(scale):
     """Traced, apply_kernels records the im2col-as-convolution form (no k*k taps), same numbers."""

@@ -5,7 +5,7 @@ hundreds, large motion; a reset at frame 2; errors relative to ``max(1, |value|)
 
 * f32: ``F32_RTOL`` = 1e-4 (measured with OpenVINO 2026.4 on an AVX512 CPU: 1.8e-6 on the
   output, 1.1e-5 on the color state; float32 rounding in another operator order);
-* bf16: ``BF16_RTOL`` = 0.03 on the output (measured: 5.8e-3 on the output, 1.3e-3 on the
+* bf16: ``BF16_RTOL`` = 0.03 on the output (measured: 6.5e-3 on the output, 1.2e-3 on the
   feature state; bfloat16 keeps 8 mantissa bits, 0.4 % per rounding; 5x margin). The
   kernel application keeps the output a convex combination of input pixels, so bf16 errors
   in the logits move weights, never the range.

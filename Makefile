@@ -3,7 +3,7 @@
 # multi-GB CUDA build), then run.
 VENV    ?= .venv
 PY      := $(VENV)/bin/python
-EXTRAS  ?= render,eval,export,scale,dev
+EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
 .PHONY: setup test demo lint clean-cache

@@ -1,10 +1,11 @@
 """Inference backends: how a network is prepared and stepped (PyTorch eager, channels-last,
-autocast, ``torch.compile``, ONNX Runtime; CUDA variants where a GPU is present).
+autocast, ``torch.compile``, ONNX Runtime, OpenVINO f32/bf16; CUDA variants where a GPU is present).
 
 A backend's ``prepare(net, example, threads)`` returns a :class:`Stepper`, whose
 ``step(frame, state, reset) -> (output, state)`` the recurrent runner
 (:mod:`denoiser.runner`) drives over a sequence. ``available()`` says why a backend cannot
-run here (None when it can). Backends are instantiated from ``conf/bench.yaml``'s ``backends``.
+run here (None when it can); ``dtype`` is the precision of its convolutions (``fp32``,
+``bf16``, ``fp16``) for the tables. Backends are instantiated from ``conf/bench.yaml``'s ``backends``.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ class TorchBackend:
         self.device = device
         self.channels_last = bool(channels_last)
         self.autocast = getattr(torch, autocast) if autocast else None
+        self.dtype = {"bfloat16": "bf16", "float16": "fp16"}.get(autocast or "", "fp32")  # of the convolutions
 
     def available(self) -> str | None:
         """None when usable here, else the reason it is skipped."""
@@ -91,7 +93,29 @@ class CompileBackend(TorchBackend):
         return torch.compile(net.step, mode=self.mode, dynamic=False)
 
 
-class OnnxRuntimeBackend:
+class _ExportedGraphBackend:
+    """A backend running the exported ONNX step graph (:mod:`denoiser.step_graph`): the export
+    happens once per network (untimed) into a temporary directory."""
+
+    label = "exported graph"
+    dtype = "fp32"
+    device = "cpu"
+
+    def _export(self, net) -> str:
+        from denoiser.step_graph import export_onnx
+
+        if not hasattr(self, "_exported"):
+            self._exported: dict[int, tuple] = {}
+            self._tmp = tempfile.TemporaryDirectory(prefix="denoiser-graph-")
+        key = id(net)
+        if key not in self._exported:
+            path = Path(self._tmp.name) / f"net{len(self._exported)}.onnx"
+            export_onnx(net, path)
+            self._exported[key] = (net, str(path))  # the net is kept: its id stays unique
+        return self._exported[key][1]
+
+
+class OnnxRuntimeBackend(_ExportedGraphBackend):
     """The exported ONNX step graph (:mod:`denoiser.step_graph`) in ONNX Runtime.
 
     ``provider``: an ONNX Runtime execution provider (``CPUExecutionProvider``,
@@ -102,26 +126,62 @@ class OnnxRuntimeBackend:
         self.label = label
         self.provider = provider
         self.device = "cuda" if provider.startswith("CUDA") else "cpu"
-        self._exported: dict[int, str] = {}
-        self._tmp = tempfile.TemporaryDirectory(prefix="denoiser-bench-onnx-")
 
     def available(self) -> str | None:
         try:
+            import onnx  # noqa: F401 - the export needs it
             import onnxruntime as ort
-        except ImportError:
-            return "onnxruntime is not installed"
+        except ImportError as exc:
+            return f"{exc.name} is not installed"
         if self.provider not in ort.get_available_providers():
             return f"{self.provider} not available"
         return None
 
     def prepare(self, net, example, threads: int) -> Stepper:
-        from denoiser.step_graph import OnnxStep, export_onnx
+        from denoiser.step_graph import OnnxStep
 
-        key = id(net)
-        if key not in self._exported:
-            path = Path(self._tmp.name) / f"net{len(self._exported)}.onnx"
-            export_onnx(net, path)
-            self._exported[key] = str(path)
-        runner = OnnxStep(self._exported[key], threads, providers=(self.provider,))
+        runner = OnnxStep(self._export(net), threads, providers=(self.provider,))
+        return Stepper(runner.step)
 
+
+class OpenVinoBackend(_ExportedGraphBackend):
+    """The exported ONNX step graph compiled by OpenVINO (:class:`~denoiser.step_graph.OpenVinoStep`).
+
+    Args:
+        label: backend name in tables.
+        precision: ``f32`` or ``bf16`` (OpenVINO's ``INFERENCE_PRECISION_HINT``).
+        device: OpenVINO device (``CPU``).
+
+    The export happens once per network and the compilation once per frame size (in the
+    warm-up step, untimed); the recurrent state is carried as graph inputs and outputs.
+    """
+
+    def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU"):
+        from denoiser.step_graph import OPENVINO_PRECISIONS
+
+        if precision not in OPENVINO_PRECISIONS:
+            raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
+        self.label = label
+        self.precision = precision
+        self.dtype = {"f32": "fp32"}.get(precision, precision)
+        self.ov_device = device
+        self.device = device.lower()
+
+    def available(self) -> str | None:
+        try:
+            import onnx  # noqa: F401 - the export needs it
+            import openvino as ov
+        except ImportError as exc:
+            return f"{exc.name} is not installed"
+        core = ov.Core()
+        if self.ov_device not in core.available_devices:
+            return f"OpenVINO device {self.ov_device} not available"
+        if self.precision == "bf16" and "BF16" not in core.get_property(self.ov_device, "OPTIMIZATION_CAPABILITIES"):
+            return f"{self.ov_device} has no bf16 support (OpenVINO would run f32)"
+        return None
+
+    def prepare(self, net, example, threads: int) -> Stepper:
+        from denoiser.step_graph import OpenVinoStep
+
+        runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device)
         return Stepper(runner.step)

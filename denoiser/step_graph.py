@@ -1,7 +1,8 @@
 """A denoiser's recurrent step as an ONNX graph (opset 17), and that graph run by ONNX Runtime.
 
-Used by ``denoiser-export`` (:mod:`denoiser.commands.export`) and by the ONNX Runtime backend
-of the benchmark (:mod:`denoiser.backends`). The graph is one :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>` with the recurrent
+Used by ``denoiser-export`` (:mod:`denoiser.commands.export`), by the ONNX Runtime and OpenVINO
+backends of the benchmark (:mod:`denoiser.backends`) and by ``denoiser-denoise``
+(:class:`OnnxStep`, :class:`OpenVinoStep`). The graph is one :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>` with the recurrent
 state as explicit inputs and outputs (see ``docs/export.md``):
 
 =================================  ======================  =====================================
@@ -152,17 +153,88 @@ class OnnxStep:
 
         ``state=None`` (or ``reset=True``) starts a sequence: zero state and the graph's reset
         input set (the runner's contract, :mod:`denoiser.runner`)."""
-        feed = {k: np.ascontiguousarray(_numpy(frame[k]), dtype=np.float32) for k in FRAME_INPUTS}
-        b, _, h, w = feed["color"].shape
-        if self.keys:
-            if state is None:
-                state = {k: np.zeros((b, c, h, w), np.float32) for k, c in self.channels.items()}
-                reset = True
-            feed["reset"] = np.full((b,), bool(reset))
-            feed.update({f"state_{k}": state[k] for k in self.keys})
+        feed = graph_feed(frame, state, reset, self.keys, self.channels)
         results = self.session.run(None, feed)
         named = dict(zip(self.outputs, results))
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
+
+
+#: OpenVINO ``INFERENCE_PRECISION_HINT`` per ``precision`` of :class:`OpenVinoStep`
+OPENVINO_PRECISIONS = {"f32": "f32", "bf16": "bf16"}
+
+
+class OpenVinoStep:
+    """Runs an exported step graph with OpenVINO, carrying the state like :class:`OnnxStep`.
+
+    The ONNX model is read once; it is reshaped to static ``[B, C, H, W]`` and compiled once
+    per frame size (cached: a sequence compiles once). ``precision``: ``f32`` or ``bf16``
+    (OpenVINO's ``INFERENCE_PRECISION_HINT``; bf16 runs the convolutions, and whatever
+    OpenVINO decides with them, in bfloat16 where the CPU has AVX512-BF16/AMX). ``threads``:
+    ``INFERENCE_NUM_THREADS`` (None = OpenVINO's default). ``device``: an OpenVINO device name.
+    """
+
+    def __init__(self, path: str | os.PathLike, threads: int | None = None, precision: str = "f32",
+                 device: str = "CPU"):
+        import openvino as ov
+
+        if precision not in OPENVINO_PRECISIONS:
+            raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
+        self.core = ov.Core()
+        self.model = self.core.read_model(str(path))
+        self.device = device
+        self.config = {"INFERENCE_PRECISION_HINT": OPENVINO_PRECISIONS[precision], "PERFORMANCE_HINT": "LATENCY"}
+        if threads:
+            self.config["INFERENCE_NUM_THREADS"] = int(threads)
+        self.inputs = [i.get_any_name() for i in self.model.inputs]
+        self.outputs = [o.get_any_name() for o in self.model.outputs]
+        self.keys = [n[len("state_"):] for n in self.inputs if n.startswith("state_")]
+        self.channels = {i.get_any_name()[len("state_"):]: i.get_partial_shape()[1].get_length()
+                         for i in self.model.inputs if i.get_any_name().startswith("state_")}
+        self._compiled: dict[tuple[int, ...], tuple] = {}
+
+    def compiled(self, batch: int, height: int, width: int):
+        """``(compiled model, infer request)`` for frames of ``[batch, *, height, width]`` (cached)."""
+        key = (batch, height, width)
+        if key not in self._compiled:
+            model = self.model.clone()
+            shapes = {}
+            for i in model.inputs:
+                shape = i.get_partial_shape()
+                if len(shape) == 4:
+                    shapes[i.get_any_name()] = [batch, shape[1].get_length(), height, width]
+            model.reshape(shapes)
+            compiled = self.core.compile_model(model, self.device, self.config)
+            self._compiled[key] = (compiled, compiled.create_infer_request())
+        return self._compiled[key]
+
+    def precision(self, batch: int = 1, height: int = 16, width: int = 16) -> str:
+        """The inference precision OpenVINO chose (``f32``, ``bf16``) for that size."""
+        compiled, _ = self.compiled(batch, height, width)
+        return compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name()
+
+    def step(self, frame: dict, state: dict | None, reset: bool = False) -> tuple[np.ndarray, dict]:
+        """Same contract as :meth:`OnnxStep.step` (arrays out; the state is copied out of
+        OpenVINO's buffers, so the next call may overwrite them)."""
+        feed = graph_feed(frame, state, reset, self.keys, self.channels)
+        b, _, h, w = feed["color"].shape
+        _, request = self.compiled(b, h, w)
+        request.infer(feed)
+        named = {name: np.array(request.get_tensor(name).data, copy=True) for name in self.outputs}
+        return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
+
+
+def graph_feed(frame: dict, state: dict | None, reset: bool, keys: list[str], channels: dict[str, int]) -> dict:
+    """The step graph's inputs as float32 arrays: the frame, and with recurrence ``reset`` and
+    the state (zeros and ``reset=True`` when ``state`` is None)."""
+    feed = {k: np.ascontiguousarray(_numpy(frame[k]), dtype=np.float32) for k in FRAME_INPUTS}
+    b, _, h, w = feed["color"].shape
+    if keys:
+        if state is None:
+            state = {k: np.zeros((b, c, h, w), np.float32) for k, c in channels.items()}
+            reset = True
+        feed["reset"] = np.full((b,), bool(reset))
+        feed.update({f"state_{k}": np.ascontiguousarray(state[k], dtype=np.float32) for k in keys})
+    return feed
 
 
 def _numpy(x) -> np.ndarray:

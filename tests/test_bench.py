@@ -58,6 +58,8 @@ def test_bench_end_to_end(setup, tmp_path):
     table = read_csv(out / "bench.csv")
     assert len(table) == len(rows)
     timed = {(r["method"], r["backend"], r["height"]): r for r in table if r["status"] == "ok"}
+    assert timed[("student", "eager fp32", 16)]["dtype"] == "fp32"
+    assert "avx512_bf16" in (out / "report.md").read_text()
     for size in (16, 24):
         for key in (("student", "eager fp32", size), ("student", "onnxruntime", size), ("OIDN-fast", "OIDN (pyoidn)", size)):
             assert timed[key]["ms_median"] > 0 and timed[key]["repeats"] == 2, key
@@ -139,3 +141,28 @@ def test_default_student_for_the_ratio():
     assert default_student(["teacher", "student_distilled", "student_no_kd"]) == "student_distilled"
     assert default_student(["teacher", "tiny"]) == "teacher"
     assert default_student([]) is None
+
+
+def test_cpu_isa_flags():
+    from denoiser.commands.bench import cpu_isa
+
+    info = "processor : 0\nflags\t\t: fpu sse avx2 avx512f avx512_bf16 amx_tile\nbugs : x\n"
+    flags = cpu_isa(info)
+    assert flags["avx512_bf16"] and flags["amx_tile"] and flags["avx2"] and not flags["amx_bf16"]
+    assert not any(cpu_isa("").values())
+
+
+@pytest.mark.slow
+def test_bench_openvino_rows(setup, tmp_path):
+    """The OpenVINO backends of conf/bench.yaml time the network (or say why they are skipped)."""
+    pytest.importorskip("openvino", reason="openvino is not installed")
+    from denoiser.commands.bench import run as bench
+
+    root, ckpt = setup
+    rows = bench(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
+                                   "sizes=[[16,24]]", "repeats=2", "warmup=1", "use_backends=[openvino_f32,openvino_bf16]",
+                                   "baselines={}", f"out_dir={tmp_path}"]))
+    by = {r["backend"]: r for r in rows}
+    assert by["openvino f32"]["status"] == "ok" and by["openvino f32"]["ms_median"] > 0
+    assert by["openvino f32"]["dtype"] == "fp32" and by["openvino bf16"]["dtype"] == "bf16"
+    assert by["openvino bf16"]["status"] == "ok" or by["openvino bf16"]["status"].startswith("skipped: ")

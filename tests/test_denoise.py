@@ -155,3 +155,43 @@ def test_blender_layout(setup, tmp_path):
         f = out / f"{t + 1:04d}.exr"
         assert "ViewLayer.Vector.W" in list_channels(f)
         assert np.allclose(denoised(f), expected[t].numpy(), atol=1e-5), t
+
+
+def test_backend_choice_and_errors():
+    from denoiser.commands.denoise import make_backend, openvino_installed
+
+    cpu = torch.device("cpu")
+    name, backend = make_backend(None, "f32", cpu)
+    assert name == ("openvino" if openvino_installed() else "eager") and backend.dtype == "fp32"
+    if torch.cuda.is_available():
+        assert make_backend(None, "f32", torch.device("cuda"))[0] == "eager"
+    else:
+        with pytest.raises(UserError, match="backend=eager precision=f32: no CUDA device"):
+            make_backend(None, "f32", torch.device("cuda"))
+    assert make_backend("eager", "bf16", cpu)[1].dtype == "bf16"
+    with pytest.raises(UserError, match="backend: 'tensorrt' is not one of"):
+        make_backend("tensorrt", "f32", cpu)
+    with pytest.raises(UserError, match="precision: 'fp8'"):
+        make_backend("eager", "fp8", cpu)
+    with pytest.raises(UserError, match="onnxruntime runs precision=f32 only"):
+        make_backend("onnxruntime", "bf16", cpu)
+
+
+@pytest.mark.parametrize("backend, precision, rtol", [("onnxruntime", "f32", 1e-4), ("openvino", "f32", 1e-4),
+                                                      ("openvino", "bf16", 0.03)])
+def test_graph_backends_match_eager(setup, tmp_path, backend, precision, rtol):
+    """The exported graph in ONNX Runtime / OpenVINO gives eager's frames (tolerances: tests/test_openvino.py)."""
+    from denoiser.commands.denoise import make_backend
+
+    try:
+        make_backend(backend, precision, torch.device("cpu"))
+    except UserError as exc:
+        pytest.skip(str(exc))
+    _, seq, ckpt = setup
+    denoise([f"ckpt={ckpt}", f"input={seq}", f"output={tmp_path / 'eager'}", "backend=eager", "write=rgb"])
+    denoise([f"ckpt={ckpt}", f"input={seq}", f"output={tmp_path / 'graph'}", f"backend={backend}",
+             f"precision={precision}", "write=rgb"])
+    for t in range(5):
+        a = np.stack([read_channels(tmp_path / "eager" / f"frame_{t:04d}.exr")[c] for c in "RGB"])
+        b = np.stack([read_channels(tmp_path / "graph" / f"frame_{t:04d}.exr")[c] for c in "RGB"])
+        assert np.all(np.abs(a - b) <= rtol * np.maximum(1.0, np.abs(a))), (t, float(np.abs(a - b).max()))

@@ -69,6 +69,15 @@ def test_state_carries_history(tiny):
     assert np.allclose(after_reset, fresh, atol=1e-6)
 
 
+def test_graph_is_lean(tiny):
+    """Kernel application as convolutions, not k*k taps: the tiny graph had 4446 nodes with the taps
+    (opset 17, torch 2.13), 807 as convolutions."""
+    _, _, _, path, _ = tiny
+    nodes = onnx.load(str(path)).graph.node
+    assert len(nodes) < 1200, len(nodes)
+    assert sum(n.op_type == "Conv" for n in nodes) >= 9  # 3 per pyramid level
+
+
 def test_export_command(tiny):
     *_, out, proc = tiny
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -8,7 +8,7 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from denoiser.nn.kernels import apply_kernels, apply_kernels_unfold, kernel_weights
+from denoiser.nn.kernels import apply_kernels, apply_kernels_graph, apply_kernels_unfold, kernel_weights
 
 
 def reference_apply(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
@@ -44,6 +44,7 @@ def test_fast_matches_plain_loop(h, w, k, c, magnitude, logit_scale, seed):
     ref = reference_apply(x, logits)
     assert_close_rel(apply_kernels(x, logits), ref)
     assert_close_rel(apply_kernels_unfold(x, logits), ref)
+    assert_close_rel(apply_kernels_graph(x, logits), ref)
 
 
 def test_tap_order_is_row_major_offsets():
@@ -109,3 +110,16 @@ def test_backward_matches_autograd_reference():
     ref = torch.autograd.grad(apply_kernels_unfold(x, logits), (x, logits), grad)
     for a, b in zip(fast, ref):
         assert torch.allclose(a.double(), b, atol=1e-5)
+
+
+@pytest.mark.filterwarnings("ignore::torch.jit.TracerWarning")
+@pytest.mark.parametrize("scale", [None, 2.0])
+def test_traced_graph_is_a_few_convolutions(scale):
+    """Traced, apply_kernels records the im2col-as-convolution form (no k*k taps), same numbers."""
+    g = torch.Generator().manual_seed(3)
+    x, logits = torch.rand(1, 4, 9, 11, generator=g) * 100, torch.randn(1, 25, 9, 11, generator=g) * 5
+    with torch.no_grad():
+        traced = torch.jit.trace(lambda a, b: apply_kernels(a, b, scale), (x, logits))
+    kinds = [n.kind() for n in traced.graph.nodes()]
+    assert kinds.count("aten::_convolution") == 3 and kinds.count("aten::addcmul_") == 0
+    assert_close_rel(traced(x, logits), reference_apply(x, kernel_weights(logits, scale).log()), tol=1e-5)

@@ -10,7 +10,7 @@ For every method (OIDN fast/balanced/high from ``baselines``, denoiser-eval's li
 nothing to time; each checkpoint of ``ckpt`` and each untrained config variant of
 ``variants``), every size of ``sizes`` ``[H, W]`` and, for networks, every backend of
 ``use_backends`` (Hydra ``_target_`` entries of ``backends``: PyTorch eager fp32, channels_last,
-bfloat16 autocast, ``torch.compile``, ONNX Runtime; and CUDA backends that run only where a GPU
+bfloat16 autocast, ``torch.compile``, ONNX Runtime, OpenVINO f32 and bf16; and CUDA backends that run only where a GPU
 is present), the benchmark measures:
 
 * the **median ms per frame** of ``repeats`` recurrent steps after ``warmup`` steps (state
@@ -173,6 +173,7 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
                     continue
                 reason = backend.available()
                 base = {"threads": threads if backend.device == "cpu" else "", "gflop": gflop,
+                        "dtype": getattr(backend, "dtype", ""),
                         "params": net.num_parameters(), "kind": kind}
                 if reason:
                     rows.append(bench_row(label, backend.label, backend.device, size, None, status=f"skipped: {reason}",
@@ -205,7 +206,7 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
 
 # ----------------------------------------------------------------------------- report
 
-COLUMNS = ["method", "backend", "device", "height", "width", "ms_median", "ms_min", "repeats", "gflop", "params",
+COLUMNS = ["method", "backend", "dtype", "device", "height", "width", "ms_median", "ms_min", "repeats", "gflop", "params",
            "peak_mb", "gflops_per_s", "peak_fraction", "psnr", "kind", "threads", "status"]
 FORMATS = {"ms_median": ".1f", "ms_min": ".1f", "gflop": ".2f", "peak_mb": ".0f", "gflops_per_s": ".1f",
            "peak_fraction": ".1%", "psnr": ".2f", "ratio": ".2f", "psnr_gain": "+.2f", "student_ms": ".1f",
@@ -243,6 +244,25 @@ def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dic
     return out
 
 
+#: CPU flags that decide the fast paths of the backends (bf16 convolutions: AVX512-BF16 or AMX)
+ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16")
+
+
+def cpu_isa(cpuinfo: str | None = None) -> dict[str, bool]:
+    """``{flag: present}`` for :data:`ISA_FLAGS` from ``/proc/cpuinfo`` (all False when unreadable)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            flags.update(line.split(":", 1)[1].split())
+            break
+    return {f: f in flags for f in ISA_FLAGS}
+
+
 def machine_description(threads: int, peak_gflops: float) -> str:
     cpu = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
@@ -251,7 +271,8 @@ def machine_description(threads: int, peak_gflops: float) -> str:
                 cpu = line.split(":", 1)[1].strip()
                 break
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
-    return (f"CPU: {cpu}, {os.cpu_count()} logical cores, {threads} thread(s) for every method; "
+    isa = ", ".join(f"{f} {'yes' if v else 'no'}" for f, v in cpu_isa().items())
+    return (f"CPU: {cpu}, {os.cpu_count()} logical cores ({isa}), {threads} thread(s) for every method; "
             f"fp32 matmul peak {peak_gflops:.1f} GFLOP/s (1024x1024 torch.mm); GPU: {gpu}; "
             f"torch {torch.__version__}")
 
@@ -310,7 +331,7 @@ def run(cfg: DictConfig) -> list[dict]:
     machine = machine_description(threads, peak)
     write_report(out_dir, rows, ratios, machine, cfg, plot_path)
     print(machine)
-    print(markdown_table(rows, ["method", "backend", "device", "height", "width", "ms_median", "gflop", "params",
+    print(markdown_table(rows, ["method", "backend", "dtype", "device", "height", "width", "ms_median", "gflop", "params",
                                 "peak_mb", "peak_fraction", "psnr", "status"], FORMATS, HEADERS))
     if ratios:
         print(markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline", "baseline_ms", "ratio",

@@ -30,7 +30,10 @@ Variants (how a network is prepared and run; ``VARIANTS``):
 * ``channels_last_bf16_weights_compiled``: the same with ``torch.compile(net.step)`` (inductor
   fuses the elementwise work); compiling takes minutes on 2 cores, so it is not in the default
   ``variants`` and its warm-up (3 steps, compiling both the first-frame and the recurrent
-  graph) is reported separately as ``warm-up s``.
+  graph) is reported separately as ``warm-up s``;
+* ``openvino_f32``, ``openvino_bf16``: the exported step graph compiled by OpenVINO
+  (:class:`~denoiser.backends.OpenVinoBackend`; export and compilation happen before and in the
+  warm-up steps; bf16 needs AVX512-BF16/AMX).
 
 Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant. ``repeats``
 applies to the student; the teacher always runs 1 warm-up + 1 timed step, it takes many seconds
@@ -91,13 +94,32 @@ def _channels_last_bf16_weights_compiled(net, frame):
     return types.SimpleNamespace(step=torch.compile(net.step, dynamic=False)), frame, context
 
 
+def _openvino(precision):
+    def prepare(net, frame):
+        import types
+
+        import torch
+
+        from denoiser.backends import OpenVinoBackend
+
+        backend = OpenVinoBackend(f"openvino {precision}", precision=precision)
+        reason = backend.available()
+        if reason:
+            raise RuntimeError(reason)
+        stepper = backend.prepare(net, frame, torch.get_num_threads())  # as many threads as torch
+        return types.SimpleNamespace(step=stepper.step), frame, nullcontext
+
+    return prepare
+
+
 #: variant name -> prepare(net, frame) -> (net, frame, context factory)
 VARIANTS = {"eager": _eager, "channels_last": _channels_last, "channels_last_bf16": _channels_last_bf16,
             "channels_last_bf16_weights": _channels_last_bf16_weights,
-            "channels_last_bf16_weights_compiled": _channels_last_bf16_weights_compiled}
+            "channels_last_bf16_weights_compiled": _channels_last_bf16_weights_compiled,
+            "openvino_f32": _openvino("f32"), "openvino_bf16": _openvino("bf16")}
 #: warm-up steps per variant (default 1): a compiled step compiles one graph for the first
-#: frame (no state) and one for later frames
-WARMUP = {"channels_last_bf16_weights_compiled": 3}
+#: frame (no state) and one for later frames; OpenVINO compiles in the first step
+WARMUP = {"channels_last_bf16_weights_compiled": 3, "openvino_f32": 2, "openvino_bf16": 2}
 #: the network that runs eager only, 1 warm-up + 1 timed step
 SLOW_NET = "teacher"
 #: matmul peak: matrix size, warm-up products, timed products (the best counts)

@@ -24,6 +24,15 @@ rename). Before anything is written every frame to be processed is decoded once 
 so a damaged input frame stops the command with one error line and no output; this costs a
 few percent of the run (decoding is ~1 % of a CPU network step).
 
+Backend (``backend``): ``eager`` (PyTorch, ``Denoiser.step``), ``onnxruntime`` or ``openvino``
+(the exported step graph, :mod:`denoiser.step_graph`; exported once at start, OpenVINO compiles
+it once for the frame size); null (default) picks ``openvino`` when it is installed (with
+``onnx`` for the export) and the device is the CPU, else ``eager``. ``precision``: ``f32``
+(default: the outputs match eager PyTorch within float32 rounding, see ``tests/test_openvino.py``)
+or ``bf16`` (OpenVINO's bf16 inference precision, eager's bfloat16 autocast; faster on CPUs with
+AVX512-BF16/AMX, errors of a few 1e-3 relative). Every backend steps through the one recurrent
+runner (:class:`~denoiser.runner.RecurrentRunner`).
+
 Resuming: frames whose output file exists are not written again. Their outputs are still
 needed as the recurrent history of the next frame, so the run restarts the network at the
 last reset (first frame or camera cut) at or before the first missing frame and replays the
@@ -51,6 +60,49 @@ from denoiser.runner import RecurrentRunner
 log = logging.getLogger(__name__)
 
 WRITE_MODES = ("buffers", "rgb")
+BACKENDS = ("eager", "onnxruntime", "openvino")
+PRECISIONS = ("f32", "bf16")
+
+
+def openvino_installed() -> bool:
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("openvino", "onnx"))
+
+
+def make_backend(name: str | None, precision: str, device: torch.device):
+    """The backend of ``backend=`` / ``precision=`` (:mod:`denoiser.backends`); ``name`` None:
+    ``openvino`` when installed and ``device`` is the CPU, else ``eager``."""
+    from denoiser.backends import OnnxRuntimeBackend, OpenVinoBackend, TorchBackend
+
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
+    if name is None:
+        name = "openvino" if device.type == "cpu" and openvino_installed() else "eager"
+    if name not in BACKENDS:
+        raise ConfigError(f"backend: {name!r} is not one of {', '.join(BACKENDS)}")
+    if name != "eager" and device.type != "cpu":
+        raise ConfigError(f"backend={name} runs on the CPU; use device=cpu or backend=eager")
+    if name == "eager":
+        backend = TorchBackend("eager", device=str(device), autocast="bfloat16" if precision == "bf16" else None)
+    elif name == "onnxruntime":
+        if precision != "f32":
+            raise ConfigError("backend=onnxruntime runs precision=f32 only")
+        backend = OnnxRuntimeBackend("onnxruntime")
+    else:
+        backend = OpenVinoBackend(f"openvino {precision}", precision=precision)
+    reason = backend.available()
+    if reason:
+        raise ConfigError(f"backend={name} precision={precision}: {reason}")
+    return name, backend
+
+
+def to_hwc(output) -> np.ndarray:
+    """The step's ``[1, 3, H, W]`` output (tensor or array) -> ``[H, W, 3]`` float32 array."""
+    first = output[0]
+    if isinstance(first, torch.Tensor):
+        first = first.float().cpu().numpy()
+    return np.ascontiguousarray(np.asarray(first, dtype=np.float32).transpose(1, 2, 0))
 
 
 def needed_buffers(net) -> list[str]:
@@ -132,6 +184,7 @@ def run(cfg: DictConfig) -> dict:
     device = torch.device(cfg.get("device") or "cpu")
     for stale in remove_stale_temporaries(out_dir):  # frames whose write was killed
         log.warning("removed %s (a frame write that was killed)", stale)
+    backend_name, backend = make_backend(cfg.get("backend"), str(cfg.get("precision") or "f32"), device)
 
     net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
     layout = instantiate(cfg.layout)
@@ -153,9 +206,10 @@ def run(cfg: DictConfig) -> dict:
 
     counts = {"written": 0, "skipped": sum(p.exists() for p in outputs[start:]) + start, "replayed": 0}
     cuts = set(source.cuts)
-    runner = RecurrentRunner(net.step)
+    threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
+    runner = RecurrentRunner(backend.prepare(net, None, threads).step)
     started = time.perf_counter()
-    with torch.inference_mode(), tqdm(todo, desc="denoise", unit="frame") as progress:
+    with torch.inference_mode(), tqdm(todo, desc=f"denoise ({backend.label})", unit="frame") as progress:
         for i in progress:
             arrays, bad = layout.read_frame(source, i, needed)
             if any(bad.values()):
@@ -166,13 +220,14 @@ def run(cfg: DictConfig) -> dict:
             if outputs[i].exists():
                 counts["replayed"] += int(i < first)
                 continue
-            denoised = output[0].float().permute(1, 2, 0).cpu().numpy()
+            denoised = to_hwc(output)
             channels = output_channels(mode, color_files[i], denoised, str(cfg.channel_prefix))
             exr.write_channels(outputs[i], channels, half=bool(cfg.half), compression=str(cfg.compression))
             counts["written"] += 1
     seconds = time.perf_counter() - started
     print(f"denoised {counts['written']} frame(s) of {src_dir} into {out_dir} in {seconds:.1f} s "
-          f"({counts['skipped']} already there, {counts['replayed']} replayed for the recurrent history)")
+          f"({counts['skipped']} already there, {counts['replayed']} replayed for the recurrent history; "
+          f"backend {backend_name}, precision {cfg.get('precision') or 'f32'})")
     return counts
 
 

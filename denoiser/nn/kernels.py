@@ -14,12 +14,23 @@ Memory: the result is accumulated over the k*k shifted views of one zero-padded 
 so besides the weights ``[B, k*k, H, W]`` only O(C*H*W) is allocated (an ``unfold`` would
 allocate ``[B, C*k*k, H*W]``). :func:`apply_kernels_unfold` is that unfold formulation, kept
 for the benchmark's comparison only.
+
+Traced or exported (``torch.jit.is_tracing()`` / ``torch.onnx.is_in_onnx_export()``, the graph
+of ``denoiser-export``, ONNX Runtime and OpenVINO), the same sum is recorded as a few large ops
+instead of k*k Python-level taps and the border masking's 2k slice assignments
+(:func:`apply_kernels_graph`): one grouped convolution with one-hot k x k filters gathers the
+k*k shifted views (im2col as a convolution, zero padding included), one multiply by the
+weights repeated over the channels, one grouped 1x1 convolution sums the taps; the border mask
+is the same one-hot convolution of a ones image (1 inside, 0 for taps outside). Same numbers
+within float32 rounding of the sum's order (``tests/test_export.py``); the training path keeps
+the shifted-view loop with its hand-written backward.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -70,6 +81,33 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
         return logits
     var = logits.var(dim=dim, unbiased=False, keepdim=True) if logits.shape[dim] > 1 else torch.zeros_like(logits)
     return logits * (scale * torch.rsqrt(var + 1.0))
+
+
+def tap_filters(k: int, channels: int, like: torch.Tensor) -> torch.Tensor:
+    """One-hot ``[channels * k*k, 1, k, k]`` filters: output channel ``c*k*k + i*k + j`` of a
+    grouped (``groups=channels``) convolution with padding ``k // 2`` is channel c shifted by
+    tap (i, j): ``x[c, y + i - r, x + j - r]`` (0 outside). Built from NumPy, so a trace
+    records a constant of known shape (the ONNX exporter needs one for a convolution)."""
+    eye = np.tile(np.eye(k * k, dtype=np.float32).reshape(k * k, 1, k, k), (int(channels), 1, 1, 1))
+    return torch.from_numpy(eye).to(device=like.device, dtype=like.dtype)
+
+
+def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | None = None) -> torch.Tensor:
+    """:func:`apply_kernels` as a few large ops (for tracing and export; no custom autograd).
+
+    x: ``[B, C, H, W]``; logits: ``[B, k*k, H, W]`` -> ``[B, C, H, W]`` float32.
+    """
+    k = kernel_size_of(logits)
+    r = k // 2
+    c = x.shape[1]
+    with torch.autocast(device_type=x.device.type, enabled=False):
+        x = x.float()
+        logits = scale_logits(logits, scale)
+        inside = F.conv2d(torch.ones_like(logits[:, :1]), tap_filters(k, 1, logits), padding=r)
+        weights = torch.softmax(torch.where(inside > 0.5, logits, float("-inf")), dim=1)
+        views = F.conv2d(x, tap_filters(k, c, x), padding=r, groups=c)  # [B, C*k*k, H, W]
+        summed = torch.from_numpy(np.ones((int(c), k * k, 1, 1), np.float32)).to(x.device)
+        return F.conv2d(views * weights.repeat(1, c, 1, 1), summed, groups=c)
 
 
 def kernel_weights(logits: torch.Tensor, scale: float | None = None) -> torch.Tensor:
@@ -137,16 +175,16 @@ def apply_kernels(x: torch.Tensor, logits: torch.Tensor, scale: float | None = N
     x: ``[B, C, H, W]`` linear radiance; logits: ``[B, k*k, H, W]`` unnormalised kernel taps
     (any float dtype); scale: logit normalisation (:func:`scale_logits`). Returns ``[B, C, H, W]`` float32.
     """
+    if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+        return apply_kernels_graph(x, logits, scale)
     k = kernel_size_of(logits)
     r = k // 2
     weights = kernel_weights(logits, scale)
     with torch.autocast(device_type=x.device.type, enabled=False):
         x = x.float()
         xp = F.pad(x, (r, r, r, r)) if r > 0 else x  # zeros, which get zero weight
-        if (torch.is_grad_enabled() and (xp.requires_grad or weights.requires_grad)
-                and not torch.jit.is_tracing() and not torch.onnx.is_in_onnx_export()):
-            # training: hand-written backward; tracing/export records the plain loop instead
-            return _ApplyWeights.apply(xp, weights)
+        if torch.is_grad_enabled() and (xp.requires_grad or weights.requires_grad):
+            return _ApplyWeights.apply(xp, weights)  # training: hand-written backward
         return _accumulate(xp, weights, k, *x.shape[-2:])
 
 

@@ -350,10 +350,25 @@ def parse_args(argv):
     return p.parse_args(argv)
 
 
-def complete(seq_dir: Path, frames: int, reference: bool) -> bool:
-    dirs = ["noisy"] + (["reference"] if reference else [])
-    return all((seq_dir / d / f"{f:04d}.exr").exists() for d in dirs for f in range(1, frames + 1)) \
-        and (seq_dir / "render.json").exists()
+def settings(args, width: int, height: int) -> dict:
+    """What a finished sequence's render.json must record for it to be skipped."""
+    out = {"blender": bpy.app.version_string, "width": width, "height": height, "frames": args.frames,
+           "noisy": {"spp": args.spp, "seed": args.seed}}
+    if not args.no_reference:
+        out["reference"] = {"spp": args.ref_spp, "seed": args.seed + 1000}
+    return out
+
+
+def complete(seq_dir: Path, frames: int, wanted: dict) -> bool:
+    """Every frame on disk and render.json recording the same settings."""
+    dirs = ["noisy"] + (["reference"] if "reference" in wanted else [])
+    if not all((seq_dir / d / f"{f:04d}.exr").exists() for d in dirs for f in range(1, frames + 1)):
+        return False
+    try:
+        info = json.loads((seq_dir / "render.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return all(info.get(k) == v for k, v in wanted.items())
 
 
 def main(argv=None) -> int:
@@ -364,21 +379,20 @@ def main(argv=None) -> int:
           f"{args.spp} spp noisy, {args.ref_spp} spp reference -> {args.root / args.split}", flush=True)
     for name in args.sequences:
         seq_dir = args.root / args.split / name
-        if not args.force and complete(seq_dir, args.frames, not args.no_reference):
-            print(f"{name}: complete, skipped (--force re-renders)", flush=True)
+        wanted = settings(args, width, height)
+        if not args.force and complete(seq_dir, args.frames, wanted):
+            print(f"{name}: complete with these settings, skipped (--force re-renders)", flush=True)
             continue
         print(f"{name}: building scene", flush=True)
         scene = reset_scene(width, height, args.threads)
         scene.frame_start, scene.frame_end = 1, args.frames
         BUILDERS[name](args.frames)
-        info = {"blender": bpy.app.version_string, "engine": "CYCLES", "device": "CPU", "width": width,
-                "height": height, "frames": args.frames, "pixel_filter": "BOX 1.0", "denoiser": False,
-                "noisy": {"spp": args.spp, "seed": args.seed}, "seconds": {}}
+        info = {**wanted, "engine": "CYCLES", "device": "CPU", "threads": args.threads,
+                "pixel_filter": "BOX 1.0", "denoiser": False, "seconds": {}}
         t0 = time.perf_counter()
         info["seconds"]["noisy"] = render_pass(scene, seq_dir / "noisy", args.frames, args.spp, args.seed,
                                                f"{name} noisy")
         if not args.no_reference:
-            info["reference"] = {"spp": args.ref_spp, "seed": args.seed + 1000}
             info["seconds"]["reference"] = render_pass(scene, seq_dir / "reference", args.frames, args.ref_spp,
                                                        args.seed + 1000, f"{name} reference")
         (seq_dir / "render.json").write_text(json.dumps(info, indent=2) + "\n")

@@ -37,7 +37,7 @@ lint: setup
 BLENDER_VENV   ?= .venv-blender
 BLENDER_PYTHON ?= $(shell command -v python3.11 || echo python3)
 BLENDER_DATA   ?= data/blender
-BLENDER_ARGS   ?= --size 128 --frames 8 --spp 4 --ref-spp 256
+BLENDER_ARGS   ?= --size 128 --frames 8 --spp 4 --ref-spp 1024
 BLENDER_CKPT   ?=
 BLENDER_OUT    ?= reports/blender
 

@@ -218,7 +218,7 @@ def _linear(obj):
 
 def build_orbit(frames: int):
     floor = material("Floor", "principled", (0.75, 0.75, 0.7), 0.6, texture="checker",
-                     color2=(0.08, 0.08, 0.1), scale=6.0)
+                     color2=(0.08, 0.08, 0.1), scale=2.5)
     add("plane", floor, size=12.0)
     add("cube", material("Stone", "principled", (0.8, 0.45, 0.2), 0.8, texture="noise",
                          color2=(0.2, 0.1, 0.05), scale=5.0),
@@ -244,10 +244,10 @@ def build_orbit(frames: int):
 
 def build_slide(frames: int):
     floor = material("Floor", "principled", (0.7, 0.7, 0.7), 0.7, texture="checker",
-                     color2=(0.15, 0.12, 0.1), scale=8.0)
+                     color2=(0.15, 0.12, 0.1), scale=2.0)
     add("plane", floor, size=14.0)
     wall = material("Wall", "principled", (0.65, 0.25, 0.15), 0.8, texture="brick",
-                    color2=(0.75, 0.72, 0.65), scale=3.0)
+                    color2=(0.75, 0.72, 0.65), scale=1.0)
     add("plane", wall, location=(0.0, 2.5, 2.0), rotation=(math.radians(90), 0.0, 0.0), size=10.0)
     ball = add("uv_sphere", material("Ball", "principled", (0.9, 0.9, 0.2), 0.25, texture="checker",
                                      color2=(0.1, 0.3, 0.8), scale=4.0),
@@ -342,7 +342,8 @@ def parse_args(argv):
     p.add_argument("--size", type=int, nargs="+", default=[128], help="W [H] in pixels (default 128)")
     p.add_argument("--frames", type=int, default=8, help="frames per sequence (default 8)")
     p.add_argument("--spp", type=int, default=4, help="samples per pixel of the noisy render (default 4)")
-    p.add_argument("--ref-spp", type=int, default=256, help="samples per pixel of the reference (default 256)")
+    p.add_argument("--ref-spp", type=int, default=1024,
+                   help="samples per pixel of the reference (default 1024)")
     p.add_argument("--seed", type=int, default=1, help="noisy seed; the reference uses seed + 1000")
     p.add_argument("--threads", type=int, default=2, help="Cycles CPU threads (default 2)")
     p.add_argument("--no-reference", action="store_true", help="render only the noisy frames")

@@ -33,12 +33,14 @@ lint: setup
 # rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/, then
 # denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/.
 #   make blender BLENDER_CKPT='{student: reports/demo/runs/.../last.ckpt}'
+#   make blender BLENDER_EVAL_ARGS='max_frames=4 ~baselines.oidn_balanced'   (more eval overrides)
 # Sequences already rendered with the same settings are skipped. Needs Python 3.11 for bpy 5.0.
 BLENDER_VENV   ?= .venv-blender
 BLENDER_PYTHON ?= $(shell command -v python3.11 || echo python3)
 BLENDER_DATA   ?= data/blender
 BLENDER_ARGS   ?= --size 128 --frames 8 --spp 4 --ref-spp 1024
 BLENDER_CKPT   ?=
+BLENDER_EVAL_ARGS ?=
 BLENDER_OUT    ?= reports/blender
 
 $(BLENDER_VENV)/.installed:
@@ -49,4 +51,4 @@ $(BLENDER_VENV)/.installed:
 blender: setup $(BLENDER_VENV)/.installed
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) $(BLENDER_ARGS)
 	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) out_dir=$(BLENDER_OUT) \
-		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)')
+		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)

@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo lint clean-cache
+.PHONY: setup test demo lint clean-cache blender
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -28,3 +28,27 @@ demo: setup
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests train.py
+
+# Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
+# rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/, then
+# denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/.
+#   make blender BLENDER_CKPT='{student: reports/demo/runs/.../last.ckpt}'
+#   make blender BLENDER_EVAL_ARGS='max_frames=4 ~baselines.oidn_balanced'   (more eval overrides)
+# Sequences already rendered with the same settings are skipped. Needs Python 3.11 for bpy 5.0.
+BLENDER_VENV   ?= .venv-blender
+BLENDER_PYTHON ?= $(shell command -v python3.11 || echo python3)
+BLENDER_DATA   ?= data/blender
+BLENDER_ARGS   ?= --size 128 --frames 8 --spp 4 --ref-spp 1024
+BLENDER_CKPT   ?=
+BLENDER_EVAL_ARGS ?=
+BLENDER_OUT    ?= reports/blender
+
+$(BLENDER_VENV)/.installed:
+	test -x $(BLENDER_VENV)/bin/python || $(BLENDER_PYTHON) -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/python -m pip install -q "bpy>=4.2" numpy
+	touch $@
+
+blender: setup $(BLENDER_VENV)/.installed
+	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) $(BLENDER_ARGS)
+	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) out_dir=$(BLENDER_OUT) \
+		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)

@@ -193,3 +193,55 @@ def test_blender_and_native_give_the_same_windows(tmp_path, layouts):
     for k in (*inputs, "reference", "reset", "frame_index"):
         assert a[k].equal(b[k]), k
     assert a["motion"][1:, 1].eq(-DY).all()
+
+
+def blender5_parts(t: int, z_pass: bool = True) -> tuple[list[dict], list[str]]:
+    """One frame as Blender 5.0.1 writes it by default: one EXR part per pass, named
+    ``ViewLayer.<Pass>``, the values of the verified probe render (scripts/blender_sequences.py
+    ``--sequences probe``): the camera pans right 2 px per frame, so the static floor has Vector
+    (X, Y) = (+2, 0); a square moving 1 px *up* per frame on screen has (0, -1) (+Y is up).
+    Misses: Depth 1e10, Denoising Depth 0, normal 0; albedo of an emitter above 1."""
+    one, zero = np.ones((H, W), np.float32), np.zeros((H, W), np.float32)
+    obj = np.zeros((H, W), bool)
+    obj[8:12, 6:10] = True
+    miss = np.zeros((H, W), bool)
+    miss[:2] = True
+    vx, vy = np.where(obj, 0.0, 2.0).astype(np.float32), np.where(obj, -1.0, 0.0).astype(np.float32)
+    color = texture(t)
+    parts = {
+        "Combined": {f"ViewLayer.Combined.{c}": color[..., i] for i, c in enumerate("RGB")}
+        | {"ViewLayer.Combined.A": one},
+        "Vector": {"ViewLayer.Vector.X": vx, "ViewLayer.Vector.Y": vy, "ViewLayer.Vector.Z": vx,
+                   "ViewLayer.Vector.W": vy},
+        "Denoising Normal": {"ViewLayer.Denoising Normal.X": zero, "ViewLayer.Denoising Normal.Y": zero,
+                             "ViewLayer.Denoising Normal.Z": np.where(miss, 0.0, -1.0).astype(np.float32)},
+        "Denoising Albedo": {f"ViewLayer.Denoising Albedo.{c}": np.where(obj, 60.0, 0.5).astype(np.float32)
+                             for c in "RGB"},
+        "Denoising Depth": {"ViewLayer.Denoising Depth.Z": np.where(miss, 0.0, 10.2).astype(np.float32)},
+    }
+    if z_pass:
+        parts = {"Depth": {"ViewLayer.Depth.Z": np.where(miss, 1e10, 10.0).astype(np.float32)}, **parts}
+    return list(parts.values()), [f"ViewLayer.{p}" for p in parts]
+
+
+@pytest.mark.parametrize("z_pass", [True, False])
+def test_blender5_multipart_files_and_verified_signs(tmp_path, layouts, z_pass):
+    """Blender 5.0 multi-part files read like 4.x ones; the probe's Vector signs give our motion
+    (floor: camera pans right, so what is at p was at p + (2, 0) before; the square moved up, so
+    it was at p + (0, 1), y down); misses are far whichever depth pass is there."""
+    blender, _ = layouts
+    for t in range(2):
+        parts, names = blender5_parts(t, z_pass)
+        exr.write_multipart(tmp_path / "s" / "noisy" / f"{t + 1:04d}.exr", parts, names=names)
+    src = blender.open_sequence(tmp_path / "s")
+    assert set(src.buffers) == {"color", "albedo", "normal", "depth", "motion"}
+    frame, counts = blender.read_frame(src, 1, list(FRAME_INPUTS))
+    assert set(counts.values()) == {0}
+    np.testing.assert_array_equal(frame["color"], texture(1))
+    motion = frame["motion"]
+    np.testing.assert_array_equal(motion[8:12, 6:10], np.broadcast_to([0.0, 1.0], (4, 4, 2)))
+    np.testing.assert_array_equal(motion[15:, 12:], np.broadcast_to([2.0, 0.0], (H - 15, W - 12, 2)))
+    depth = frame["depth"][..., 0]
+    assert np.all(depth[:2] == 1e10) and np.all(depth[2:] == (10.0 if z_pass else np.float32(10.2)))
+    assert frame["albedo"].max() == 60.0  # emitters: albedo is the emitted radiance, kept as is
+    np.testing.assert_array_equal(frame["normal"][2:, :, 2], -1.0)

@@ -10,19 +10,25 @@ A directory with the ``.exr`` files directly in it (no ``noisy/`` folder) is rea
 frames of one unlabeled sequence (e.g. for ``denoiser-denoise layout=blender``). Noisy and
 reference frames are paired by file name; frames are ordered by the number in the name.
 
-Facts about Cycles 4.x files (docs/design.md §3.1): single-part scanline EXR, float32, channels
-``<ViewLayer>.<Pass>.<chan>``. ``Combined.RGBA`` is the raw noisy image when Cycles' denoiser is
-off; ``Noisy Image.RGBA`` exists only when the denoiser ran (and then ``Combined`` is denoised),
-so the alias table of ``conf/layout/blender.yaml`` tries ``Noisy Image`` first for
-``color``. ``Denoising Normal`` is camera space in our axes, ``Denoising Albedo`` is the albedo,
-``Depth.Z`` / ``Denoising Depth.Z`` are planar depth (no hit = 1e10).
+Facts about Cycles files (docs/design.md §3.1; verified on Blender 5.0.1 renders, see
+docs/sequence_format.md): float32 EXR, channels ``<ViewLayer>.<Pass>.<chan>``, the same names in
+4.x and 5.0. Blender 5.0 writes one part per pass (part ``ViewLayer.<Pass>``) unless the output's
+``use_exr_interleave`` is set (then a single part, as 4.x); :mod:`denoiser.data.exr` looks channels
+up in every part, so both read alike. ``Combined.RGBA`` is the raw noisy image when Cycles'
+denoiser is off; ``Noisy Image.RGBA`` exists only when the denoiser ran (and then ``Combined`` is
+denoised), so the alias table of ``conf/layout/blender.yaml`` tries ``Noisy Image`` first for
+``color``. ``Denoising Normal`` is camera space in our axes (x right, y up, z into the scene; 0 on
+misses), ``Denoising Albedo`` is the albedo (above 1 on emitters). ``Depth.Z`` is planar depth
+(no hit = 1e10); ``Denoising Depth.Z`` is the mean ray distance, 0 where nothing is hit, which
+:func:`depth_misses_far` turns into 1e10.
 
 Pass names are matched through the alias table with every prefix of ``layer_prefixes``
 (default ``ViewLayer.`` and none); failing those, the single view layer of the file whose
 channels complete the pass is used (several candidate layers are an error naming them).
 
-**Motion, the one conversion**: Blender's ``Vector`` pass stores in (X, Y) the position in frame
-t-1 minus the position in frame t, in pixels, with +Y pointing *up*; (Z, W) look forward to t+1.
+**Motion conversion**: Blender's ``Vector`` pass stores in (X, Y) the position in frame
+t-1 minus the position in frame t, in pixels, with +Y pointing *up*; (Z, W) are the position in
+t minus the position in t+1 (verified on Blender 5.0.1 with a known camera and object motion).
 Our ``motion`` (docs/design.md §3.1) is the same backward displacement with y pointing *down*, so
 ``motion = (X, -Y)``: :func:`vector_to_motion`, referenced from the layout config.
 """
@@ -41,6 +47,21 @@ from denoiser.data.layouts.base import Layout, SequenceSource, image_size
 from denoiser.data.layouts.native import check_sizes, derived_meta, list_sequence_dirs
 from denoiser.data.sequence import SEQUENCE_JSON, check_frames_on_disk, load_sequence_json
 from denoiser.errors import ExrError, UserError
+
+MISS_DEPTH = 1e10
+
+
+def depth_misses_far(depth: np.ndarray) -> np.ndarray:
+    """Depth ``[H, W, 1]`` with misses made far: values ``<= 0`` (or NaN) become ``1e10``.
+
+    ``Depth.Z`` already stores 1e10 where a ray hits nothing; ``Denoising Depth.Z`` (the
+    fallback when the Z pass is off) stores 0 there (verified on Blender 5.0.1), which our
+    contract would read as "right at the camera". No hit can be at distance 0, so this is safe
+    on both passes.
+    """
+    depth = np.array(depth, dtype=np.float32, copy=True)
+    depth[~(depth > 0)] = MISS_DEPTH
+    return depth
 
 
 def vector_to_motion(vector: np.ndarray) -> np.ndarray:
@@ -152,4 +173,4 @@ class BlenderLayout(Layout):
         return tuple(out)
 
 
-__all__ = ["BlenderLayout", "exr_files", "image_size", "vector_to_motion"]
+__all__ = ["BlenderLayout", "depth_misses_far", "exr_files", "image_size", "vector_to_motion"]

@@ -28,7 +28,9 @@ Rules (ours; the paper only names "parameter transfer from teacher to student"):
    infinite logit), so their softmax weight is exactly 0 and the renormalised student kernel *is*
    the teacher's. The price: their gradient is 0 as well, so these taps stay off in training;
    ``outer_tap_logit=None`` keeps their initialization instead (the taps can learn, the kernel
-   starts different from the teacher's).
+   starts different from the teacher's). Exactness holds for raw logits only: with scale-normalised
+   logits (``net.filter.logit_scale``, the default of the net configs) every tap enters the
+   normalisation, a -1e4 tap would flatten the others, so the distillation config uses None.
 3. **Inputs by data flow.** The input channels of a convolution are the ones that carry the kept
    channels of the layers feeding it: the data flow is followed through every operation of one
    real ``Denoiser.step`` call (two steps, so the recurrent state has a provenance too).

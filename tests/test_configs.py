@@ -145,7 +145,7 @@ DISTILL_MODEL = {
     "adversarial": {"_target_": "denoiser.losses.HingeAdversarial"},
     "critic_optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 2e-4, "betas": [0.5, 0.9]},
     "critic_steps": 1,
-    "param_transfer": {"_target_": "denoiser.transfer.L1ChannelTransfer", "probe_size": 32, "outer_tap_logit": -1.0e4},
+    "param_transfer": {"_target_": "denoiser.transfer.L1ChannelTransfer", "probe_size": 32, "outer_tap_logit": None},
 }
 
 

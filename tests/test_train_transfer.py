@@ -157,8 +157,10 @@ def feature_columns(net) -> list[int]:
 
 
 def build(kernel: str, overrides: list[str], seed: int = 0):
+    """A tiny net with raw softmax logits: "dead" taps (logit -1e4) and the exact restriction of
+    a kernel to a window exist only there (scaled logits couple every tap through their spread)."""
     torch.manual_seed(seed)
-    return build_net(compose_net_config("tiny", kernel=kernel, overrides=overrides))
+    return build_net(compose_net_config("tiny", kernel=kernel, overrides=["net.filter.logit_scale=null", *overrides]))
 
 
 def test_heads_and_unet_inputs_map_by_meaning():

@@ -25,6 +25,7 @@ OIDN input conventions: color is clamped to >= 0 (HDR input must be non-negative
 from __future__ import annotations
 
 import contextlib
+from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -181,3 +182,16 @@ class NetworkMethod:
         """One recurrent step: ``frame`` ``[1, C, H, W]`` tensors -> ``[1, 3, H, W]`` float32."""
         inputs = {k: v.to(self.device) for k, v in frame.items() if isinstance(v, torch.Tensor)}
         return self.runner(inputs, reset).float()
+
+
+def build_baselines(nodes) -> OrderedDict[str, object]:
+    """The methods of a ``baselines`` config node (``{key: {_target_: ...} | None}``, see
+    ``conf/baselines/default.yaml``), in order, by their ``label``; None entries are skipped."""
+    from denoiser.configs import instantiate_config
+
+    methods: OrderedDict[str, object] = OrderedDict()
+    for key, node in (nodes or {}).items():
+        if node is not None:
+            method = instantiate_config(node, f"baselines.{key}")
+            methods[getattr(method, "label", key)] = method
+    return methods

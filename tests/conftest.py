@@ -17,3 +17,23 @@ def _absl_handler_on_the_real_stderr() -> None:
 
 
 _absl_handler_on_the_real_stderr()
+
+
+def tiny_checkpoint(path, seed: int = 0, **extra):
+    """A checkpoint of ``net=tiny kernel=student`` with the weights of ``torch.manual_seed(seed)``,
+    written by :func:`denoiser.checkpoint.save_checkpoint` (``extra`` keys go to its top level)."""
+    import torch
+
+    from denoiser.checkpoint import save_checkpoint
+    from denoiser.configs import build_net, compose_net_config
+
+    cfg = compose_net_config("tiny", "student")
+    torch.manual_seed(seed)
+    return save_checkpoint(path, build_net(cfg), cfg, **extra)
+
+
+def compose_command(name: str, overrides, threads: int | None = None):
+    """The entry config ``conf/<name>.yaml`` composed with ``overrides`` (plus ``threads=N`` when given)."""
+    from denoiser.configs import compose_config
+
+    return compose_config([*overrides, *([f"threads={threads}"] if threads else [])], name)

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import compose_command, tiny_checkpoint
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
 from denoiser.backends import Stepper
-from denoiser.checkpoint import save_checkpoint
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, read_csv, time_steps
@@ -23,20 +23,11 @@ from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
     write_dataset(root / "data", sequences=1, frames=3, size=24)
-    cfg = compose_net_config("tiny", "student")
-    torch.manual_seed(0)
-    ckpt = save_checkpoint(root / "student.ckpt", build_net(cfg), cfg)
+    ckpt = tiny_checkpoint(root / "student.ckpt")
     return root, ckpt
 
 
-def compose(name, overrides):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    from denoiser.conf import CONF_DIR
-
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return hydra_compose(name, overrides=overrides)
+compose = compose_command
 
 
 def test_bench_end_to_end(setup, tmp_path):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import compose_command
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
@@ -59,14 +60,7 @@ def evil(tmp_path, tiny_cfg):
     return path, marker
 
 
-def compose(name: str, overrides: list[str]):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    from denoiser.conf import CONF_DIR
-
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return hydra_compose(name, overrides=overrides)
+compose = compose_command
 
 
 def test_loader_refuses_and_trust_switch_loads(evil, caplog):

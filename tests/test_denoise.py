@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import compose_command, tiny_checkpoint
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_sequence
 
-from denoiser.checkpoint import load_denoiser, save_checkpoint
-from denoiser.configs import build_net, compose_net_config
+from denoiser.checkpoint import load_denoiser
 from denoiser.data.exr import list_channels, read_channels, write_channels
 from denoiser.errors import UserError
 
@@ -23,19 +23,12 @@ VENV_BIN = Path(sys.executable).parent
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("denoise")
     seq = write_sequence(root / "shot", frames=5, size=(24, 32), cuts=(3,), seed=4)
-    cfg = compose_net_config("tiny", "student")
-    torch.manual_seed(0)
-    ckpt = save_checkpoint(root / "tiny.ckpt", build_net(cfg), cfg)
+    ckpt = tiny_checkpoint(root / "tiny.ckpt")
     return root, seq, ckpt
 
 
 def compose_denoise(overrides):
-    from hydra import compose, initialize_config_dir
-
-    from denoiser.conf import CONF_DIR
-
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("denoise", overrides=[*overrides, "threads=1"])
+    return compose_command("denoise", overrides, threads=1)
 
 
 def denoise(overrides):

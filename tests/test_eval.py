@@ -8,12 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import compose_command, tiny_checkpoint
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
-from denoiser.checkpoint import save_checkpoint
-from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 from denoiser.measure import read_csv
 
@@ -24,21 +23,12 @@ VENV_BIN = Path(sys.executable).parent
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
     write_dataset(root / "data", sequences=2, frames=4, size=32, cuts=(2,))
-    cfg = compose_net_config("tiny", "student")
-    torch.manual_seed(0)
-    a = save_checkpoint(root / "a.ckpt", build_net(cfg), cfg)
-    torch.manual_seed(1)
-    b = save_checkpoint(root / "b.ckpt", build_net(cfg), cfg)
+    a, b = tiny_checkpoint(root / "a.ckpt", seed=0), tiny_checkpoint(root / "b.ckpt", seed=1)
     return root, a, b
 
 
 def compose_eval(overrides):
-    from hydra import compose, initialize_config_dir
-
-    from denoiser.conf import CONF_DIR
-
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("eval", overrides=[*overrides, "threads=1"])
+    return compose_command("eval", overrides, threads=1)
 
 
 def test_eval_tables_images_and_values(setup, tmp_path):

@@ -135,20 +135,17 @@ def bench_row(method: str, backend: str, device: str, size, times: list[float] |
 
 def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops: float) -> list[dict]:
     """Time every method, backend and size; returns the table rows."""
-    from hydra.utils import instantiate
+    from denoiser.baselines import build_baselines
+    from denoiser.configs import instantiate_config
 
     sizes = [tuple(int(v) for v in s) for s in cfg.sizes]
     nets = network_methods(cfg)
-    baselines = OrderedDict()
-    for key, node in (cfg.get("baselines") or {}).items():
-        if node is not None:
-            m = instantiate(node)
-            baselines[m.label] = m
+    baselines = build_baselines(cfg.get("baselines"))
     backends = OrderedDict()
     for key in cfg.use_backends:
         if key not in cfg.backends:
             raise ConfigError(f"use_backends: {key!r} is not in backends ({', '.join(cfg.backends)})")
-        backends[key] = instantiate(cfg.backends[key])
+        backends[key] = instantiate_config(cfg.backends[key], f"backends.{key}")
     warmup, repeats = int(cfg.warmup), int(cfg.repeats)
     if repeats < 1 or warmup < 0:
         raise ConfigError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")

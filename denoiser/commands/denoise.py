@@ -165,9 +165,8 @@ def output_channels(mode: str, input_file: Path, denoised: np.ndarray, prefix: s
 
 def run(cfg: DictConfig) -> dict:
     """The ``denoiser-denoise`` task; returns ``{"written": n, "skipped": n, "replayed": n}``."""
-    from hydra.utils import instantiate
-
     from denoiser.checkpoint import load_denoiser
+    from denoiser.configs import instantiate_config
     from denoiser.data import exr
 
     for key in ("ckpt", "input", "output"):
@@ -187,7 +186,7 @@ def run(cfg: DictConfig) -> dict:
     backend_name, backend = make_backend(cfg.get("backend"), str(cfg.get("precision") or "f32"), device)
 
     net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
-    layout = instantiate(cfg.layout)
+    layout = instantiate_config(cfg.layout, "layout")
     source = layout.open_sequence(src_dir)
     needed = needed_buffers(net)
     check_input_buffers(layout, source, needed)

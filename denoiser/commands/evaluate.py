@@ -42,7 +42,7 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from denoiser.atomic import atomic_write_text, remove_stale_temporaries
-from denoiser.baselines import NetworkMethod
+from denoiser.baselines import NetworkMethod, build_baselines
 from denoiser.checkpoint import checkpoint_paths, load_denoiser
 from denoiser.data.evalset import open_test_split
 from denoiser.errors import ConfigError
@@ -60,14 +60,7 @@ log = logging.getLogger(__name__)
 
 def build_methods(cfg: DictConfig, device: str = "cpu") -> OrderedDict[str, object]:
     """Baselines (instantiated from ``cfg.baselines``) then checkpoints: ``{label: method}``."""
-    from hydra.utils import instantiate
-
-    methods: OrderedDict[str, object] = OrderedDict()
-    for key, node in (cfg.get("baselines") or {}).items():
-        if node is None:
-            continue
-        method = instantiate(node)
-        methods[getattr(method, "label", key)] = method
+    methods = build_baselines(cfg.get("baselines"))
     for name, path in checkpoint_paths(cfg.get("ckpt")).items():
         if name in methods:
             raise ConfigError(f"ckpt: name {name!r} is already used by a baseline")

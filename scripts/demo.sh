@@ -2,18 +2,23 @@
 # `make demo`: the whole pipeline on the small simulated demo dataset, on the CPU.
 #
 #   1. render data/demo (denoiser-render dataset=demo; frames that exist are kept: cached)
-#   2. train the demo teacher                 (experiment=demo_teacher)
-#   3. distill the demo student               (experiment=demo_distill, teacher from step 2)
-#   4. train the same student without KD      (experiment=demo_distill ablation=no_kd), for as
-#      many steps as the distilled student made
-#   5. evaluate noisy input, OIDN, teacher, both students on the held-out test sequences
+#   2. train the demo teacher                 (experiment=demo_teacher, seed 0)
+#   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_distill seed=k,
+#      teacher from step 2)
+#   4. train the same student without KD      (experiment=demo_distill ablation=no_kd), same
+#      seeds and the same number of steps
+#   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench)
-#   6. write reports/demo/: metrics table, accuracy-vs-time plot, PNG crops, TensorBoard logs
+#   6. write reports/demo/: summary.md (run id, commit, seeds, steps, test-split hash, results
+#      with mean +- std over seeds), metrics table, accuracy-vs-time plot, PNG crops, TensorBoard logs
 #
+# Budgets are steps (the experiment configs' trainer.max_steps) and seeds; max_time in the
+# configs is only a safety cap, so the results do not depend on the machine's load.
 # Every stage is skipped when its result exists (a finished run leaves DONE in its directory;
 # an interrupted one resumes from its last.ckpt). DEMO_FRESH=1 retrains everything.
-# Knobs (environment): DEMO_THREADS (torch threads for training, default: all cores),
-# DEMO_TEACHER_TIME / DEMO_STUDENT_TIME / DEMO_NOKD_TIME (DD:HH:MM:SS wall-time caps).
+# Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
+# each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
+# teacher, default: all cores).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -23,9 +28,10 @@ BIN="$VENV/bin"
 REPORT=reports/demo
 RUNS=$REPORT/runs
 THREADS=${DEMO_THREADS:-null}
-TEACHER_TIME=${DEMO_TEACHER_TIME:-00:00:07:00}
-STUDENT_TIME=${DEMO_STUDENT_TIME:-00:00:07:00}
-NOKD_TIME=${DEMO_NOKD_TIME:-00:00:07:00}
+SEEDS=${DEMO_SEEDS:-0 1 2}
+JOBS=${DEMO_JOBS:-2}
+CORES=$(nproc)
+JOB_THREADS=$(( CORES / JOBS > 0 ? CORES / JOBS : 1 ))
 mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
 [ "${DEMO_FRESH:-0}" = 1 ] && rm -rf "$RUNS"/* "$REPORT"/eval "$REPORT"/bench
@@ -51,7 +57,7 @@ train_run() {  # train_run <run name> <overrides...>: train unless DONE; resume 
     fi
     local resume=()
     [ -f "$dir/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
-    stage "$name" "$PY" train.py "$@" "threads=$THREADS" "hydra.run.dir=$dir" "${resume[@]}"
+    stage "$name" "$PY" train.py "$@" "hydra.run.dir=$dir" "${resume[@]}"
     if [ -f "$dir/COLLAPSED" ]; then  # written by the CollapseDetector callback
         echo "error: [$name] $(cat "$dir/COLLAPSED")" >&2
         exit 3
@@ -68,22 +74,39 @@ ckpt_of() {  # the checkpoint evaluated: best validation PSNR, else the last one
 stage render "$BIN/denoiser-render" dataset=demo
 
 # 2-4. networks
-train_run teacher experiment=demo_teacher "trainer.max_time=$TEACHER_TIME"
-train_run student_distilled experiment=demo_distill "model.teacher_ckpt=$(ckpt_of teacher)" \
-    "trainer.max_time=$STUDENT_TIME"
-# the comparison without distillation gets the same number of optimizer steps as the distilled
-# student reached (its steps are cheaper: no teacher, no critic), capped by DEMO_NOKD_TIME
-STEPS=$("$PY" -c "import sys, torch; print(torch.load(sys.argv[1], map_location='cpu', weights_only=True)['global_step'])" \
-    "$RUNS/student_distilled/checkpoints/last.ckpt")
-train_run student_no_kd experiment=demo_distill ablation=no_kd "trainer.max_steps=$STEPS" "trainer.max_time=$NOKD_TIME"
+train_run teacher experiment=demo_teacher seed=0 "threads=$THREADS"
+TEACHER=$(ckpt_of teacher)
+# students: every (kind, seed) pair, DEMO_JOBS at a time, each with its share of the cores
+STUDENTS=()
+for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done
+student_run() {  # student_run <run name>
+    local name=$1 seed=${1##*_s} extra=()
+    [[ $name == student_no_kd_* ]] && extra=(ablation=no_kd)
+    train_run "$name" experiment=demo_distill "model.teacher_ckpt=$TEACHER" "seed=$seed" "threads=$JOB_THREADS" \
+        "${extra[@]}" > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
+    echo "<== [$name] $(grep -h '^<== ' "$RUNS/$name.log" | tail -1 | cut -d' ' -f3-)"
+}
+running=0; failed=0
+for name in "${STUDENTS[@]}"; do
+    student_run "$name" &
+    running=$((running + 1))
+    if [ "$running" -ge "$JOBS" ]; then wait -n || failed=1; running=$((running - 1)); fi
+done
+while [ "$running" -gt 0 ]; do wait -n || failed=1; running=$((running - 1)); done
+[ "$failed" = 0 ] || exit 3
 
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
-CKPTS="{teacher: $(ckpt_of teacher), student_distilled: $(ckpt_of student_distilled), student_no_kd: $(ckpt_of student_no_kd)}"
-stage eval "$BIN/denoiser-eval" data=demo "ckpt=$CKPTS" "out_dir=$REPORT/eval"
-# CPU budget: eager PyTorch and ONNX Runtime at 256x256 and 1080p (the teacher at 256x256 only)
-stage bench "$BIN/denoiser-bench" data=demo "ckpt=$CKPTS" "eval_csv=$REPORT/eval/metrics.csv" \
-    "out_dir=$REPORT/bench" "sizes=[[256,256],[1080,1920]]" "use_backends=[eager,onnxruntime]" \
+CKPTS="teacher: $TEACHER"
+for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(ckpt_of "$name")"; done
+FIRST=${SEEDS%% *}
+stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
+# the benchmark times one seed per student (the seeds are the same network size); the teacher
+# at 256x256 only (seconds per 1080p frame on 2 cores)
+BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(ckpt_of "student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(ckpt_of "student_no_kd_s$FIRST")}"
+stage bench "$BIN/denoiser-bench" data=demo "ckpt=$BENCH_CKPTS" "eval_csv=$REPORT/eval/metrics.csv" \
+    "out_dir=$REPORT/bench" "sizes=[[256,256],[1080,1920]]" "use_backends=[eager,onnxruntime,openvino_f32,openvino_bf16]" \
     "skip={teacher: [[1080,1920]]}" repeats=3
+stage summary "$PY" -m denoiser.commands.demo_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
 
 # 6. the report directory
 cp "$REPORT/eval/metrics.md" "$REPORT/metrics.md"
@@ -96,13 +119,13 @@ mv "$TIMINGS.tmp" "$TIMINGS"
 cat <<EOF
 
 ==== demo finished: $REPORT/ ====
+  summary            $REPORT/summary.md   (README table: make readme-results)
   metrics table      $REPORT/metrics.md   (per sequence: $REPORT/eval/metrics.csv)
   accuracy vs time   $REPORT/accuracy_vs_time.png   (table: $REPORT/bench.md)
   crops (PNG)        $REPORT/crops/
   TensorBoard        tensorboard --logdir $RUNS
-  checkpoints        $RUNS/{teacher,student_distilled,student_no_kd}/checkpoints/
+  checkpoints        $RUNS/{teacher,student_distilled_s*,student_no_kd_s*}/checkpoints/
   stage timings      $TIMINGS
 EOF
-cat "$REPORT/metrics.md"
-cat "$REPORT/bench.md"
+cat "$REPORT/summary.md"
 cat "$TIMINGS"

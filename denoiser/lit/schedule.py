@@ -3,8 +3,10 @@
 ``lr(p) = lr0 * (final_ratio + (1 - final_ratio) * 0.5 * (1 + cos(pi * min(p, 1))))`` after a
 linear warm-up over ``warmup_steps`` steps, where the progress ``p`` in [0, 1] is the larger of
 ``global_step / trainer.max_steps`` and ``elapsed / trainer.max_time``. A CPU run bounded by
-``max_time`` (the demo) therefore anneals to the end of its time budget whatever the machine's
-speed; without a time limit it is a plain cosine over ``max_steps``.
+``max_time`` therefore anneals to the end of its time budget whatever the machine's speed;
+without a time limit, or with ``follow_time=False`` (the demo: ``max_time`` is only a safety
+cap there, so the result does not depend on the machine's load), it is a plain cosine over
+``max_steps``.
 
 The module binds the progress function (:meth:`ProgressCosineLR.bind_progress`) when it builds
 the scheduler; unbound, progress is ``step / total_steps``.
@@ -47,13 +49,16 @@ class ProgressCosineLR(LambdaLR):
     """Cosine decay to ``final_ratio * lr`` over the training progress (steps or wall time)."""
 
     def __init__(self, optimizer: torch.optim.Optimizer, total_steps: int = 1000, final_ratio: float = 0.01,
-                 warmup_steps: int = 0):
+                 warmup_steps: int = 0, follow_time: bool = True):
         self.factor = _Factor(total_steps, final_ratio, warmup_steps)
+        self.follow_time = bool(follow_time)
         super().__init__(optimizer, lr_lambda=self.factor)
 
     def bind_progress(self, progress: Callable[[], float]) -> None:
-        """Use ``progress() -> [0, 1]`` (e.g. the trainer's step and time fractions) from now on."""
-        self.factor.progress = progress
+        """Use ``progress() -> [0, 1]`` (e.g. the trainer's step and time fractions) from now on;
+        ignored with ``follow_time=False`` (the schedule then follows ``step / total_steps`` only)."""
+        if self.follow_time:
+            self.factor.progress = progress
 
     def state_dict(self) -> dict:
         """Plain values only (checkpoints load with ``weights_only=True``): the factor's settings come

@@ -1,0 +1,145 @@
+"""The demo's summary: ``python -m denoiser.commands.demo_summary`` -> ``reports/demo/summary.md``.
+
+Usage::
+
+    python -m denoiser.commands.demo_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
+
+A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its end. It reads
+
+* ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the test split; students labelled
+  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.summary`);
+* ``<report>/bench/bench.csv`` (``denoiser-bench``): ms per 1080p frame per method on its
+  fastest backend, and the speed-up over OIDN-fast;
+* every run directory under ``<report>/runs``: steps trained (``last.ckpt``), best val PSNR
+  (``best.ckpt``) and its seed;
+
+and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of the test split's
+files, and the tables. ``scripts/readme_results.py`` copies its results table into the README.
+"""
+
+from __future__ import annotations
+
+import datetime
+import subprocess
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from denoiser.atomic import atomic_write_text
+from denoiser.checkpoint import read_checkpoint
+from denoiser.errors import UserError
+from denoiser.measure import markdown_table, read_csv
+from denoiser.summary import METRICS, format_mean_std, method_means, seed_groups, split_seed, tree_hash
+
+#: the README copies the lines between these markers (scripts/readme_results.py)
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def run_rows(runs: Path) -> list[dict]:
+    """One row per run directory: name, seed, steps (last.ckpt), best val PSNR (best.ckpt)."""
+    rows = []
+    for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir()):
+        row: dict = {"run": run.name, "seed": split_seed(run.name)[1]}
+        last, best = run / "checkpoints" / "last.ckpt", run / "checkpoints" / "best.ckpt"
+        if last.exists():
+            row["steps"] = int(read_checkpoint(last)["global_step"])
+        if best.exists():
+            for key, state in read_checkpoint(best)["callbacks"].items():
+                if "val/psnr" in key and isinstance(state, dict) and state.get("best_model_score") is not None:
+                    row["val_psnr"] = float(state["best_model_score"])
+        row["collapsed"] = "yes" if (run / "COLLAPSED").exists() else "no"
+        rows.append(row)
+    return rows
+
+
+def bench_rows(path: Path, size: tuple[int, int]) -> dict[str, dict]:
+    """``{method: fastest ok row at size (H, W)}`` from a ``denoiser-bench`` CSV."""
+    best: dict[str, dict] = {}
+    for row in read_csv(path):
+        if row.get("status") != "ok" or (int(row["height"]), int(row["width"])) != size:
+            continue
+        if row["method"] not in best or float(row["ms_median"]) < float(best[row["method"]]["ms_median"]):
+            best[row["method"]] = row
+    return best
+
+
+def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, int], reference: str) -> str:
+    digits = {"psnr": 2, "ssim": 4, "tpsnr": 2, "flip": 4, "relmse": 4}
+    ref_ms = float(bench[reference]["ms_median"]) if reference in bench else None
+    rows = []
+    for g in groups:
+        row = {"method": g["method"], "seeds": len(g["seeds"]) or ""}
+        row.update({m: format_mean_std(g, m, digits[m]) for m in METRICS})
+        # a seed group's time: its first seed's (the networks of a group are the same size)
+        timed = bench.get(g["method"]) or next((bench[f"{g['method']}_s{s}"] for s in g["seeds"]
+                                                if f"{g['method']}_s{s}" in bench), None)
+        if timed:
+            row["ms"] = f"{float(timed['ms_median']):.0f}"
+            dtype = str(timed.get("dtype") or "")
+            backend = str(timed["backend"])
+            row["backend"] = backend if dtype in ("", "nan") or dtype in backend else f"{backend} {dtype}"
+            if ref_ms:
+                row["speedup"] = f"{ref_ms / float(timed['ms_median']):.2f}x"
+        rows.append(row)
+    h, w = size
+    columns = ["method", "seeds", *METRICS, "ms", "backend", "speedup"]
+    headers = {**METRICS, "ms": f"ms/frame {w}x{h}", "speedup": f"vs {reference}"}
+    return markdown_table(rows, columns, headers=headers)
+
+
+def run(cfg: DictConfig) -> Path:
+    """Write ``<report>/summary.md``; returns its path."""
+    report = Path(cfg.report)
+    metrics_csv = report / "eval" / "metrics.csv"
+    if not metrics_csv.exists():
+        raise UserError(f"{metrics_csv}: no evaluation found (run denoiser-eval first)")
+    groups = seed_groups(method_means(read_csv(metrics_csv)))
+    size = (int(cfg.bench_size[0]), int(cfg.bench_size[1]))
+    bench_csv = report / "bench" / "bench.csv"
+    bench = bench_rows(bench_csv, size) if bench_csv.exists() else {}
+    runs = run_rows(report / "runs") if (report / "runs").is_dir() else []
+    test_dir = Path(cfg.data_root) / "test"
+    lines = [
+        "# Demo summary",
+        "",
+        f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
+        f"- commit: {_commit()}",
+        f"- seeds (students): {list(cfg.seeds)}",
+        f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
+        "",
+        "## Test split (students: mean ± std over seeds)",
+        "",
+        BEGIN,
+        results_table(groups, bench, size, cfg.speed_reference).rstrip(),
+        END,
+        "",
+        "## Training runs (steps and best validation PSNR)",
+        "",
+        markdown_table(runs, ["run", "seed", "steps", "val_psnr", "collapsed"], formats={"val_psnr": ".2f"},
+                       headers={"val_psnr": "best val PSNR dB"}).rstrip(),
+        "",
+    ]
+    out = report / "summary.md"
+    atomic_write_text(out, "\n".join(lines))
+    print(f"wrote {out}")
+    return out
+
+
+def main() -> None:
+    from denoiser.commands.app import hydra_command
+
+    hydra_command(run, "demo_summary")()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,104 @@
+"""The demo's reporting chain: seed groups (mean ± std), the test-split hash, summary.md, the
+README copy script; and the demo dataset's split design (every effect in train, an unseen
+family in val, test families held out)."""
+
+from __future__ import annotations
+
+import csv
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from denoiser.conf import CONF_DIR
+from denoiser.render.catalog import load_scene_config
+from denoiser.render.effects import EFFECTS
+from denoiser.summary import format_mean_std, method_means, seed_groups, split_seed, tree_hash
+
+ROOT = Path(__file__).resolve().parents[1]
+FIELDS = ["method", "scene", "sequence", "frames", "psnr", "ssim", "tpsnr", "flip", "relmse", "smape", "ms_per_frame"]
+
+
+def eval_rows() -> list[dict]:
+    rows = []
+    values = {"noisy input": [20.0, 22.0], "OIDN-fast": [30.0, 31.0], "student_s0": [28.0, 29.0],
+              "student_s1": [29.0, 30.0], "student_s2": [27.0, 31.0]}
+    for method, psnrs in values.items():
+        for i, psnr in enumerate(psnrs):
+            rows.append({"method": method, "scene": f"s{i}", "sequence": f"test/s{i}_000", "frames": 6, "psnr": psnr,
+                         "ssim": 0.9, "tpsnr": psnr - 1, "flip": 0.1, "relmse": 0.01, "smape": 0.05,
+                         "ms_per_frame": 1.0})
+    return rows
+
+
+def test_seed_groups_match_a_plain_computation():
+    groups = {g["method"]: g for g in seed_groups(method_means(eval_rows()))}
+    assert list(groups) == ["noisy input", "OIDN-fast", "student"]
+    per_seed = [statistics.mean([28.0, 29.0]), statistics.mean([29.0, 30.0]), statistics.mean([27.0, 31.0])]
+    assert groups["student"]["seeds"] == [0, 1, 2]
+    assert groups["student"]["psnr"] == pytest.approx(statistics.mean(per_seed))
+    assert groups["student"]["psnr_std"] == pytest.approx(statistics.stdev(per_seed))
+    assert groups["OIDN-fast"]["seeds"] == [] and groups["OIDN-fast"]["psnr_std"] == 0.0
+    assert format_mean_std(groups["student"], "psnr", 2) == f"{statistics.mean(per_seed):.2f} ± {statistics.stdev(per_seed):.2f}"
+    assert format_mean_std(groups["OIDN-fast"], "psnr", 2) == "30.50"
+    assert split_seed("student_no_kd_s12") == ("student_no_kd", 12)
+    assert split_seed("OIDN-fast") == ("OIDN-fast", None)
+
+
+def test_tree_hash_names_the_exact_files(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "frame.exr").write_bytes(b"\x00\x01")
+    first = tree_hash(tmp_path)
+    assert tree_hash(tmp_path) == first
+    (tmp_path / "a" / "frame.exr").write_bytes(b"\x00\x02")
+    assert tree_hash(tmp_path) != first
+    (tmp_path / "a" / "frame.exr").write_bytes(b"\x00\x01")
+    (tmp_path / "a" / "frame.exr").rename(tmp_path / "a" / "other.exr")
+    assert tree_hash(tmp_path) != first
+
+
+def test_summary_and_readme_copy(tmp_path):
+    report = tmp_path / "report"
+    (report / "eval").mkdir(parents=True)
+    with open(report / "eval" / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, FIELDS)
+        writer.writeheader()
+        writer.writerows(eval_rows())
+    data = tmp_path / "data"
+    (data / "test" / "s0_000").mkdir(parents=True)
+    (data / "test" / "s0_000" / "frame_0000.exr").write_bytes(b"x")
+    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.demo_summary", f"report={report}",
+                           f"data_root={data}", "seeds=[0,1,2]"], capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    summary = (report / "summary.md").read_text()
+    assert tree_hash(data / "test") in summary
+    student = next(line for line in summary.splitlines() if line.startswith("| student |"))
+    assert "29.00 ± 0.50" in student  # per-seed means 28.5, 29.5, 29.0
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n\n<!-- results:begin -->\nold table\n<!-- results:end -->\n\ntail\n")
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--summary",
+                           str(report / "summary.md"), "--readme", str(readme)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    text = readme.read_text()
+    assert "old table" not in text and student in text and text.endswith("\n\ntail\n")
+    bad = subprocess.run([sys.executable, "-m", "denoiser.commands.demo_summary", f"report={tmp_path / 'none'}"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "metrics.csv" in bad.stderr
+
+
+def test_demo_dataset_splits():
+    """Every effect appears in train; val has a family train never sees; test families are new."""
+    jobs = {job.split: list(job.scenes) for job in OmegaConf.load(Path(CONF_DIR) / "dataset" / "demo.yaml").dataset.jobs}
+    train, val, test = set(jobs["train"]), set(jobs["val"]), set(jobs["test"])
+    effects = set()
+    for scene in train:
+        for effect in load_scene_config(scene).effects:
+            effects.update([effect] if isinstance(effect, str) else list(effect.keys()))
+    assert effects == set(EFFECTS)
+    assert val - train, "val needs a scene family that train does not have"
+    assert not test & (train | val)
+    assert all(load_scene_config(s).test_only for s in test)
+    assert set(jobs["unlabeled"]) <= train

@@ -266,3 +266,24 @@ def test_gate_on_static_scene_keeps_history():
         _, state, _ = net.step(f, None)
         _, _, extras = net.step(f, state)
     assert extras["weights"]["valid"].min() == 1.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_levers_on_hard_inputs_stay_finite_with_finite_gradients(dtype):
+    """Demodulation and the gate together, extreme weights, fireflies, non-finite buffers, autocast."""
+    net = tiny(demodulate=True, reject_threshold=0.1, seed=11).train()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(3.0)
+    f0, f1 = random_frame(2, 13, 11, seed=1, kind="hard"), random_frame(2, 13, 11, seed=2, kind="hard")
+    f1["color"][:, 0, 0, 0] = float("nan")
+    f1["albedo"][:, :, 3] = float("inf")
+    f1["depth"][:, :, 5] = float("nan")
+    f1["color"].requires_grad_(True)
+    with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
+        out0, state, _ = net.step(f0, None)
+        out1, _, _ = net.step(f1, state)
+    assert torch.isfinite(out0).all() and torch.isfinite(out1).all() and out1.dtype == torch.float32
+    (out0.mean() + out1.mean()).backward()
+    assert torch.isfinite(f1["color"].grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)

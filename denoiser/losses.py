@@ -19,6 +19,13 @@ Formulas (``x`` = prediction, ``y`` = target, both ``[B, T, 3, H, W]``, ``EPS = 
   Normalizing by the frame magnitude (not by the differences) measures flicker relative to the
   image, the way a viewer sees it.
 
+* hdr (off unless ``hdr_weight > 0``): L1 between tonemapped images after a per-image exposure,
+  ``mean |T(x / e) - T(y / e)|`` with ``T(z) = max(z, 0) / (1 + max(z, 0))`` (Reinhard) and
+  ``e = mean_{c,h,w}(max(y, 0)) + HDR_EPS`` per item and frame (``HDR_EPS = 1e-3``, from the
+  target, no gradient). Each pixel contributes at most 1 and the gradient is at most ``1 / e``,
+  so a 1e6 firefly neither dominates the loss nor blows up the gradient, while dark regions
+  are weighed as a viewer sees them after exposure.
+
 Adversarial terms (image level, used by distillation), ``D`` = critic, ``r`` = real, ``f`` = fake:
 
 * WGAN-GP: critic ``mean D(f) - mean D(r) + lambda * mean (||grad D(m)||_2 - 1)^2`` on random
@@ -39,6 +46,8 @@ from denoiser.nn.warp import warp_to_current
 
 #: Epsilon of the SMAPE denominator (docs/design.md §3.3).
 SMAPE_EPS = 0.01
+#: Floor of the per-image exposure of the hdr term.
+HDR_EPS = 1e-3
 
 
 def _per_item(x: torch.Tensor) -> torch.Tensor:
@@ -69,6 +78,19 @@ def gradient_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     ddx = (gx[..., :, 1:] - gx[..., :, :-1]) - (gy[..., :, 1:] - gy[..., :, :-1])
     ddy = (gx[..., 1:, :] - gx[..., :-1, :]) - (gy[..., 1:, :] - gy[..., :-1, :])
     return _per_item(ddx.abs()) + _per_item(ddy.abs())
+
+
+def hdr_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L1 of Reinhard-tonemapped images after per-image exposure: ``[B, T, 3, H, W]`` (or
+    ``[B, 3, H, W]``) -> ``[B]`` in [0, 1].
+
+    ``mean |T(x / e) - T(y / e)|``, ``T(z) = max(z, 0) / (1 + max(z, 0))``,
+    ``e = mean(max(y, 0)) + HDR_EPS`` over channels and pixels of each frame of the target (detached).
+    """
+    x, y = pred.float(), target.float()
+    e = y.detach().clamp_min(0.0).mean(dim=(-3, -2, -1), keepdim=True) + HDR_EPS
+    tx, ty = (x / e).clamp_min(0.0), (y / e).clamp_min(0.0)
+    return _per_item((tx / (1.0 + tx) - ty / (1.0 + ty)).abs())
 
 
 def warp_previous(prev: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -115,17 +137,19 @@ def temporal_loss(
 
 
 class DenoiseLoss(nn.Module):
-    """Weighted sum of SMAPE, gradient and temporal terms (weights from config).
+    """Weighted sum of SMAPE, gradient, temporal and hdr terms (weights from config).
 
     ``forward(pred, target, motion, reset) -> dict[name, [B]]`` with the *weighted* per-item
-    terms whose weight is non-zero (``smape``, ``gradient``, ``temporal``); a term with weight
-    0 is not computed and absent from the dict. ``pred, target: [B, T, 3, H, W]``.
+    terms whose weight is non-zero (``smape``, ``gradient``, ``temporal``, ``hdr``); a term with
+    weight 0 is not computed and absent from the dict. ``pred, target: [B, T, 3, H, W]``.
+    ``hdr_weight`` defaults to 0 (configs from before the term existed).
     """
 
-    def __init__(self, smape_weight: float = 1.0, gradient_weight: float = 0.5, temporal_weight: float = 0.25):
+    def __init__(self, smape_weight: float = 1.0, gradient_weight: float = 0.5, temporal_weight: float = 0.25,
+                 hdr_weight: float = 0.0):
         super().__init__()
         self.weights = {"smape": float(smape_weight), "gradient": float(gradient_weight),
-                        "temporal": float(temporal_weight)}
+                        "temporal": float(temporal_weight), "hdr": float(hdr_weight)}
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor, motion: torch.Tensor,
                 reset: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -136,6 +160,8 @@ class DenoiseLoss(nn.Module):
             terms["gradient"] = self.weights["gradient"] * gradient_loss(pred, target)
         if self.weights["temporal"]:
             terms["temporal"] = self.weights["temporal"] * temporal_loss(pred, target, motion, reset)
+        if self.weights["hdr"]:
+            terms["hdr"] = self.weights["hdr"] * hdr_loss(pred, target)
         return terms
 
 

@@ -11,6 +11,7 @@ from denoiser.losses import (
     WassersteinGP,
     feature_loss,
     gradient_loss,
+    hdr_loss,
     masked_mean,
     smape,
     temporal_loss,
@@ -75,6 +76,33 @@ def test_denoise_loss_weights_and_absent_terms():
     assert set(only) == {"smape"} and torch.allclose(only["smape"], 2 * smape(pred, target))
 
 
+def test_hdr_term_is_off_by_default_and_weighted():
+    pred, target = torch.rand(2, 2, 3, 8, 8), torch.rand(2, 2, 3, 8, 8)
+    motion = torch.zeros(2, 2, 2, 8, 8)
+    assert "hdr" not in DenoiseLoss()(pred, target, motion)
+    terms = DenoiseLoss(hdr_weight=0.5)(pred, target, motion)
+    assert torch.allclose(terms["hdr"], 0.5 * hdr_loss(pred, target))
+    assert hdr_loss(target, target).eq(0).all() and (hdr_loss(pred, target) > 0).all()
+
+
+def test_hdr_term_bounded_with_fireflies_and_finite_gradient():
+    """A 1e6 firefly adds at most 1 / pixels to the term; every gradient stays finite."""
+    target = torch.rand(2, 3, 3, 16, 16) * 0.5
+    pred = target.clone()
+    pred[:, :, :, 8, 8] = 1e6
+    pred[1, :, :, 3, 3] = 1e30
+    pred.requires_grad_(True)
+    loss = hdr_loss(pred, target)
+    assert torch.isfinite(loss).all() and (loss >= 0).all() and (loss <= 2 / 256 + 1e-6).all()
+    loss.sum().backward()
+    assert torch.isfinite(pred.grad).all()
+    # exposure invariance (up to the exposure floor HDR_EPS): scaling both together changes ~nothing
+    x, y = torch.rand(1, 3, 8, 8), torch.rand(1, 3, 8, 8)
+    torch.testing.assert_close(hdr_loss(x * 1000, y * 1000), hdr_loss(x, y), rtol=5e-3, atol=1e-6)
+    # black target: still bounded by 1
+    assert hdr_loss(torch.full((1, 3, 4, 4), 1e6), torch.zeros(1, 3, 4, 4)).item() <= 1.0
+
+
 def test_masked_mean():
     v = torch.tensor([1.0, 3.0, 5.0])
     assert masked_mean(v, torch.tensor([True, False, True])) == 3.0
@@ -109,3 +137,21 @@ def test_feature_loss_scale_invariant():
     s = t + 0.1 * torch.randn_like(t)
     assert torch.isclose(feature_loss(s, t), feature_loss(10 * s, 10 * t), rtol=1e-2)
     assert feature_loss(t, t) == 0
+
+
+@pytest.mark.parametrize("model, ablation", [("student", "hdr_loss"), ("distill", "hdr_loss_distill")])
+def test_hdr_loss_ablations_turn_the_term_on(model, ablation):
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from denoiser.configs import compose_config
+
+    def losses(cfg):
+        loss = OmegaConf.to_container(cfg.model.loss, resolve=True)
+        return [loss] if model == "student" else [loss["kd"], loss["gt"]]
+
+    base = ["output_dir=/tmp/denoiser-test-hdr", f"model={model}"]
+    for cfg_loss in losses(compose_config(base, "train")):
+        assert instantiate(cfg_loss).weights["hdr"] == 0.0
+    for cfg_loss in losses(compose_config([*base, f"ablation={ablation}"], "train")):
+        assert instantiate(cfg_loss).weights["hdr"] == 0.5

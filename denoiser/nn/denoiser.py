@@ -18,6 +18,17 @@ Per step (shapes for one frame ``[B, C, H, W]``):
    size works, 1x1 included;
 5. the history color is blended into the input color, the filter (pyramid / single kernel /
    direct) produces the filtered frame on linear radiance, the history output is blended in.
+
+Albedo demodulation (``demodulate: true``; off by default and for stored configs without the
+key): right after sanitising, ``color`` (and ``samples``) are divided by the demodulation albedo
+``a'`` (:func:`~denoiser.nn.inputs.demodulation_albedo`: 1 where the albedo is below 0.01 or not
+finite, so emitters and the sky pass through), and steps 2-5 run on this irradiance exactly as
+they would on a color: the color scale, the network's color features, the filter and the history
+all see irradiance, and the state's ``"output"`` and ``"color"`` hold irradiance. Only the
+returned output is remodulated, ``output = a' * irradiance output``: a convex combination of
+input and history irradiance, times the pixel's own albedo (so texture detail is not blurred by
+the filter or dragged along by the history). With albedo 1 everywhere the result equals the
+network without demodulation bit for bit.
 """
 
 from __future__ import annotations
@@ -29,7 +40,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.buffers import NETWORK_INPUTS
-from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature, color_scale, guide_features, sanitize
+from denoiser.nn.inputs import (GUIDE_CHANNELS, color_feature, color_scale, demodulation_albedo, guide_features,
+                                 sanitize)
 from denoiser.runner import unroll
 
 
@@ -57,6 +69,8 @@ class Denoiser(nn.Module):
             ``forward(x, heads, scale) -> (output, weights)``
             (:class:`~denoiser.nn.pyramid.PyramidFilter` and the ablation filters).
         temporal: :class:`~denoiser.nn.temporal.TemporalRecurrence` or None (no recurrence).
+        demodulate: filter the irradiance ``color / a'`` and remodulate (module docstring);
+            False (the default, and what a stored config without the key means) filters color.
 
     Attributes:
         feature_channels: widths of ``extras["features"]`` (one map per U-Net level, finest
@@ -64,8 +78,9 @@ class Denoiser(nn.Module):
     """
 
     def __init__(self, embed: Callable[..., nn.Module], unet: Callable[..., nn.Module],
-                 filter: nn.Module, temporal: nn.Module | None = None):
+                 filter: nn.Module, temporal: nn.Module | None = None, demodulate: bool = False):
         super().__init__()
+        self.demodulate = bool(demodulate)
         self.embed = embed(in_channels=3 + GUIDE_CHANNELS)
         self.temporal = temporal
         self.filter = filter
@@ -82,12 +97,18 @@ class Denoiser(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
     def embed_inputs(self, frame: dict, color: torch.Tensor, scale: torch.Tensor,
-                     guide: torch.Tensor) -> torch.Tensor:
-        """EmbedNet input: ``[B, 10, H, W]`` per pixel, or ``[B, S, 10, H, W]`` with samples."""
+                     guide: torch.Tensor, albedo: torch.Tensor | None = None) -> torch.Tensor:
+        """EmbedNet input: ``[B, 10, H, W]`` per pixel, or ``[B, S, 10, H, W]`` with samples.
+
+        color: ``[B, 3, H, W]`` (already demodulated when ``albedo`` is given); scale ``[B, 1, 1, 1]``;
+        guide ``[B, 7, H, W]``; albedo: demodulation albedo ``[B, 3, H, W]`` the samples are divided by, or None.
+        """
         samples = frame.get("samples")
         if samples is None:
             return torch.cat([color_feature(color, scale), guide], dim=1)
         samples = sanitize(samples)
+        if albedo is not None:
+            samples = samples / albedo.unsqueeze(1)
         b, s, _, h, w = samples.shape
         feats = color_feature(samples, scale.unsqueeze(1))
         return torch.cat([feats, guide.unsqueeze(1).expand(b, s, GUIDE_CHANNELS, h, w)], dim=2)
@@ -101,25 +122,29 @@ class Denoiser(nn.Module):
         state: previous step's state (dict of ``[B, C, H, W]``) or None (= reset all).
         reset: bool ``[B]`` or None; True discards that item's history.
 
-        Returns ``(output [B, 3, H, W] float32 linear HDR, state, extras)`` where extras has
+        Returns ``(output [B, 3, H, W] float32 linear HDR, state, extras)`` (with ``demodulate``
+        the state's ``output`` and ``color`` hold irradiance, see the module docstring) where extras has
         ``"features"`` (list of U-Net maps, ``feature_channels`` wide, at the padded size
         divided by 2^level) and ``"weights"`` (dict of ``[B, k, H, W]``: ``history_in``,
         ``history_out``, ``valid`` with temporal recurrence; ``partition`` for the pyramid).
         """
         color = sanitize(frame["color"])
+        albedo = demodulation_albedo(frame["albedo"]) if self.demodulate else None
+        if albedo is not None:
+            color = color / albedo  # irradiance; exact (color / 1) where there is no usable albedo
         h, w = color.shape[-2:]
         scale = color_scale(color)
         guide = guide_features(frame)
         # the transforms run in float32; a network converted to bfloat16/float16 weights (fast
         # CPU/GPU inference without autocast) gets its inputs in its own dtype
         net_dtype = self.embed.layers[0].weight.dtype
-        net_in = self.embed(self.embed_inputs(frame, color, scale, guide).to(net_dtype))
+        net_in = self.embed(self.embed_inputs(frame, color, scale, guide, albedo).to(net_dtype))
         history = None
         if self.temporal is not None:
             motion = frame.get("motion")
             if motion is None:  # no motion vectors: a static camera and scene
                 motion = torch.zeros_like(color[:, :2])
-            history = self.temporal.warp(state, motion, reset, like=color)
+            history = self.temporal.warp(state, motion, reset, like=color, guide=guide)
             net_in = torch.cat([net_in, self.temporal.inputs(history, scale).to(net_in.dtype)], dim=1)
         heads, features = self.unet(pad_to_multiple(net_in, self.multiple))
         filter_heads = [heads[0][:, : self.filter_head0]] + list(heads[1:])
@@ -136,6 +161,8 @@ class Denoiser(nn.Module):
             output, weights["history_out"] = self.temporal.blend_out(output, history, temporal_head)
             weights["valid"] = history["valid"]
             new_state = self.temporal.next_state(output, filter_in, temporal_head, guide)
+        if albedo is not None:
+            output = output * albedo
         return output, new_state, {"features": features, "weights": weights}
 
     def forward(self, frames: dict, state: dict | None = None, reset: torch.Tensor | None = None,

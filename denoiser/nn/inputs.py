@@ -22,6 +22,11 @@ Formulas (``x`` a tensor, ``B`` the batch):
   above, like in the reader, and counts as a far hit), and ``m`` is the mean depth of the image's
   hit pixels (``d < DEPTH_HIT``, ``DEPTH_HIT = 1e9``) plus ``DEPTH_EPS = 1e-6`` (``m = 1`` when
   nothing is hit). The feature is scale invariant: scenes in millimetres or kilometres look alike.
+* demodulation albedo (only with ``Denoiser(demodulate=True)``): ``a = clamp(sanitise(albedo), 0,
+  ALBEDO_MAX)``, then per channel ``a' = 1`` where ``a < DEMOD_MIN = 0.01``, else ``a``. The
+  network filters ``color / a'`` and multiplies by ``a'`` afterwards, so pixels without a usable
+  albedo (emitters, the sky, renderers writing 0, NaN) pass through unchanged, and albedo above 1
+  (which renderers produce) is used as is up to ``ALBEDO_MAX``.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from denoiser.nonfinite import POSINF, replace_tensor  # noqa: F401 - POSINF is 
 
 COLOR_EPS = 1e-3
 ALBEDO_MAX = 100.0
+DEMOD_MIN = 0.01
 DEPTH_FAR = 1e10
 DEPTH_HIT = 1e9
 DEPTH_EPS = 1e-6
@@ -65,6 +71,14 @@ def color_feature(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
 def albedo_feature(albedo: torch.Tensor) -> torch.Tensor:
     """``log1p(clamp(albedo, 0, ALBEDO_MAX))``: ``[B, 3, H, W]`` -> ``[B, 3, H, W]``."""
     return torch.log1p(albedo.float().clamp(0, ALBEDO_MAX))
+
+
+def demodulation_albedo(albedo: torch.Tensor) -> torch.Tensor:
+    """Albedo to divide the color by: ``[B, 3, H, W]`` (any values) -> ``[B, 3, H, W]`` float32 in
+    ``{1} U [DEMOD_MIN, ALBEDO_MAX]``: sanitised, clamped to ``[0, ALBEDO_MAX]``, and 1 per channel
+    where below ``DEMOD_MIN`` (demodulation is then the identity there)."""
+    a = sanitize(albedo).clamp(0, ALBEDO_MAX)
+    return torch.where(a < DEMOD_MIN, torch.ones_like(a), a)
 
 
 def normal_feature(normal: torch.Tensor) -> torch.Tensor:

@@ -22,13 +22,36 @@ The network sees, next to the current frame, ``log1p(history output / s)``,
 Both blends are convex, so the output stays within [min, max] of the input and warped history.
 A reset (first frame, camera cut) sets ``valid = 0`` and replaces history by zeros, so the
 result cannot depend on the previous sequence.
+
+Disocclusion gate (``reject_threshold`` ``t``; None = off, the behaviour of configs from before
+it existed): history whose warped guide disagrees with the current guide is dropped before the
+network sees it, ``valid = c * g`` with ``g = clamp(2 - D / t, 0, 1)`` (1 up to ``D = t``, 0 from
+``D = 2 t``), a rule that holds whatever the learned blend predicts. ``D [B, 1, H, W]`` is the
+largest of three disagreements between the warped previous guide ``P`` and the current one ``C``:
+
+* depth (pointwise): ``|logit(P_depth) - logit(C_depth)|``; the logit of the depth feature
+  ``d / (d + m)`` is ``log(d / m)``, so this is the log depth ratio (the feature clamped to
+  ``[1e-6, 1 - 1e-6]``, so no-hit pixels agree with each other). It catches every disocclusion
+  by an object at another depth, up to the pixel next to the object;
+* normal (pointwise): ``1 - cos`` of the angle between the normals; where one normal is
+  (nearly) zero (no hit) and the other is not, 1; where both are, 0;
+* albedo (box): how far the previous albedo feature ``log1p(albedo)`` lies outside the
+  [min, max] of the current albedo feature over the 3x3 neighbourhood, max over channels.
+  The box keeps sub-pixel motion over sharp textures (the warp blends neighbouring texels)
+  from rejecting history; the price is that an object told apart by its albedo alone leaves
+  history in the one pixel next to it.
+
+The depth term also compares ``log m`` of the two frames (the per-frame mean hit depth):
+changes of ``m`` by less than ``t`` between two frames do not reject anything.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from denoiser.errors import ConfigError
 from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature
 from denoiser.nn.warp import warp_to_current
 
@@ -37,17 +60,56 @@ COVER_MIN = 1e-4
 
 STATE_KEYS = ("output", "color", "features", "guide")
 
+#: clamp of the depth feature before its logit (log depth ratio) in the disocclusion gate
+DEPTH_LOGIT_EPS = 1e-6
+
+
+def _box_excess(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """How far ``previous [B, C, H, W]`` lies outside the 3x3 [min, max] of ``current`` (same
+    shape), max over channels -> ``[B, 1, H, W]`` >= 0."""
+    hi = F.max_pool2d(current, 3, stride=1, padding=1)
+    lo = -F.max_pool2d(-current, 3, stride=1, padding=1)
+    return torch.maximum(previous - hi, lo - previous).clamp_min(0).amax(dim=1, keepdim=True)
+
+
+def _log_depth(feature: torch.Tensor) -> torch.Tensor:
+    """``logit`` of the depth feature ``d / (d + m)``, i.e. ``log(d / m)``: ``[B, 1, H, W]``."""
+    f = feature.clamp(DEPTH_LOGIT_EPS, 1.0 - DEPTH_LOGIT_EPS)
+    return torch.log(f) - torch.log1p(-f)
+
+
+def guide_disagreement(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """Disagreement ``D`` of the disocclusion gate (module docstring).
+
+    previous: ``[B, 7, H, W]`` warped previous guide; current: ``[B, 7, H, W]`` current guide
+    (:func:`~denoiser.nn.inputs.guide_features`). Returns ``[B, 1, H, W]`` float32 >= 0.
+    """
+    pa, pn, pd = torch.split(previous.float(), [3, 3, 1], dim=1)
+    ca, cn, cd = torch.split(current.float(), [3, 3, 1], dim=1)
+    albedo = _box_excess(pa, ca)
+    lp, lc = pn.norm(dim=1, keepdim=True), cn.norm(dim=1, keepdim=True)
+    hp, hc = lp > 0.5, lc > 0.5
+    cos = (pn * cn).sum(dim=1, keepdim=True) / (lp * lc).clamp_min(1e-6)
+    normal = torch.where(hp & hc, 1.0 - cos, torch.where(hp == hc, 0.0, 1.0))
+    depth = (_log_depth(pd) - _log_depth(cd)).abs()
+    return torch.maximum(torch.maximum(albedo, normal), depth)
+
 
 class TemporalRecurrence(nn.Module):
     """History handling for :class:`~denoiser.nn.denoiser.Denoiser` (no parameters of its own).
 
     Args:
         state_features: channels F of the learned recurrent features.
+        reject_threshold: ``t`` of the disocclusion gate (module docstring), > 0; None (the
+            default, and what a stored config without the key means) switches the gate off.
     """
 
-    def __init__(self, state_features: int = 8):
+    def __init__(self, state_features: int = 8, reject_threshold: float | None = None):
         super().__init__()
         self.state_features = int(state_features)
+        if reject_threshold is not None and not float(reject_threshold) > 0:
+            raise ConfigError(f"net.temporal.reject_threshold: must be > 0 or null, got {reject_threshold}")
+        self.reject_threshold = None if reject_threshold is None else float(reject_threshold)
         #: channels added to the U-Net input, in order: ``(part, channels)`` (see :meth:`inputs`)
         self.input_layout = (("output", 3), ("color", 3), ("guide", GUIDE_CHANNELS),
                              ("features", self.state_features), ("valid", 1))
@@ -68,13 +130,23 @@ class TemporalRecurrence(nn.Module):
         return {k: like.new_zeros(b, c, h, w, dtype=torch.float32)
                 for k, c in self.state_channels().items()}
 
+    def gate(self, previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+        """Disocclusion gate ``clamp(2 - D / t, 0, 1)``: guides ``[B, 7, H, W]`` -> ``[B, 1, H, W]``
+        in [0, 1] (all ones when ``reject_threshold`` is None)."""
+        if self.reject_threshold is None:
+            return torch.ones_like(current[:, :1], dtype=torch.float32)
+        d = guide_disagreement(previous, current)
+        return (2.0 - d / self.reject_threshold).clamp(0.0, 1.0)
+
     def warp(self, state: dict | None, motion: torch.Tensor, reset: torch.Tensor | None,
-             like: torch.Tensor) -> dict[str, torch.Tensor]:
+             like: torch.Tensor, guide: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Warp the state to the current frame.
 
         state: dict of ``STATE_KEYS`` tensors ``[B, C, H, W]`` or None/empty (= reset all);
-        motion: ``[B, 2, H, W]``; reset: bool ``[B]`` or None; like: ``[B, 3, H, W]`` current color.
-        Returns the warped, coverage-normalised history (same keys) plus ``"valid" [B, 1, H, W]``.
+        motion: ``[B, 2, H, W]``; reset: bool ``[B]`` or None; like: ``[B, 3, H, W]`` current color;
+        guide: ``[B, 7, H, W]`` current guide features, needed by the disocclusion gate (None: no gate).
+        Returns the warped, coverage-normalised history (same keys) plus ``"valid" [B, 1, H, W]``
+        (coverage times the disocclusion gate).
         """
         b = like.shape[0]
         if not state:
@@ -94,6 +166,8 @@ class TemporalRecurrence(nn.Module):
         values = torch.where(ok, warped[:, :-1] / cover.clamp_min(COVER_MIN), 0.0)
         history = dict(zip(STATE_KEYS, torch.split(values, list(self.state_channels().values()), dim=1)))
         history["valid"] = torch.where(ok, cover, 0.0)
+        if self.reject_threshold is not None and guide is not None:
+            history["valid"] = history["valid"] * self.gate(history["guide"], guide)
         return history
 
     def inputs(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,289 @@
+"""Quality levers of the denoiser (issue 12): albedo demodulation and the disocclusion gate.
+
+Shapes: frames are dicts of ``[B, C, H, W]`` tensors (``denoiser.frames.random_frame``).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from denoiser.configs import build_net, compose_net_config
+from denoiser.errors import ConfigError
+from denoiser.frames import random_frame
+from denoiser.nn.inputs import ALBEDO_MAX, DEMOD_MIN, demodulation_albedo, sanitize
+from denoiser.nn.temporal import TemporalRecurrence, guide_disagreement
+
+
+def tiny(demodulate=False, reject_threshold=None, seed=0):
+    """The tiny net config with the levers set: ``Denoiser``."""
+    cfg = compose_net_config("tiny")
+    cfg["demodulate"] = demodulate
+    cfg["temporal"]["reject_threshold"] = reject_threshold
+    torch.manual_seed(seed)
+    return build_net(cfg).eval()
+
+
+def frames_with_albedo(albedo_fn, count=3, size=16, samples=0):
+    """``count`` random frames (batch 2, ``size`` x ``size``) whose albedo is ``albedo_fn(frame)``."""
+    out = []
+    for s in range(count):
+        f = random_frame(2, size, size, seed=s, samples=samples)
+        f["albedo"] = albedo_fn(f)
+        out.append(f)
+    return out
+
+
+def run(net, frames, transform=None):
+    """Outputs ``[B, 3, H, W]`` of ``net.step`` over ``frames`` (each through ``transform``), and states."""
+    outs, states, state = [], [], None
+    with torch.no_grad():
+        for f in frames:
+            out, state, _ = net.step(transform(f) if transform else f, state)
+            outs.append(out)
+            states.append(state)
+    return outs, states
+
+
+# ----------------------------------------------------------------------------- demodulation
+
+
+def test_config_defaults_keep_old_behaviour():
+    net = build_net(compose_net_config("tiny"))  # tiny.yaml has neither key: like an old checkpoint
+    assert net.demodulate is False and net.temporal.reject_threshold is None
+    assert TemporalRecurrence().reject_threshold is None
+    for name in ("student", "teacher", "demo_student", "demo_teacher"):
+        cfg = compose_net_config(name)
+        assert cfg["demodulate"] is False and cfg["temporal"]["reject_threshold"] == 0.1
+        assert compose_net_config(name, ablation="demodulation")["demodulate"] is True
+        assert compose_net_config(name, ablation="no_demodulation")["demodulate"] is False
+        assert compose_net_config(name, ablation="no_disocclusion")["temporal"]["reject_threshold"] is None
+
+
+def test_demodulation_albedo_rule():
+    a = torch.tensor([0.0, 0.005, DEMOD_MIN, 0.5, 1.0, 3.0, 1e4, float("nan"), float("inf"), -float("inf"), -2.0])
+    got = demodulation_albedo(a.view(1, 1, 1, -1).expand(1, 3, 1, -1))[0, 0, 0]
+    want = torch.tensor([1.0, 1.0, DEMOD_MIN, 0.5, 1.0, 3.0, ALBEDO_MAX, 1.0, ALBEDO_MAX, 1.0, 1.0])
+    torch.testing.assert_close(got, want)
+
+
+def test_albedo_one_equals_the_network_without_demodulation():
+    plain = tiny(seed=3)
+    demod = copy.deepcopy(plain)
+    demod.demodulate = True
+    frames = frames_with_albedo(lambda f: torch.ones_like(f["albedo"]), samples=2)
+    for a, b in zip(run(plain, frames)[0], run(demod, frames)[0]):
+        assert torch.equal(a, b)
+
+
+def test_zero_albedo_passes_through():
+    """Emitters and the sky (albedo 0): demodulation is the identity there."""
+    plain = tiny(seed=4)
+    demod = copy.deepcopy(plain)
+    demod.demodulate = True
+    frames = frames_with_albedo(lambda f: torch.zeros_like(f["albedo"]))
+    for a, b in zip(run(plain, frames)[0], run(demod, frames)[0]):
+        assert torch.equal(a, b) and torch.isfinite(b).all()
+
+
+def mixed_albedo(f):
+    """Albedo in [0, 3] (above 1 on some pixels), an emitter block (0) and a near-black block."""
+    a = torch.rand(f["albedo"].shape, generator=torch.Generator().manual_seed(int(f["color"].sum()) % 1000)) * 3
+    a[..., :4, :4] = 0.0
+    a[..., -3:, -3:] = 0.004
+    return a
+
+
+@pytest.mark.parametrize("gate", [None, 0.1])
+def test_demodulation_matches_divide_filter_multiply(gate):
+    """Reference: the same network without demodulation fed ``color / a'`` (and samples / a'),
+    its output times ``a'``; over three recurrent frames, so the history is checked too."""
+    plain = tiny(reject_threshold=gate, seed=5)
+    demod = copy.deepcopy(plain)
+    demod.demodulate = True
+    frames = frames_with_albedo(mixed_albedo, samples=2)
+
+    def divide(f):
+        a = demodulation_albedo(f["albedo"])
+        return dict(f, color=sanitize(f["color"]) / a, samples=f["samples"] / a.unsqueeze(1))
+
+    ref, ref_states = run(plain, frames, divide)
+    got, states = run(demod, frames)
+    for f, r, g, rs, s in zip(frames, ref, got, ref_states, states):
+        torch.testing.assert_close(g, r * demodulation_albedo(f["albedo"]), rtol=1e-6, atol=1e-6)
+        for k in rs:  # the state holds irradiance
+            torch.testing.assert_close(s[k], rs[k], rtol=1e-6, atol=1e-6)
+
+
+def test_demodulated_output_is_convex_in_irradiance():
+    """First frame (no history): output / a' within the per-channel range of the irradiance;
+    albedo above 1 included."""
+    net = tiny(demodulate=True, seed=6)
+    f = frames_with_albedo(mixed_albedo, count=1)[0]
+    a = demodulation_albedo(f["albedo"])
+    out = run(net, [f])[0][0]
+    irr = f["color"] / a
+    lo, hi = irr.amin(dim=(2, 3), keepdim=True), irr.amax(dim=(2, 3), keepdim=True)
+    q = out / a
+    assert (q >= lo - 1e-5 * hi).all() and (q <= hi * (1 + 1e-5)).all()
+
+
+def test_non_finite_albedo_gives_finite_output():
+    net = tiny(demodulate=True, reject_threshold=0.1, seed=7)
+
+    def bad(f):
+        a = f["albedo"].clone()
+        a[:, 0, 0] = float("nan")
+        a[:, 1, 1] = float("inf")
+        a[:, 2, 2] = -float("inf")
+        a[:, :, 5] = 1e30
+        return a
+
+    for out in run(net, frames_with_albedo(bad, samples=2))[0]:
+        assert torch.isfinite(out).all()
+
+
+def test_demodulation_and_gate_export_to_onnx(tmp_path):
+    from denoiser.step_graph import check_export, export_onnx
+
+    net = tiny(demodulate=True, reject_threshold=0.1, seed=8)
+    path = tmp_path / "net.onnx"
+    export_onnx(net, path, trace_size=(13, 21))
+    errors = check_export(net, path, size=(16, 24), steps=3)
+    assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
+
+
+# ----------------------------------------------------------------------------- disocclusion gate
+
+
+def test_gate_threshold_must_be_positive():
+    with pytest.raises(ConfigError, match="reject_threshold"):
+        TemporalRecurrence(4, reject_threshold=0.0)
+
+
+def guide(albedo, normal, depth_feature):
+    """``[B, 7, H, W]`` from albedo feature ``[B, 3, H, W]``, normal, depth feature ``[B, 1, H, W]``."""
+    return torch.cat([albedo, normal, depth_feature], dim=1)
+
+
+def test_guide_disagreement_terms():
+    b, h, w = 1, 8, 8
+    tex = (torch.arange(w).float().view(1, 1, 1, w).expand(b, 3, h, w) % 2) * 0.6
+    n = torch.zeros(b, 3, h, w)
+    n[:, 2] = 1
+    d = torch.full((b, 1, h, w), 0.5)
+    g = guide(tex, n, d)
+    assert guide_disagreement(g, g).abs().max() == 0
+    # sub-pixel motion over a sharp texture: the warp blends neighbouring texels -> inside the 3x3 box
+    half = guide(0.5 * (tex + tex.roll(1, dims=-1)), n, d)
+    assert guide_disagreement(half, g).max() <= 1e-6
+    # depth: log depth ratio (feature 0.5 -> d = m; 0.25 -> d = m / 3)
+    torch.testing.assert_close(guide_disagreement(guide(tex, n, d * 0.5), g), torch.full((b, 1, h, w), 3.0).log())
+    # normal turned by 90 degrees -> 1; no normal on both sides -> 0, on one side -> 1
+    n90 = torch.zeros_like(n)
+    n90[:, 0] = 1
+    assert torch.allclose(guide_disagreement(guide(tex, n90, d), g), torch.ones(b, 1, h, w))
+    assert guide_disagreement(guide(tex, 0 * n, d), guide(tex, 0 * n, d)).max() == 0
+    assert torch.allclose(guide_disagreement(guide(tex, 0 * n, d), g), torch.ones(b, 1, h, w))
+    # albedo outside the current neighbourhood's range [0, 0.6]: by 0.3 on dark texels, 0.9 on bright ones
+    assert torch.allclose(guide_disagreement(guide(tex + 0.9, n, d), g), tex[:, :1] + 0.3)
+
+
+def moving_object_sequence(count=6, size=32, step=3):
+    """A red square (albedo (0.9, 0.1, 0.1), colour (20, 2, 2), depth 2) sliding right by ``step``
+    pixels per frame over a grey checker background (depth 10), exact backward motion.
+
+    Returns ``(frames, object masks [count] of bool [H, W])``.
+    """
+    h = w = size
+    ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    checker = (0.3 + 0.4 * (((xs // 2) + (ys // 2)) % 2)).float()
+    frames, masks = [], []
+    for t in range(count):
+        x0 = 2 + step * t
+        obj = (ys >= 12) & (ys < 20) & (xs >= x0) & (xs < x0 + 8)
+        albedo = torch.where(obj, torch.tensor([0.9, 0.1, 0.1]).view(3, 1, 1), checker)
+        color = torch.where(obj, torch.tensor([20.0, 2.0, 2.0]).view(3, 1, 1), checker)
+        normal = torch.zeros(3, h, w)
+        normal[2] = 1
+        depth = torch.where(obj, 2.0, 10.0).view(1, h, w)
+        motion = torch.zeros(2, h, w)
+        motion[0] = torch.where(obj, -float(step), 0.0)
+        frames.append({"color": color[None], "albedo": albedo[None], "normal": normal[None],
+                       "depth": depth[None], "motion": motion[None]})
+        masks.append(obj)
+    return frames, masks
+
+
+def max_blend_identity_filter(net, monkeypatch):
+    """Force the learned history blends to their maximum (sigmoid = 1) and make the spatial
+    filter the identity, so the output is exactly what the temporal rule lets through."""
+    start = net.filter_head0
+
+    def force(module, args, output):
+        heads, features = output
+        h0 = heads[0].clone()
+        h0[:, start: start + 2] = 40.0
+        return [h0] + list(heads[1:]), features
+
+    net.unet.register_forward_hook(force)
+    monkeypatch.setattr(net.filter, "forward", lambda x, heads, scale: (x.float(), {}))
+    return net
+
+
+@pytest.mark.parametrize("gate", [0.1, None])
+def test_no_ghost_trail_behind_a_moving_object(gate, monkeypatch):
+    """With the gate, background uncovered by the object shows the background; without it
+    (the control: proves the check can fail) the object's colour stays behind."""
+    net = max_blend_identity_filter(tiny(reject_threshold=gate, seed=9), monkeypatch)
+    frames, masks = moving_object_sequence()
+    state, covered = None, torch.zeros_like(masks[0])
+    ghost = []
+    with torch.no_grad():
+        for t, (f, obj) in enumerate(zip(frames, masks)):
+            out, state, extras = net.step(f, state)
+            uncovered = covered & ~obj
+            if t > 0:
+                assert extras["weights"]["history_out"][0, 0, 0, 0] == 1.0  # far background: full history
+                assert extras["weights"]["history_out"][0, 0][obj].min() > 0.99  # the object keeps its history
+            if uncovered.any():
+                ghost.append((out[0, 0][uncovered] - f["color"][0, 0][uncovered]).abs().max())
+            covered |= obj
+    assert len(ghost) == len(frames) - 1
+    if gate is not None:
+        assert max(ghost) < 1e-5
+    else:
+        assert min(ghost) > 10.0
+
+
+def test_gate_on_static_scene_keeps_history():
+    net = tiny(reject_threshold=0.1, seed=10)
+    f = random_frame(1, 16, 16)
+    f["motion"].zero_()
+    with torch.no_grad():
+        _, state, _ = net.step(f, None)
+        _, _, extras = net.step(f, state)
+    assert extras["weights"]["valid"].min() == 1.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_levers_on_hard_inputs_stay_finite_with_finite_gradients(dtype):
+    """Demodulation and the gate together, extreme weights, fireflies, non-finite buffers, autocast."""
+    net = tiny(demodulate=True, reject_threshold=0.1, seed=11).train()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(3.0)
+    f0, f1 = random_frame(2, 13, 11, seed=1, kind="hard"), random_frame(2, 13, 11, seed=2, kind="hard")
+    f1["color"][:, 0, 0, 0] = float("nan")
+    f1["albedo"][:, :, 3] = float("inf")
+    f1["depth"][:, :, 5] = float("nan")
+    f1["color"].requires_grad_(True)
+    with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
+        out0, state, _ = net.step(f0, None)
+        out1, _, _ = net.step(f1, state)
+    assert torch.isfinite(out0).all() and torch.isfinite(out1).all() and out1.dtype == torch.float32
+    (out0.mean() + out1.mean()).backward()
+    assert torch.isfinite(f1["color"].grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)

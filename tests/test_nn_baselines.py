@@ -294,7 +294,7 @@ def test_a_few_training_steps_reduce_the_loss(name, kernel, ablation):
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     with torch.no_grad():
         final = float(loss_now())
     assert math.isfinite(final) and final < 0.9 * losses[0], losses + [final]
@@ -326,3 +326,18 @@ def test_onnx_export_matches_pytorch(name, tmp_path):
     path = export_onnx(net, tmp_path / f"{name}.onnx", trace_size=(13, 21))
     errors = check_export(net, path, size=(20, 28), steps=2, threads=1)
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
+
+
+def test_nppd_demo_encodes_samples_per_sample():
+    """NPPD's per-sample encoder is our EmbedNet over ``samples``: they change the output."""
+    from denoiser.buffers import NETWORK_INPUTS
+
+    net = make_net("nppd_demo", None, "none")
+    frames = [random_frame(1, 16, 16, seed=t, samples=3) for t in range(2)]
+    with_samples = {k: torch.stack([f[k] for f in frames], dim=1) for k in NETWORK_INPUTS if k in frames[0]}
+    assert with_samples["samples"].shape == (1, 2, 3, 3, 16, 16)
+    without = {k: v for k, v in with_samples.items() if k != "samples"}
+    with torch.no_grad():
+        a, _, _ = net(with_samples)
+        b, _, _ = net(without)
+    assert torch.isfinite(a).all() and not torch.allclose(a, b)

@@ -300,7 +300,7 @@ def test_a_few_training_steps_reduce_the_loss(name, kernel, ablation):
     assert math.isfinite(final) and final < 0.9 * losses[0], losses + [final]
 
 
-@pytest.mark.parametrize("name, kernel, ablation", NETS[:2])
+@pytest.mark.parametrize("name, kernel, ablation", NETS)
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
 def test_autocast_outputs_are_float32_and_bounded(name, kernel, ablation, dtype):
     net = make_net(name, kernel, ablation)

@@ -8,6 +8,8 @@ Parts, each in its own module:
 * :mod:`.kernels`  - :func:`apply_kernels`, per-pixel softmax-normalised k x k kernels;
 * :mod:`.pyramid`  - :class:`PyramidFilter` (partitioning pyramid);
 * :mod:`.filters`  - ablation filters :class:`SingleKernelFilter` and :class:`DirectColor`;
+* :mod:`.nppd`     - baseline :class:`LearnedUpsamplingPyramid` (NPPD's predicted upsampling);
+* :mod:`.ws`       - baseline :class:`WeightSharingFilter` (WS's weight-sharing kernels);
 * :mod:`.warp`     - :func:`warp_to_current` (backward motion, bilinear, zeros outside);
 * :mod:`.temporal` - :class:`TemporalRecurrence` (history state, blend weights, resets);
 * :mod:`.denoiser` - :class:`Denoiser` with the one ``step`` used everywhere;

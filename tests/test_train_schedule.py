@@ -48,3 +48,18 @@ def test_state_dict_loads_with_weights_only(tmp_path):
     _, sched = make()
     torch.save(sched.state_dict(), tmp_path / "s.pt")
     assert torch.load(tmp_path / "s.pt", weights_only=True)["last_epoch"] == sched.last_epoch
+
+
+def test_steps_only_schedule_ignores_the_time_progress():
+    """follow_time=False (the demo): a used-up max_time does not move the LR; steps alone do."""
+    opt = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
+    sched = ProgressCosineLR(opt, total_steps=100, final_ratio=0.01, follow_time=False)
+    sched.bind_progress(lambda: 1.0)
+    opt.step()
+    sched.step()
+    assert opt.param_groups[0]["lr"] == pytest.approx(0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * 0.01)))
+    _, timed = make(total=100)
+    timed.bind_progress(lambda: 1.0)
+    timed.optimizer.step()
+    timed.step()
+    assert timed.optimizer.param_groups[0]["lr"] == pytest.approx(0.01)  # the control: time wins there

@@ -5,7 +5,7 @@
 #   2. train the demo teacher                 (experiment=demo_teacher, seed 0)
 #   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_distill seed=k,
 #      teacher from step 2)
-#   4. train the same student without KD      (experiment=demo_distill ablation=no_kd), same
+#   4. train the same student without KD, on references alone (experiment=demo seed=k), same
 #      seeds and the same number of steps
 #   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench)
@@ -80,10 +80,10 @@ TEACHER=$(ckpt_of teacher)
 STUDENTS=()
 for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done
 student_run() {  # student_run <run name>
-    local name=$1 seed=${1##*_s} extra=()
-    [[ $name == student_no_kd_* ]] && extra=(ablation=no_kd)
-    train_run "$name" experiment=demo_distill "model.teacher_ckpt=$TEACHER" "seed=$seed" "threads=$JOB_THREADS" \
-        "${extra[@]}" > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
+    local name=$1 seed=${1##*_s} recipe=(experiment=demo_distill "model.teacher_ckpt=$TEACHER")
+    [[ $name == student_no_kd_* ]] && recipe=(experiment=demo)  # the same student on references alone
+    train_run "$name" "${recipe[@]}" "seed=$seed" "threads=$JOB_THREADS" \
+        > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
     echo "<== [$name] $(grep -h '^<== ' "$RUNS/$name.log" | tail -1 | cut -d' ' -f3-)"
 }
 running=0; failed=0

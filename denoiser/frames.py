@@ -100,7 +100,7 @@ def random_frame(batch: int, height: int, width: int, seed: int = 0, *, kind: st
 
 
 def resize_frame(frame: Mapping[str, torch.Tensor], height: int, width: int) -> dict[str, torch.Tensor]:
-    """Resample a frame ``{buffer: [1, C, h, w]}`` to ``height`` x ``width``.
+    """Resample a frame ``{buffer: [1, C, h, w]}`` (``samples [1, S, 3, h, w]``) to ``height`` x ``width``.
 
     Bilinear for every buffer; normals are re-normalised (zero stays zero), motion vectors are
     scaled with the image. Used to put the same content at every benchmark size.
@@ -108,6 +108,10 @@ def resize_frame(frame: Mapping[str, torch.Tensor], height: int, width: int) -> 
     h, w = frame["color"].shape[-2:]
     out = {}
     for k, v in frame.items():
+        if v.dim() == 5:  # samples [1, S, 3, h, w]: each sample resampled alike
+            out[k] = resize_frame({k: v.flatten(1, 2), "color": frame["color"]}, height, width)[k].view(
+                *v.shape[:3], height, width)
+            continue
         r = v if (h, w) == (height, width) else F.interpolate(v.float(), size=(height, width), mode="bilinear",
                                                                 align_corners=False)
         if k == "normal":

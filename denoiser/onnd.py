@@ -150,6 +150,7 @@ class OnlineCrossRegression:
     """
 
     recurrent = True
+    backend = "PyTorch eager + online step"  # denoiser-bench's backend column
     uses_samples = True  # evaluation passes frame["samples"] only to methods that say so
 
     def __init__(self, label: str = "ONND", regression_radius: int = 3, ridge: float = 1e-2,

@@ -142,3 +142,24 @@ def test_denoiser_eval_with_baselines_compare(tmp_path):
     with pytest.raises(ConfigError, match="per-sample"):
         run(compose_command("eval", [*base, f"data.root={tmp_path / 'plain'}", "~baselines.oidn_fast",
                                      f"out_dir={tmp_path / 'out2'}"], threads=1))
+
+
+def test_denoiser_bench_times_onnd(tmp_path):
+    """denoiser-bench with ``baselines=compare``: ONND is timed on frames that carry their samples
+    (resampled to each size), its time includes the online step; a network beside it still runs
+    on frames without samples (as in denoiser-eval)."""
+    from conftest import compose_command, tiny_checkpoint
+
+    from denoiser.commands.bench import run as bench
+    from denoiser.data.synthetic import write_synthetic_sequence
+
+    write_synthetic_sequence(tmp_path / "data/test/seq_000", frames=2, width=32, height=32, samples=4, seed=0)
+    rows = bench(compose_command("bench", [
+        "data=tiny", f"data.root={tmp_path / 'data'}", "baselines=compare", "~baselines.oidn_balanced",
+        "~baselines.oidn_high", f"ckpt=[{tiny_checkpoint(tmp_path / 'student.ckpt')}]", "sizes=[[16,16],[24,40]]", "repeats=2", "warmup=1", "use_backends=[eager]",
+        f"out_dir={tmp_path / 'bench'}"], threads=1))
+    onnd = [r for r in rows if r["method"] == "ONND"]
+    assert [(r["height"], r["width"]) for r in onnd] == [(16, 16), (24, 40)]
+    assert all(r["ms_median"] > 0 and r["backend"] == "PyTorch eager + online step" for r in onnd), onnd
+    assert sorted(r["height"] for r in rows if r["method"] == "student" and r["status"] == "ok") == [16, 24]
+    assert any(r["method"] == "OIDN-fast" for r in rows)

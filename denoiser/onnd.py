@@ -92,8 +92,14 @@ def _cross_regression_rows(y: torch.Tensor, guide: torch.Tensor, var: torch.Tens
     wts = torch.exp(-dist) * valid  # [K, N]
     x = torch.cat([valid[None], (ft - ft[:, centre: centre + 1]) * valid[None]], dim=0)  # [P, K, N]
     xw = x * wts[None]
-    gram = torch.einsum("pkn,qkn->npq", xw, x)  # [N, P, P]
-    rhs = torch.einsum("pkn,ckn->npc", xw, yt)  # [N, P, 3]
+    # sums over the taps as elementwise products (a batched matmul of tiny P x K blocks is slow on CPU)
+    n_p = x.shape[0]
+    gram = x.new_empty(n_p, n_p, x.shape[-1])
+    for p in range(n_p):
+        for q in range(p, n_p):  # symmetric: P (P + 1) / 2 sums
+            gram[p, q] = gram[q, p] = (xw[p] * x[q]).sum(dim=0)
+    gram = gram.permute(2, 0, 1)  # [N, P, P]
+    rhs = torch.stack([(xw[p:p + 1] * yt).sum(dim=1) for p in range(n_p)]).permute(2, 0, 1)  # [N, P, 3]
     reg = torch.full((x.shape[0],), float(ridge), dtype=y.dtype, device=y.device)
     reg[0] = 0.0
     beta = torch.linalg.solve(gram + torch.diag(reg), rhs)  # the centre tap keeps gram[0,0] >= 1

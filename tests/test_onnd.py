@@ -163,3 +163,16 @@ def test_denoiser_bench_times_onnd(tmp_path):
     assert all(r["ms_median"] > 0 and r["backend"] == "PyTorch eager + online step" for r in onnd), onnd
     assert sorted(r["height"] for r in rows if r["method"] == "student" and r["status"] == "ok") == [16, 24]
     assert any(r["method"] == "OIDN-fast" for r in rows)
+
+
+def test_online_steps_lower_the_self_supervised_loss():
+    """The same frame again and again (no history): each step lowers the cross loss a little.
+    Measured: 0.00534 -> 0.00532 after 12 steps at lr 1e-3 (deterministic: seeded network, fixed frame)."""
+    seq, _ = smooth_sequence(frames=1)
+    method = OnlineCrossRegression(lr=1e-3)
+    losses = []
+    for _ in range(12):
+        method(seq[0], reset=True)
+        losses.append(method.last_loss)
+    assert losses[-1] < losses[0], losses
+    assert all(later <= earlier + 1e-7 for earlier, later in zip(losses, losses[1:])), losses

@@ -176,3 +176,16 @@ def test_online_steps_lower_the_self_supervised_loss():
         losses.append(method.last_loss)
     assert losses[-1] < losses[0], losses
     assert all(later <= earlier + 1e-7 for earlier, later in zip(losses, losses[1:])), losses
+
+
+def test_compare_is_default_plus_onnd():
+    """conf/baselines/compare.yaml composes default.yaml and adds ONND, in eval and bench alike."""
+    from conftest import compose_command
+
+    ev = compose_command("eval", ["baselines=compare"], threads=3)
+    bench = compose_command("bench", ["baselines=compare"], threads=3)
+    default = compose_command("eval", [], threads=3)
+    assert list(ev.baselines) == [*default.baselines, "onnd"]
+    assert all(ev.baselines[k] == default.baselines[k] for k in default.baselines)
+    assert bench.baselines.noisy is None and bench.baselines.onnd == ev.baselines.onnd
+    assert ev.baselines.onnd._target_ == "denoiser.onnd.OnlineCrossRegression" and ev.baselines.onnd.threads == 3

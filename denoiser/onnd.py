@@ -208,7 +208,8 @@ class OnlineCrossRegression:
         if threads and threads != old:
             torch.set_num_threads(threads)
         try:
-            return self._denoise(frame, reset)
+            with torch.inference_mode(False):  # the online step needs autograd, even inside a caller's inference mode
+                return self._denoise(frame, reset).to(frame["color"].device)
         finally:
             if threads and threads != old:
                 torch.set_num_threads(old)

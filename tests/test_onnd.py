@@ -73,6 +73,10 @@ def test_sequence_with_reset_weights_change_and_hard_cases():
         assert out.shape == (1, 3, 32, 32) and torch.isfinite(out).all() and (out >= 0).all()
     after = list(method.net.parameters())
     assert any(not torch.equal(x, y) for x, y in zip(before, after)), "no online step happened"
+    with torch.inference_mode():  # a caller's inference mode does not stop the online step
+        stepped = [p.detach().clone() for p in method.net.parameters()]
+        out = method(random_frame(1, 16, 16, seed=5, samples=2), reset=False)
+    assert torch.isfinite(out).all() and any(not torch.equal(x, y) for x, y in zip(stepped, method.net.parameters()))
     method.reset()  # a new sequence re-initialises (keep_weights=False)
     assert all(torch.equal(x, y) for x, y in zip(before, method.net.parameters()))
 

@@ -193,3 +193,16 @@ def test_compare_is_default_plus_onnd():
     assert all(ev.baselines[k] == default.baselines[k] for k in default.baselines)
     assert bench.baselines.noisy is None and bench.baselines.onnd == ev.baselines.onnd
     assert ev.baselines.onnd._target_ == "denoiser.onnd.OnlineCrossRegression" and ev.baselines.onnd.threads == 3
+
+
+def test_resize_frame_resamples_each_sample():
+    """denoiser-bench resizes ``samples [1, S, 3, h, w]`` sample by sample, like ``color``."""
+    import torch.nn.functional as F
+
+    from denoiser.frames import resize_frame
+
+    f = random_frame(1, 8, 12, seed=0, samples=3)
+    out = resize_frame(f, 16, 24)
+    assert out["samples"].shape == (1, 3, 3, 16, 24) and out["color"].shape == (1, 3, 16, 24)
+    want = F.interpolate(f["samples"][:, 1], size=(16, 24), mode="bilinear", align_corners=False)
+    torch.testing.assert_close(out["samples"][:, 1], want)

@@ -48,10 +48,11 @@ class Evaluation:
         panels = None
         for index in range(frames):
             inputs, reference, reset = read_frame(dataset, source, index)
+            without_samples = {k: v for k, v in inputs.items() if k != "samples"}  # only ONND reads them
             outputs = {}
             for label, method in self.methods.items():
                 start = time.perf_counter()
-                out = method(inputs, reset)
+                out = method(inputs if getattr(method, "uses_samples", False) else without_samples, reset)
                 self.seconds[label].setdefault(name, []).append(time.perf_counter() - start)
                 if not torch.isfinite(out).all():
                     raise RuntimeError(f"{label} produced NaN/Inf on {name} frame {index}")

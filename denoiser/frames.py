@@ -100,7 +100,7 @@ def random_frame(batch: int, height: int, width: int, seed: int = 0, *, kind: st
 
 
 def resize_frame(frame: Mapping[str, torch.Tensor], height: int, width: int) -> dict[str, torch.Tensor]:
-    """Resample a frame ``{buffer: [1, C, h, w]}`` to ``height`` x ``width``.
+    """Resample a frame ``{buffer: [1, C, h, w]}`` (``samples [1, S, 3, h, w]``) to ``height`` x ``width``.
 
     Bilinear for every buffer; normals are re-normalised (zero stays zero), motion vectors are
     scaled with the image. Used to put the same content at every benchmark size.
@@ -108,11 +108,12 @@ def resize_frame(frame: Mapping[str, torch.Tensor], height: int, width: int) -> 
     h, w = frame["color"].shape[-2:]
     out = {}
     for k, v in frame.items():
-        r = v if (h, w) == (height, width) else F.interpolate(v.float(), size=(height, width), mode="bilinear",
-                                                                align_corners=False)
+        flat = v.flatten(1, 2) if v.dim() == 5 else v  # samples [1, S, 3, h, w]: every sample alike
+        r = flat if (h, w) == (height, width) else F.interpolate(flat.float(), size=(height, width), mode="bilinear",
+                                                                   align_corners=False)
         if k == "normal":
             r = F.normalize(r, dim=1) * (v.abs().amax(dim=1, keepdim=True).amax() > 0)
         elif k == "motion":
             r = r * torch.tensor([width / w, height / h]).view(1, 2, 1, 1)
-        out[k] = r.contiguous()
+        out[k] = r.reshape(*v.shape[:-2], height, width).contiguous()
     return out

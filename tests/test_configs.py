@@ -233,7 +233,7 @@ def test_one_layout_group_chosen_with_layout_everywhere():
 def test_one_baseline_list_for_eval_and_bench():
     """conf/baselines/default.yaml is composed by eval and bench; bench times every baseline but
     the noisy input (its config sets `baselines.noisy: null`, which the benchmark skips)."""
-    assert options("baselines") == ["default"]
+    assert options("baselines") == ["compare", "default"]  # compare = default + ONND (tests/test_onnd.py)
     ev, bench = compose_entry("eval", "threads=3"), compose_entry("bench", "threads=3")
     assert list(ev.baselines) == ["noisy", "oidn_fast", "oidn_balanced", "oidn_high"]
     assert ev.baselines.noisy._target_ == "denoiser.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"

@@ -68,14 +68,24 @@ from denoiser.measure import (
 # ----------------------------------------------------------------------------- frames
 
 
-def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: int) -> tuple[str, list[dict]]:
-    """``count`` consecutive frames ``{buffer: [1, C, H, W]}`` of one test sequence (cycled if short)."""
+def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: int,
+                samples: bool = False) -> tuple[str, list[dict]]:
+    """``count`` consecutive frames ``{buffer: [1, C, H, W]}`` of one test sequence (cycled if short);
+    with ``samples`` also ``samples [1, S, 3, H, W]`` where the sequence has them (for ONND)."""
     from denoiser.data.evalset import open_test_split, read_frame
 
-    _, sources, dataset = open_test_split(data_cfg, split, [sequence] if sequence else None)
+    _, sources, dataset = open_test_split(data_cfg, split, [sequence] if sequence else None, samples=samples)
     source = sources[0]
     frames = [read_frame(dataset, source, i % source.frames)[0] for i in range(count)]
-    return source.name, [{k: f[k] for k in FRAME_INPUTS} for f in frames]
+    return source.name, [{k: f[k] for k in (*FRAME_INPUTS, "samples") if k in f} for f in frames]
+
+
+def baselines_use_samples(nodes) -> bool:
+    """Whether a baseline's class reads per-sample radiance (``uses_samples``, ONND), from the config alone."""
+    from hydra.utils import get_class
+
+    return any(node is not None and getattr(get_class(node._target_), "uses_samples", False)
+               for node in (nodes or {}).values())
 
 
 # ----------------------------------------------------------------------------- backends
@@ -157,11 +167,15 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
             sized = [resize_frame(f, *size) for f in frames]
             if label in baselines:
                 method = baselines[label]
+                if not getattr(method, "uses_samples", False):
+                    sized = [{k: v for k, v in f.items() if k != "samples"} for f in sized]
                 with PeakRss() as mem:
                     times = time_steps(Stepper(lambda f, s, m=method: (m(f, s is None), None)), sized, warmup, repeats)
-                rows.append(bench_row(label, "OIDN (pyoidn)", "cpu", size, times, threads=threads,
+                rows.append(bench_row(label, getattr(method, "backend", "OIDN (pyoidn)"), "cpu", size, times,
+                                      threads=threads,
                                       peak_mb=mem.megabytes, kind="baseline"))
                 continue
+            sized = [{k: v for k, v in f.items() if k != "samples"} for f in sized]  # networks: as in eval
             net, kind = nets[label]["net"], nets[label]["kind"]
             gflop = count_flops(net, *size) / 1e9
             allowed = (cfg.get("method_backends") or {}).get(label)
@@ -305,7 +319,8 @@ def run(cfg: DictConfig) -> list[dict]:
     torch.set_num_threads(threads)
     out_dir = Path(cfg.out_dir)
     quality = quality_from_eval(cfg.get("eval_csv"))
-    seq_name, frames = load_frames(cfg.data, cfg.split, cfg.get("sequence"), int(cfg.warmup) + int(cfg.repeats))
+    seq_name, frames = load_frames(cfg.data, cfg.split, cfg.get("sequence"), int(cfg.warmup) + int(cfg.repeats),
+                                   samples=baselines_use_samples(cfg.get("baselines")))
     peak = matmul_peak()
     rows = run_benchmark(cfg, frames, threads, peak)
     for r in rows:

@@ -96,6 +96,8 @@ def run(cfg: DictConfig) -> dict:
         log.warning("removed %s (left by an evaluation that was killed)", stale)
     _, sources, dataset = open_test_split(cfg.data, cfg.split, cfg.get("sequences"))
     methods = build_methods(cfg, cfg.get("device", "cpu"))
+    if any(getattr(m, "uses_samples", False) for m in methods.values()):  # ONND: per-sample radiance too
+        _, sources, dataset = open_test_split(cfg.data, cfg.split, cfg.get("sequences"), samples=True)
     max_frames = cfg.get("max_frames")
     lengths = [min(s.frames, int(max_frames)) if max_frames else s.frames for s in sources]
     ev = Evaluation(methods, metrics, int(cfg.warmup))

@@ -2,7 +2,9 @@
 
 Frames stream from disk (memory does not grow with sequence length). A frame is
 ``{buffer: [1, C, H, W]}`` over :data:`denoiser.buffers.FRAME_INPUTS`, plus its reference
-``[1, 3, H, W]`` and whether history resets there (the first frame and camera cuts).
+``[1, 3, H, W]`` and whether history resets there (the first frame and camera cuts). With
+``open_test_split(..., samples=True)`` and a split whose sequences all hold per-sample radiance
+(same count S), frames also carry ``samples [1, S, 3, H, W]`` (for methods that use them, ONND).
 """
 
 from __future__ import annotations
@@ -16,8 +18,11 @@ from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import UserError
 
 
-def open_test_split(data_cfg: DictConfig, split: str, sequences=None):
-    """``(layout, sources, dataset)`` for the labeled sequences of ``<data.root>/<split>``."""
+def open_test_split(data_cfg: DictConfig, split: str, sequences=None, samples: bool = False):
+    """``(layout, sources, dataset)`` for the labeled sequences of ``<data.root>/<split>``.
+
+    ``samples``: also read per-sample radiance, when every sequence has it with one count S
+    (otherwise frames come without it, and a method that needs it says so)."""
     from denoiser.configs import instantiate_config
     from denoiser.data.dataset import SequenceDataset, index_split
 
@@ -35,14 +40,20 @@ def open_test_split(data_cfg: DictConfig, split: str, sequences=None):
     if unlabeled:
         raise UserError(f"{unlabeled[0].directory}: sequence has no reference buffer; evaluation needs "
                         "a labeled split")
-    dataset = SequenceDataset(sources, layout, list(FRAME_INPUTS), window=1, labeled=True, cache_dir=None)
+    samples = bool(samples) and bool(sources) and all("samples" in s.buffers for s in sources) \
+        and len({s.sample_count for s in sources}) == 1
+    dataset = SequenceDataset(sources, layout, list(FRAME_INPUTS), window=1, labeled=True, samples=samples,
+                              cache_dir=None)
     return layout, sources, dataset
 
 
 def read_frame(dataset, source, index: int) -> tuple[dict, torch.Tensor, bool]:
-    """Frame ``index`` of ``source``: ``(inputs {buffer: [1, C, H, W]}, reference [1, 3, H, W], reset)``."""
+    """Frame ``index`` of ``source``: ``(inputs {buffer: [1, C, H, W]}, reference [1, 3, H, W], reset)``
+    (``inputs["samples"]`` ``[1, S, 3, H, W]`` too when the dataset reads them)."""
     item = dataset.load(source, index, 1, None)
     inputs = {b: item[b] for b in FRAME_INPUTS}
+    if "samples" in item:
+        inputs["samples"] = item["samples"]
     reset = index == 0 or index in source.cuts
     return inputs, item["reference"], reset
 

@@ -218,3 +218,23 @@ def test_bench_openvino_bf16_psnr_through_the_backend(tmp_path):
     assert math.isfinite(eager) and math.isfinite(bf16)
     assert abs(bf16 - eager) < 0.1, (bf16, eager)  # measured here: 17.050 vs 17.051 dB
     assert "through each row's own backend" in (tmp_path / "bench" / "report.md").read_text()
+
+
+def test_bench_quality_limits_match_eval(tmp_path):
+    """quality_frames and max_sequences score what denoiser-eval scores with max_frames on that sequence."""
+    from denoiser.commands.bench import run as bench
+    from denoiser.commands.evaluate import run as evaluate
+
+    write_dataset(tmp_path / "data", sequences=2, frames=4, size=32)
+    ckpt = tiny_checkpoint(tmp_path / "student.ckpt", seed=1)
+    data = ["data=tiny", f"data.root={tmp_path / 'data'}", "threads=1"]
+    evaluate(compose("eval", [*data, f"ckpt=[{ckpt}]", "~baselines.oidn_fast", "~baselines.noisy",
+                              "~baselines.oidn_balanced", "~baselines.oidn_high", "metrics=[psnr]", "max_frames=3",
+                              "images.frame=null", f"out_dir={tmp_path / 'eval'}"]))
+    first = next(r for r in read_csv(tmp_path / "eval" / "metrics.csv") if r["sequence"] != "mean")
+    rows = bench(compose("bench", [*data, f"ckpt=[{ckpt}]", "sizes=[[32,32]]", "repeats=1", "warmup=0",
+                                   "use_backends=[eager]", "~baselines.oidn_fast", "~baselines.oidn_balanced",
+                                   "~baselines.oidn_high", "quality_frames=3", "max_sequences=1",
+                                   f"out_dir={tmp_path / 'bench'}"]))
+    (row,) = rows
+    assert abs(row["psnr"] - first["psnr"]) < 1e-4

@@ -184,6 +184,29 @@ class NetworkMethod:
         return self.runner(inputs, reset).float()
 
 
+class StepperMethod:
+    """A backend's prepared network (:class:`~denoiser.backends.Stepper`: eager, ONNX Runtime,
+    OpenVINO f32/bf16, ...) as an evaluation method, stepped through the recurrent runner, so
+    its quality is measured through the same backend and precision as its time
+    (``denoiser-bench``). Outputs come back as ``[1, 3, H, W]`` float32 CPU tensors."""
+
+    recurrent = True
+
+    def __init__(self, stepper, label: str):
+        self.label = label
+        self.runner = RecurrentRunner(stepper.step)
+
+    def reset(self) -> None:
+        """Forget the history (next frame starts a sequence)."""
+        self.runner.reset()
+
+    def __call__(self, frame: dict, reset: bool = False) -> torch.Tensor:
+        out = self.runner(frame, reset)
+        if not isinstance(out, torch.Tensor):
+            out = torch.from_numpy(np.array(out, dtype=np.float32))
+        return out.detach().float().cpu()
+
+
 def build_baselines(nodes) -> OrderedDict[str, object]:
     """The methods of a ``baselines`` config node (``{key: {_target_: ...} | None}``, see
     ``conf/baselines/default.yaml``), in order, by their ``label``; None entries are skipped."""

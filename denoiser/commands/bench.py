@@ -29,11 +29,23 @@ these networks and of OIDN does not depend on the content, and every method sees
 frames. Sizes can be skipped per method (``skip``), since a teacher at 1080p on 2 cores takes
 minutes, and a method's backends restricted (``method_backends``).
 
-The quality of each method is read from ``denoiser-eval``'s ``metrics.csv`` (``eval_csv``,
-the ``mean`` rows) and joined by method name. Outputs in ``out_dir``: ``bench.csv`` (one row
-per method, backend, device and size), ``report.md`` (machine, the table, the student vs
-OIDN-fast ratio at every size) and ``accuracy_vs_time.png`` (PSNR against ms per frame at
-``plot_size`` on a log axis; see :mod:`denoiser.plot_tradeoff`).
+Quality is measured through the same backend and precision as the time (``quality: true``,
+the default): for every checkpoint and backend that ran, a fresh prepared network (the same
+``backend.prepare``) steps through the recurrent runner over the evaluation sequences of
+``split`` at their native size, as ``denoiser-eval`` does (state reset at the first frame and
+at cuts, the first ``quality_warmup`` frames after each reset excluded, PSNR of
+:mod:`denoiser.metrics` through :class:`denoiser.evaluation.Evaluation`); ``quality_frames``
+(first N frames of each sequence) and ``max_sequences`` keep it cheap. That is the ``psnr``
+column, the same for every size of a (method, backend) pair (``psnr_from``: ``backend``). A
+bf16 speed-up thus comes with the PSNR of bf16. ``denoiser-eval``'s eager fp32 PSNR
+(``eval_csv``, the ``mean`` rows, joined by method name) is kept beside it as ``psnr_eval``;
+the baselines (OIDN) and, with ``quality: false``, the networks take their ``psnr`` from it
+(``psnr_from``: ``eval``). Untrained ``variants`` are not scored.
+
+Outputs in ``out_dir``: ``bench.csv`` (one row per method, backend, device and size),
+``report.md`` (machine, the table, the student vs OIDN-fast ratio at every size: the student's
+fastest backend whose own PSNR is known, and eager fp32) and ``accuracy_vs_time.png`` (PSNR
+against ms per frame at ``plot_size`` on a log axis; see :mod:`denoiser.plot_tradeoff`).
 """
 
 from __future__ import annotations
@@ -124,6 +136,40 @@ def quality_from_eval(path: str | os.PathLike | None) -> dict[str, dict]:
     return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}
 
 
+def backend_quality(cfg: DictConfig, nets, backends, pairs, threads: int) -> dict[tuple[str, str], dict]:
+    """``{(method, backend label): {"psnr": dB} | {"error": why}}``: each checkpoint of ``pairs``
+    ``(method, backend key)`` prepared afresh by its backend and run over the evaluation
+    sequences like ``denoiser-eval`` (one :class:`~denoiser.evaluation.Evaluation` per pair, so a
+    failing backend fails alone)."""
+    from denoiser.baselines import StepperMethod
+    from denoiser.data.evalset import open_test_split, read_frame
+    from denoiser.evaluation import Evaluation
+
+    if not pairs:
+        return {}
+    _, sources, dataset = open_test_split(cfg.data, cfg.split)
+    if cfg.get("max_sequences"):
+        sources = sources[:int(cfg.max_sequences)]
+    limit = cfg.get("quality_frames")
+    lengths = [min(s.frames, int(limit)) if limit else s.frames for s in sources]
+    warmup = int(cfg.get("quality_warmup", 2))
+    example = read_frame(dataset, sources[0], 0)[0]
+    out = {}
+    with tqdm(total=len(pairs) * sum(lengths), desc="quality", unit="frame") as progress:
+        for label, key in pairs:
+            backend = backends[key]
+            name = f"{label} | {backend.label}"
+            try:
+                method = StepperMethod(backend.prepare(nets[label]["net"], example, threads), name)
+                ev = Evaluation({name: method}, ["psnr"], warmup)
+                for source, frames in zip(sources, lengths):
+                    ev.run_sequence(dataset, source, frames, None, None, None, progress)
+                out[(label, backend.label)] = {"psnr": float(ev.acc[name].compute()["psnr"])}
+            except Exception as exc:  # noqa: BLE001 - reported in the row's status, not fatal
+                out[(label, backend.label)] = {"error": f"{type(exc).__name__}: {str(exc)[:120]}"}
+    return out
+
+
 def skipped(skip_cfg, label: str, size: tuple[int, int]) -> bool:
     """True when ``skip[label]`` lists ``[H, W]`` = ``size``."""
     entries = (skip_cfg or {}).get(label) or []
@@ -212,18 +258,32 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
         close = getattr(m, "close", None)
         if close:
             close()
+    if cfg.get("quality", True):
+        pairs = list(OrderedDict.fromkeys(
+            (r["method"], key) for r in rows if r.get("status", "ok") == "ok" and r["method"] in nets
+            and nets[r["method"]]["kind"] == "checkpoint" for key, b in backends.items() if b.label == r["backend"]))
+        measured = backend_quality(cfg, nets, backends, pairs, threads)
+        for r in rows:
+            q = measured.get((r["method"], r["backend"]))
+            if q and "psnr" in q:
+                r.update(psnr=q["psnr"], psnr_from="backend")
+            elif r["method"] in nets:  # not measured through this backend: no PSNR, not eval's in its place
+                r.update(psnr=float("nan"), psnr_from="")
+                if q:
+                    r["status"] = f"ok (quality failed: {q['error']})"
     return rows
 
 
 # ----------------------------------------------------------------------------- report
 
 COLUMNS = ["method", "backend", "dtype", "device", "height", "width", "ms_median", "ms_min", "repeats", "gflop", "params",
-           "peak_mb", "gflops_per_s", "peak_fraction", "psnr", "kind", "threads", "status"]
+           "peak_mb", "gflops_per_s", "peak_fraction", "psnr", "psnr_eval", "psnr_from", "kind", "threads", "status"]
 FORMATS = {"ms_median": ".1f", "ms_min": ".1f", "gflop": ".2f", "peak_mb": ".0f", "gflops_per_s": ".1f",
-           "peak_fraction": ".1%", "psnr": ".2f", "ratio": ".2f", "psnr_gain": "+.2f", "student_ms": ".1f",
+           "peak_fraction": ".1%", "psnr": ".2f", "psnr_eval": ".2f", "student_psnr": ".2f", "baseline_psnr": ".2f", "ratio": ".2f", "psnr_gain": "+.2f", "student_ms": ".1f",
            "baseline_ms": ".1f"}
 HEADERS = {"ms_median": "ms/frame (median)", "ms_min": "ms min", "gflop": "GFLOP", "peak_mb": "peak MB",
-           "gflops_per_s": "GFLOP/s", "peak_fraction": "of matmul peak", "psnr": "PSNR dB"}
+           "gflops_per_s": "GFLOP/s", "peak_fraction": "of matmul peak", "psnr": "PSNR dB", "psnr_eval": "PSNR dB (eval, eager fp32)",
+           "psnr_from": "PSNR from"}
 
 
 def best_rows(rows: list[dict], size, device: str = "cpu") -> dict[str, dict]:
@@ -243,7 +303,8 @@ def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dic
     for size in sizes:
         size = tuple(int(v) for v in size)
         b = best_rows(rows, size).get(baseline)
-        s_best = best_rows(rows, size).get(student)
+        s_best = best_rows([r for r in rows if not math.isnan(r.get("psnr", float("nan")))], size).get(student)
+        s_best = s_best or best_rows(rows, size).get(student)  # no PSNR through any backend: the fastest
         s_eager = next((r for r in rows if r["method"] == student and r["backend"] == "eager fp32" and r["device"] == "cpu"
                         and (r["height"], r["width"]) == size and not math.isnan(r["ms_median"])), None)
         for which, s in (("fastest backend", s_best), ("eager fp32", s_eager)):
@@ -251,6 +312,7 @@ def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dic
                 continue
             out.append({"size": f"{size[1]}x{size[0]}", "student": f"{student} ({s['backend']})", "student_ms": s["ms_median"],
                         "baseline": baseline, "baseline_ms": b["ms_median"], "ratio": b["ms_median"] / s["ms_median"],
+                        "student_psnr": s.get("psnr", float("nan")), "baseline_psnr": b.get("psnr", float("nan")),
                         "psnr_gain": s.get("psnr", float("nan")) - b.get("psnr", float("nan")), "compare": which})
     return out
 
@@ -293,13 +355,14 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
     parts = ["# Accuracy vs time\n", machine + "\n",
              f"Median of {cfg.repeats} recurrent steps after {cfg.warmup} warm-up step(s), same frames for every "
              "method (resampled to each size). GFLOP counts convolutions and matrix products of one step. "
-             "PSNR (tonemapped, dB) from denoiser-eval's metrics.csv"
-             + (f" ({cfg.eval_csv})" if cfg.get("eval_csv") else " (not given: no quality column)") + ".\n"]
+             + quality_note(cfg) + "\n"]
     if ratios:
         parts += ["## Student vs " + ratios[0]["baseline"] + " (same frames, same run)\n",
-                  markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline_ms", "ratio", "psnr_gain"],
+                  markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline_ms", "ratio",
+                                          "student_psnr", "baseline_psnr", "psnr_gain"],
                                  FORMATS, {"student_ms": "student ms", "baseline_ms": f"{ratios[0]['baseline']} ms",
-                                           "ratio": "speed-up (x)", "psnr_gain": "PSNR gain dB"}), ""]
+                                           "ratio": "speed-up (x)", "psnr_gain": "PSNR gain dB",
+                                           "student_psnr": "student PSNR dB", "baseline_psnr": "baseline PSNR dB"}), ""]
     parts += ["## All measurements\n", markdown_table(rows, [c for c in COLUMNS if c not in ("kind",)], FORMATS, HEADERS)]
     if plot is not None:
         from denoiser.plot_tradeoff import pareto_front_of_rows
@@ -311,6 +374,20 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
     text = "\n".join(parts)
     atomic_write_text(out_dir / "report.md", text)
     return text
+
+
+def quality_note(cfg: DictConfig) -> str:
+    """The report's sentence saying where each PSNR (tonemapped, dB) comes from."""
+    evaluated = f"denoiser-eval's metrics.csv ({cfg.eval_csv})" if cfg.get("eval_csv") else None
+    if not cfg.get("quality", True):
+        return f"PSNR (tonemapped, dB) from {evaluated or 'nowhere (no eval_csv, quality: false)'}."
+    frames = f"the first {cfg.quality_frames} frames" if cfg.get("quality_frames") else "every frame"
+    seqs = f"the first {cfg.max_sequences} sequence(s)" if cfg.get("max_sequences") else "every sequence"
+    return (f"PSNR (tonemapped, dB) of the networks measured through each row's own backend and precision, "
+            f"over {frames} of {seqs} of {cfg.split}, {cfg.get('quality_warmup', 2)} warm-up frame(s) excluded "
+            "after each reset (psnr_from: backend); "
+            + (f"psnr_eval and the baselines' PSNR from {evaluated} (eager fp32)." if evaluated
+               else "no eval_csv: the baselines have no PSNR."))
 
 
 def run(cfg: DictConfig) -> list[dict]:
@@ -325,11 +402,14 @@ def run(cfg: DictConfig) -> list[dict]:
     rows = run_benchmark(cfg, frames, threads, peak)
     for r in rows:
         q = quality.get(r["method"])
-        r["psnr"] = float(q["psnr"]) if q and "psnr" in q else float("nan")
+        r["psnr_eval"] = float(q["psnr"]) if q and "psnr" in q else float("nan")
+        if "psnr" not in r:  # baselines, and networks when quality is false: denoiser-eval's (eager fp32)
+            r["psnr"] = r["psnr_eval"]
+            r["psnr_from"] = "eval" if not math.isnan(r["psnr"]) else ""
         r.setdefault("status", "ok")
     write_csv(out_dir / "bench.csv", rows, COLUMNS)
     plot_path = None
-    if quality:
+    if any(not math.isnan(r["psnr"]) for r in rows):
         from denoiser.plot_tradeoff import plot_accuracy_vs_time
 
         plot_size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
@@ -344,10 +424,10 @@ def run(cfg: DictConfig) -> list[dict]:
     write_report(out_dir, rows, ratios, machine, cfg, plot_path)
     print(machine)
     print(markdown_table(rows, ["method", "backend", "dtype", "device", "height", "width", "ms_median", "gflop", "params",
-                                "peak_mb", "peak_fraction", "psnr", "status"], FORMATS, HEADERS))
+                                "peak_mb", "peak_fraction", "psnr", "psnr_eval", "status"], FORMATS, HEADERS))
     if ratios:
         print(markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline", "baseline_ms", "ratio",
-                                      "psnr_gain"], FORMATS, {"ratio": "speed-up (x)"}))
+                                      "student_psnr", "baseline_psnr", "psnr_gain"], FORMATS, {"ratio": "speed-up (x)"}))
     print(f"wrote {out_dir / 'bench.csv'}, {out_dir / 'report.md'}" + (f" and {plot_path}" if plot_path else ""))
     return rows
 

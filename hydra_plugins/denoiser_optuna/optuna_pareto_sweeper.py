@@ -20,6 +20,7 @@ syntax, ``choice(a,b)`` / ``a,b`` (categorical; any values, lists included),
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -102,7 +103,8 @@ class OptunaParetoSweeper(Sweeper):
         study = optuna.create_study(study_name=self.study_name, storage=storage, directions=self.directions,
                                     sampler=self._sampler(), load_if_exists=True)
         for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            log.warning("trial %d was interrupted (left RUNNING by a killed sweep): marked FAIL", t.number)
+            print(f"optuna_pareto: trial {t.number} was interrupted (left RUNNING by a killed sweep): marked FAIL",
+                  file=sys.stderr)
             study._storage.set_trial_state_values(t._trial_id, state=TrialState.FAIL)
         return study
 

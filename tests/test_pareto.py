@@ -85,7 +85,7 @@ def env() -> dict:
 
 
 def run_ok(argv, cwd) -> subprocess.CompletedProcess:
-    proc = subprocess.run(argv, cwd=cwd, env=env(), capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(argv, check=False, cwd=cwd, env=env(), capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 

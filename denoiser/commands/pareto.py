@@ -33,8 +33,15 @@ from denoiser.atomic import atomic_write_text
 from denoiser.configs import instantiate_config
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import count_flops, markdown_table, read_csv, write_csv
-from denoiser.pareto import (cache_key, front_indices, job_dirs, read_job, read_json, time_network,
-                             varying_overrides)
+from denoiser.pareto import (
+    cache_key,
+    front_indices,
+    job_dirs,
+    read_job,
+    read_json,
+    time_network,
+    varying_overrides,
+)
 from denoiser.plot_tradeoff import plot_accuracy_vs_time
 
 NAN = float("nan")
@@ -70,7 +77,9 @@ def measure_job(ckpt: Path, cfg: DictConfig, backend, sizes: list[tuple[int, int
 
 
 def oidn_rows(path, sizes: list[tuple[int, int]]) -> list[dict]:
-    """OIDN rows of denoiser-bench's bench.csv (PSNR and ms at each of ``sizes`` where it has them)."""
+    """OIDN rows of denoiser-bench's bench.csv (ms at each of ``sizes`` where it has them). Its PSNR is
+    denoiser-eval's, on the test split: it goes to ``test_psnr``, and OIDN stays off the front and
+    the plot, whose PSNR is the networks' validation PSNR."""
     if not path:
         return []
     by_method: dict[str, dict] = {}
@@ -81,7 +90,8 @@ def oidn_rows(path, sizes: list[tuple[int, int]]) -> list[dict]:
         if size not in sizes:
             continue
         row = by_method.setdefault(r["method"], {"job": "", "variant": r["method"], "kind": "baseline",
-                                                 "val_psnr": float(r.get("psnr", NAN)), "backend": r.get("backend", ""),
+                                                 "val_psnr": NAN, "test_psnr": float(r.get("psnr", NAN)),
+                                                 "backend": r.get("backend", ""),
                                                  "threads": r.get("threads", "")})
         row[f"ms_{size_tag(size)}"] = float(r["ms_median"])
     return list(by_method.values())
@@ -148,9 +158,9 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dir: Path) -> Non
     plot = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", plot_rows, sizes[0],
                                  title=f"Pareto front of {sweep_dir} (val PSNR vs ms at {size_tag(sizes[0])})")
     text = [f"# Pareto front of {sweep_dir}", "",
-            f"{sum(r['kind'] == 'network' for r in rows)} variants; val PSNR of the final weights (denoiser-train's "
-            f"metrics.json), ms per frame: median of the timed steps on the backend named, one network at a time. "
-            f"★: on the front (no other row both faster at {size_tag(sizes[0])} and better).", "", table, "",
+            (f"{sum(r['kind'] == 'network' for r in rows)} variants; val PSNR of the final weights (denoiser-train's "
+             f"metrics.json), ms per frame: median of the timed steps on the backend named, one network at a time. "
+             f"★: on the front (no other row both faster at {size_tag(sizes[0])} and better)."), "", table, "",
             "## The front as train overrides", "",
             "```", *(f"denoiser-train experiment=pareto {line}" for line in lines), "```", ""]
     if plot:

@@ -20,6 +20,7 @@ syntax, ``choice(a,b)`` / ``a,b`` (categorical; any values, lists included),
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -124,7 +125,7 @@ class OptunaParetoSweeper(Sweeper):
             else:
                 fixed.append(line)
         study = self.study()
-        done = lambda: len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))  # noqa: E731
+        done = lambda: len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
         failures, returns = 0, []
         log.info("optuna_pareto: study %s in %s, %d/%d trials complete", self.study_name, self.sweep_dir, done(),
                  self.n_trials)
@@ -136,7 +137,7 @@ class OptunaParetoSweeper(Sweeper):
                 try:
                     values = result.return_value  # raises the job's exception when it failed
                     values = [float(v) for v in (values if isinstance(values, (list, tuple)) else [values])]
-                    if len(values) != len(self.directions) or any(v != v for v in values):
+                    if len(values) != len(self.directions) or any(math.isnan(v) for v in values):
                         raise ValueError(f"the task returned {values}, not {len(self.directions)} numbers")
                     trial.set_user_attr("overrides", list(overrides))
                     study.tell(trial, values)

@@ -187,3 +187,18 @@ def test_optuna_sweeper_runs_and_resumes_after_a_kill(data_root, tmp_path):
     acc = EventAccumulator(str(job / "tb"), size_guidance={"scalars": 0})
     acc.Reload()
     assert {"final/psnr", "final/ms"} <= set(acc.Tags()["scalars"])
+
+
+@pytest.mark.parametrize("backend", ["openvino", "onnxruntime"])
+def test_a_network_without_recurrence_times_on_the_graph_backends(backend):
+    """Without temporal recurrence the exported graph has no ``motion`` input: the feed leaves it out."""
+    from denoiser.backends import OnnxRuntimeBackend, OpenVinoBackend
+    from denoiser.configs import build_net, compose_net_config
+    from denoiser.pareto import time_network
+
+    impl = OpenVinoBackend() if backend == "openvino" else OnnxRuntimeBackend()
+    if impl.available():
+        pytest.skip(impl.available())
+    net = build_net(compose_net_config("tiny", "student", ["net.temporal=null"]))
+    row = time_network(net, impl, (16, 16), threads=1, warmup=1, repeats=1)
+    assert row["status"] == "ok" and row["ms_median"] > 0

@@ -202,3 +202,30 @@ def test_a_network_without_recurrence_times_on_the_graph_backends(backend):
     net = build_net(compose_net_config("tiny", "student", ["net.temporal=null"]))
     row = time_network(net, impl, (16, 16), threads=1, warmup=1, repeats=1)
     assert row["status"] == "ok" and row["ms_median"] > 0
+
+
+def test_the_pareto_experiment_grid():
+    """experiment=pareto: the demo_distill recipe for a fixed step count, the three axes of the issue
+    (54 variants), the widths 0.5x/1x/2x of the demo student; the Optuna sweeper keeps the axes."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from denoiser.conf import CONF_DIR
+    from denoiser.configs import build_net, compose_net_config
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=pareto", "output_dir=/tmp/x"], return_hydra_config=True)
+        optuna_cfg = compose("train", overrides=["experiment=pareto", "hydra/sweeper=optuna_pareto", "output_dir=/tmp/x"],
+                             return_hydra_config=True)
+    assert cfg.model._target_.endswith("DistillationModule") and cfg.trainer.max_steps == 300
+    assert cfg.trainer.max_time is None and cfg.seed == 0
+    params = dict(cfg.hydra.sweeper.params)
+    assert set(params) == {"net", "kernel.sizes", "ablation"}
+    parser = OverridesParser.create()
+    sizes = [len(list(parser.parse_overrides([f"{k}={v}"])[0].sweep_iterator())) for k, v in params.items()]
+    assert sizes == [3, 9, 2]
+    assert dict(optuna_cfg.hydra.sweeper.params) == params
+    assert optuna_cfg.hydra.sweeper._target_.endswith("OptunaParetoSweeper")
+    widths = [build_net(compose_net_config(n, "student")).num_parameters()
+              for n in ("demo_student_w05", "demo_student", "demo_student_w2")]
+    assert widths[0] < widths[1] < widths[2]

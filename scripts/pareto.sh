@@ -7,7 +7,9 @@
 #   3. the sweep: denoiser-train -m experiment=pareto over PARETO_AXES (default 2 widths x
 #      2 kernel/level settings x temporal on/off = 8 variants), each distilled for PARETO_STEPS
 #      steps with seed 0, PARETO_JOBS jobs side by side (joblib launcher), into reports/pareto/runs
-#   4. denoiser-pareto: every variant timed one after another on PARETO_BACKEND, then the table,
+#   4. denoiser-eval of the finished variants on the demo's test split (PARETO_EVAL=0: skipped),
+#      redone when a checkpoint is newer than its table
+#   5. denoiser-pareto: every variant timed one after another on PARETO_BACKEND, then the table,
 #      the front, the plot and the front's overrides in reports/pareto/
 #
 # Resumable: a finished job leaves DONE in its directory and is skipped (skip_done=true), an
@@ -30,6 +32,7 @@ THREADS=${PARETO_THREADS:-1}          # torch threads per training job (JOBS x T
 BACKEND=${PARETO_BACKEND:-openvino}   # a key of denoiser-pareto's backends: openvino | onnxruntime | eager
 AXES=${PARETO_AXES:-"net=demo_student_w05,demo_student kernel.sizes=[3,5,5],[5,5,5] ablation=none,no_temporal"}
 OIDN_CSV=${PARETO_OIDN_CSV:-reports/demo/bench/bench.csv}   # make demo's benchmark: its OIDN rows join the table
+EVAL=${PARETO_EVAL:-1}                # 1: denoiser-eval of the variants on the test split (test PSNR column)
 
 echo "==> [render] data/demo"
 "$BIN/denoiser-render" dataset=demo
@@ -52,10 +55,23 @@ echo "==> [sweep] $SWEEP: $AXES, $STEPS steps each"
     "threads=$THREADS" skip_done=true ckpt_path=auto trainer.enable_progress_bar=false callbacks.progress=null \
     hydra/launcher=joblib "hydra.launcher.n_jobs=$JOBS" "hydra.sweep.dir=$SWEEP" 'hydra.sweep.subdir=${hydra.job.num}'
 
+extra=()
+[ -f "$OIDN_CSV" ] && extra+=("oidn_csv=$OIDN_CSV")
+if [ "$EVAL" = 1 ]; then  # test PSNR of every finished job (and of OIDN) on the demo's test split
+    EVAL_CSV=$REPORT/eval/metrics.csv
+    ckpts=""
+    for dir in "$SWEEP"/*/; do
+        [ -f "$dir/DONE" ] && [ -f "$dir/checkpoints/last.ckpt" ] && ckpts+="job$(basename "$dir"): ${dir}checkpoints/last.ckpt, "
+    done
+    if [ -n "$ckpts" ] && { [ ! -f "$EVAL_CSV" ] || [ -n "$(find "$SWEEP" -name last.ckpt -newer "$EVAL_CSV")" ]; }; then
+        echo "==> [eval] test split: $REPORT/eval"
+        "$BIN/denoiser-eval" data=demo "ckpt={${ckpts%, }}" "out_dir=$REPORT/eval"
+    fi
+    [ -f "$EVAL_CSV" ] && extra+=("eval_csv=$EVAL_CSV")
+fi
+
 echo "==> [report] $REPORT (timing on $BACKEND, one network at a time)"
-oidn=()
-[ -f "$OIDN_CSV" ] && oidn=("oidn_csv=$OIDN_CSV")
-"$BIN/denoiser-pareto" "sweep_dir=$SWEEP" "out_dir=$REPORT" "backend=$BACKEND" "${oidn[@]}"
+"$BIN/denoiser-pareto" "sweep_dir=$SWEEP" "out_dir=$REPORT" "backend=$BACKEND" "${extra[@]}"
 
 cat <<END
 

@@ -100,8 +100,10 @@ def test_report_of_a_trained_multirun(data_root, tmp_path):
     assert all((sweep / j / "DONE").is_file() and (sweep / j / "metrics.json").is_file() for j in "012")
 
     out = tmp_path / "report"
+    eval_csv = tmp_path / "metrics.csv"  # the shape of denoiser-eval's table, test PSNR of job 1 only
+    eval_csv.write_text("method,scene,sequence,psnr,tpsnr\njob1,a,seq0,30.0,29.0\njob1,mean,mean,31.5,30.5\n")
     report = command("pareto", f"sweep_dir={sweep}", f"out_dir={out}", "backend=eager", "sizes=[[32,32],[16,16]]",
-                     "warmup=0", "repeats=1", "threads=1")
+                     "warmup=0", "repeats=1", "threads=1", f"eval_csv={eval_csv}")
     run_ok(report, tmp_path)
     with open(out / "pareto.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -109,6 +111,7 @@ def test_report_of_a_trained_multirun(data_root, tmp_path):
     for r in rows:
         assert float(r["val_psnr"]) > 0 and float(r["ms_32x32"]) > 0 and float(r["ms_16x16"]) > 0
         assert int(r["params"]) > 0 and float(r["gflop"]) > 0 and r["backend"] == "eager fp32"
+    assert [r["test_psnr"] for r in rows] == ["", "31.5", ""] and rows[1]["test_tpsnr"] == "30.5"
     front = [r for r in rows if r["front"] == "True"]
     assert front and (out / "accuracy_vs_time.png").stat().st_size > 1000
     lines = (out / "front.txt").read_text().splitlines()

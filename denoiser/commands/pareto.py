@@ -14,7 +14,8 @@ Timings are cached in ``out_dir/cache/`` per checkpoint file version and setting
 only times new or changed checkpoints.
 
 Writes to ``out_dir``: ``pareto.md`` and ``pareto.csv`` (every variant: overrides, params, GFLOP,
-val PSNR/tPSNR, test PSNR where a job has ``test_metrics.json``, ms per size, backend, threads,
+val PSNR/tPSNR, test PSNR/tPSNR from ``eval_csv`` (denoiser-eval of the jobs' checkpoints, each
+named by its job directory, ``<name>`` or ``job<name>``), ms per size, backend, threads,
 on the front or not; OIDN rows from ``oidn_csv``), ``accuracy_vs_time.png`` (val PSNR against
 ms at the first size, the front as a staircase) and ``front.txt`` (the front's overrides, one
 line per point, to paste after ``denoiser-train experiment=pareto``).
@@ -38,7 +39,6 @@ from denoiser.pareto import (
     front_indices,
     job_dirs,
     read_job,
-    read_json,
     time_network,
     varying_overrides,
 )
@@ -74,6 +74,16 @@ def measure_job(ckpt: Path, cfg: DictConfig, backend, sizes: list[tuple[int, int
     cache_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(cached, json.dumps(out, indent=1))
     return out
+
+
+def eval_means(path) -> dict[str, dict]:
+    """``{method: mean row}`` of denoiser-eval's metrics.csv (methods named by job directory)."""
+    if not path:
+        return {}
+    rows = read_csv(path)
+    if rows and ("method" not in rows[0] or "sequence" not in rows[0]):
+        raise UserError(f"{path}: not a denoiser-eval metrics.csv (needs columns method and sequence)")
+    return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}
 
 
 def oidn_rows(path, sizes: list[tuple[int, int]]) -> list[dict]:
@@ -113,10 +123,11 @@ def run(cfg: DictConfig) -> list[dict]:
     if reason:
         raise ConfigError(f"backend={cfg.backend}: {reason}")
     labels = varying_overrides([j["overrides"] for j in jobs])
+    tested = eval_means(cfg.get("eval_csv"))
     rows = []
     for i, (job, varying) in enumerate(zip(jobs, labels)):
         metrics = job["metrics"].get("metrics", {})
-        test = read_json(job["dir"] / "test_metrics.json")
+        test = tested.get(job["dir"].name, tested.get(f"job{job['dir'].name}", {}))
         row = {"job": job["dir"].name, "variant": " ".join(varying) or job["dir"].name, "kind": "network",
                "val_psnr": float(metrics.get("val/psnr", NAN)), "val_tpsnr": float(metrics.get("val/tpsnr", NAN)),
                "test_psnr": float(test.get("psnr", NAN)), "test_tpsnr": float(test.get("tpsnr", NAN)),
@@ -138,7 +149,8 @@ def run(cfg: DictConfig) -> list[dict]:
 
 def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dir: Path) -> None:
     ms_cols = [f"ms_{size_tag(s)}" for s in sizes]
-    columns = ["job", "variant", "front", "params", "gflop", "val_psnr", "val_tpsnr", "test_psnr", *ms_cols,
+    columns = ["job", "variant", "front", "params", "gflop", "val_psnr", "val_tpsnr", "test_psnr", "test_tpsnr",
+               *ms_cols,
                "backend", "threads", "kind", "done", "overrides"]
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(out_dir / "pareto.csv", [{**r, "overrides": " ".join(r.get("overrides", []))} for r in rows], columns)
@@ -147,6 +159,7 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dir: Path) -> Non
     table = markdown_table([{**r, "front": "★" if r["front"] else ""} for r in ordered],
                            [c for c in columns if c not in ("overrides", "kind", "done")],
                            formats={"gflop": ".3g", "val_psnr": ".2f", "val_tpsnr": ".2f", "test_psnr": ".2f",
+                                    "test_tpsnr": ".2f",
                                     **{c: ".3g" for c in ms_cols}},
                            headers={"gflop": f"GFLOP {size_tag(sizes[0])}", **{c: f"ms {c[3:]}" for c in ms_cols}})
     front_rows = [r for r in ordered if r["front"] and r["kind"] == "network"]

@@ -165,12 +165,14 @@ def test_optuna_sweeper_runs_and_resumes_after_a_kill(data_root, tmp_path):
         first.kill()
         first.wait()
     killed = trial_counts(db)
-    assert killed.get("RUNNING") == 1 and 2 <= killed.get("COMPLETE", 0) < 6, killed
+    # one trial RUNNING (0 only if the kill fell in the instant between one trial's tell and the next ask)
+    running = killed.get("RUNNING", 0)
+    assert running <= 1 and 2 <= killed.get("COMPLETE", 0) < 6, killed
 
     proc = run_ok(argv, tmp_path)
-    assert "marked FAIL" in proc.stderr
+    assert ("marked FAIL" in proc.stderr) == bool(running)
     counts = trial_counts(db)
-    assert counts.get("COMPLETE") == 6 and counts.get("FAIL", 0) == 1 and "RUNNING" not in counts, counts
+    assert counts.get("COMPLETE") == 6 and counts.get("FAIL", 0) == running and "RUNNING" not in counts, counts
 
     import optuna
 

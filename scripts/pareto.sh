@@ -78,6 +78,6 @@ cat <<END
 ==== pareto finished: $REPORT/ ====
   table              $REPORT/pareto.md   ($REPORT/pareto.csv)
   accuracy vs time   $REPORT/accuracy_vs_time.png
-  the front          $REPORT/front.txt   (overrides for denoiser-train experiment=pareto)
+  the front          $REPORT/front.txt   (each line: the overrides of a denoiser-train command)
   TensorBoard        tensorboard --logdir $SWEEP   (HPARAMS: final/psnr per variant)
 END

@@ -116,7 +116,7 @@ def test_report_of_a_trained_multirun(data_root, tmp_path):
     assert front and (out / "accuracy_vs_time.png").stat().st_size > 1000
     lines = (out / "front.txt").read_text().splitlines()
     assert len(lines) == len(front) and all("net=tiny" in line and "kernel.sizes=" in line for line in lines)
-    assert "denoiser-train experiment=pareto" in (out / "pareto.md").read_text()
+    assert f"denoiser-train {lines[0]}" in (out / "pareto.md").read_text()
     cached = sorted((out / "cache").iterdir())
     assert len(cached) == 3
 

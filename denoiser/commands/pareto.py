@@ -18,7 +18,7 @@ val PSNR/tPSNR, test PSNR/tPSNR from ``eval_csv`` (denoiser-eval of the jobs' ch
 named by its job directory, ``<name>`` or ``job<name>``), ms per size, backend, threads,
 on the front or not; OIDN rows from ``oidn_csv``), ``accuracy_vs_time.png`` (val PSNR against
 ms at the first size, the front as a staircase) and ``front.txt`` (the front's overrides, one
-line per point, to paste after ``denoiser-train experiment=pareto``).
+line per point, the whole command line of the job: paste it after ``denoiser-train``).
 """
 
 from __future__ import annotations
@@ -175,7 +175,7 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dir: Path) -> Non
              f"metrics.json), ms per frame: median of the timed steps on the backend named, one network at a time. "
              f"★: on the front (no other row both faster at {size_tag(sizes[0])} and better)."), "", table, "",
             "## The front as train overrides", "",
-            "```", *(f"denoiser-train experiment=pareto {line}" for line in lines), "```", ""]
+            "```", *(f"denoiser-train {line}" for line in lines), "```", ""]
     if plot:
         text += ["![accuracy vs time](accuracy_vs_time.png)", ""]
     atomic_write_text(out_dir / "pareto.md", "\n".join(text))

@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo readme-results lint clean-cache blender
+.PHONY: setup test demo readme-results pareto lint clean-cache blender
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -31,8 +31,14 @@ demo: setup
 readme-results:
 	python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md
 
+# The accuracy-vs-time Pareto front of the demo student (docs/pareto.md): reuses make demo's data
+# and teacher (or makes them), trains 8 distilled variants (experiment=pareto, short runs), times
+# them one at a time and writes reports/pareto/. Resumable. Knobs: PARETO_* in scripts/pareto.sh.
+pareto: setup
+	VENV=$(VENV) bash scripts/pareto.sh
+
 lint: setup
-	$(VENV)/bin/ruff check denoiser tests train.py
+	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py
 
 # Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
 # rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/, then

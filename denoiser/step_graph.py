@@ -153,7 +153,7 @@ class OnnxStep:
 
         ``state=None`` (or ``reset=True``) starts a sequence: zero state and the graph's reset
         input set (the runner's contract, :mod:`denoiser.runner`)."""
-        feed = graph_feed(frame, state, reset, self.keys, self.channels)
+        feed = graph_feed(frame, state, reset, self.keys, self.channels, self.inputs)
         results = self.session.run(None, feed)
         named = dict(zip(self.outputs, results))
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
@@ -215,7 +215,7 @@ class OpenVinoStep:
     def step(self, frame: dict, state: dict | None, reset: bool = False) -> tuple[np.ndarray, dict]:
         """Same contract as :meth:`OnnxStep.step` (arrays out; the state is copied out of
         OpenVINO's buffers, so the next call may overwrite them)."""
-        feed = graph_feed(frame, state, reset, self.keys, self.channels)
+        feed = graph_feed(frame, state, reset, self.keys, self.channels, self.inputs)
         b, _, h, w = feed["color"].shape
         _, request = self.compiled(b, h, w)
         request.infer(feed)
@@ -223,9 +223,12 @@ class OpenVinoStep:
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
 
 
-def graph_feed(frame: dict, state: dict | None, reset: bool, keys: list[str], channels: dict[str, int]) -> dict:
+def graph_feed(frame: dict, state: dict | None, reset: bool, keys: list[str], channels: dict[str, int],
+               inputs: list[str] | None = None) -> dict:
     """The step graph's inputs as float32 arrays: the frame, and with recurrence ``reset`` and
-    the state (zeros and ``reset=True`` when ``state`` is None)."""
+    the state (zeros and ``reset=True`` when ``state`` is None). ``inputs``: the graph's input
+    names, when given only those are fed (a network without temporal recurrence has no use for
+    ``motion``, and the exporter drops unused inputs)."""
     feed = {k: np.ascontiguousarray(_numpy(frame[k]), dtype=np.float32) for k in FRAME_INPUTS}
     b, _, h, w = feed["color"].shape
     if keys:
@@ -234,6 +237,8 @@ def graph_feed(frame: dict, state: dict | None, reset: bool, keys: list[str], ch
             reset = True
         feed["reset"] = np.full((b,), bool(reset))
         feed.update({f"state_{k}": np.ascontiguousarray(state[k], dtype=np.float32) for k in keys})
+    if inputs is not None:
+        feed = {k: v for k, v in feed.items() if k in inputs}
     return feed
 
 

@@ -29,9 +29,10 @@ COMMANDS = {
     "denoiser-export": ("denoiser.commands.export", "export"),
     "denoiser-denoise": ("denoiser.commands.denoise", "denoise"),
     "denoiser-render": ("denoiser.commands.render", "render"),
+    "denoiser-pareto": ("denoiser.commands.pareto", "pareto"),
 }
 #: Hydra's own groups a command's help also lists (only training runs multiruns)
-HYDRA_GROUPS = {"denoiser-train": {"hydra/launcher"}}
+HYDRA_GROUPS = {"denoiser-train": {"hydra/launcher", "hydra/sweeper"}}
 
 
 @pytest.fixture(autouse=True)

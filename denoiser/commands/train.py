@@ -15,6 +15,7 @@ composed config). See docs/training.md.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -23,7 +24,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from denoiser.commands.app import guarded
+from denoiser.commands.app import guarded, hydra_runtime
 from denoiser.conf import CONF_DIR
 from denoiser.configs import instantiate_config
 from denoiser.errors import ConfigError
@@ -74,13 +75,60 @@ def final_metrics(trainer) -> dict[str, float]:
     return {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
 
 
+def measure_time(cfg: DictConfig, net) -> dict[str, float]:
+    """The time objective (``objectives.time``): ms per frame of the trained ``net`` at
+    ``objectives.time.size`` on its backend; ``{}`` when not configured."""
+    from denoiser.pareto import time_network
+
+    spec = (cfg.get("objectives") or {}).get("time")
+    if not spec:
+        return {}
+    backend = instantiate_config(spec.backend, "objectives.time.backend")
+    row = time_network(net, backend, list(spec.size), threads=spec.get("threads"), warmup=int(spec.get("warmup", 1)),
+                       repeats=int(spec.get("repeats", 3)))
+    if row["status"] != "ok":
+        raise ConfigError(f"objectives.time.backend: {row['status']}")
+    return {"time/ms": row["ms_median"], "time/ms_min": row["ms_min"]}
+
+
+def stored_run(cfg: DictConfig) -> dict[str, float] | None:
+    """With ``skip_done``, the metrics of a finished run of the same overrides in this run
+    directory (DONE and metrics.json); a run of other overrides there is an error."""
+    from denoiser.pareto import DONE_FILE, METRICS_FILE, read_json
+
+    out = Path(cfg.output_dir)
+    if not cfg.get("skip_done") or not (out / DONE_FILE).is_file():
+        return None
+    stored = read_json(out / METRICS_FILE)
+    overrides = hydra_runtime()[0]
+    if stored.get("overrides") is not None and stored["overrides"] != overrides:
+        raise ConfigError(f"skip_done: {out} holds a finished run of other overrides ({' '.join(stored['overrides'])}); "
+                          "use another hydra.sweep.dir")
+    print(f"{out}: finished before, skipped (skip_done=true)", file=sys.stderr)
+    return stored.get("metrics") or {}
+
+
+def write_done(cfg: DictConfig, metrics: dict[str, float]) -> None:
+    from denoiser.atomic import atomic_write_text
+    from denoiser.pareto import DONE_FILE, METRICS_FILE
+
+    out = Path(cfg.output_dir)
+    atomic_write_text(out / METRICS_FILE, json.dumps({"overrides": hydra_runtime()[0], "metrics": metrics}, indent=1))
+    (out / DONE_FILE).touch()
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
-    """Run one training job from a composed config; returns the final validation metrics."""
+    """Run one training job from a composed config; returns the final validation metrics (and
+    ``time/ms`` when ``objectives.time`` is set)."""
     import lightning.pytorch as pl
     import torch
 
     from denoiser.atomic import remove_stale_temporaries
     from denoiser.checkpoint import resume_weights_only
+
+    stored = stored_run(cfg)
+    if stored is not None:
+        return stored
 
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
@@ -108,21 +156,33 @@ def train(cfg: DictConfig) -> dict[str, float]:
             and getattr(datamodule, "splits", {}).get("val") and not trainer.fast_dev_run:
         trainer.validate(model, datamodule=datamodule, verbose=False)
     metrics = final_metrics(trainer)
-    if logger and metrics:
-        logger.log_hyperparams(flat_hparams(cfg), metrics={FINAL_PREFIX + k[len("val/"):]: v for k, v in metrics.items()})
+    if not trainer.interrupted:
+        metrics.update(measure_time(cfg, model.net))  # after training, alone: nothing else runs in this job now
+    if logger and metrics:  # TensorBoard HParams: the run's config with its final metrics (and time)
+        logger.log_hyperparams(flat_hparams(cfg), metrics={FINAL_PREFIX + k.split("/", 1)[-1]: v
+                                                           for k, v in metrics.items()})
         logger.finalize("success")
+    if not trainer.interrupted:
+        write_done(cfg, metrics)
     print(f"run directory: {cfg.output_dir}")
     print(f"  checkpoints: {Path(cfg.output_dir) / 'checkpoints'}   tensorboard: {Path(cfg.output_dir) / 'tb'}")
     if metrics:
-        print("  final " + "  ".join(f"{k[len('val/'):]}={v:.4f}" for k, v in sorted(metrics.items())))
+        print("  final " + "  ".join(f"{k.split('/', 1)[-1]}={v:.4f}" for k, v in sorted(metrics.items())))
     return metrics
 
 
+def objective_values(cfg: DictConfig, metrics: dict[str, float] | None) -> float | list[float] | None:
+    """What a sweeper optimizes: val/psnr, or ``[val/psnr, time/ms]`` when ``objectives.time`` is set."""
+    metrics = metrics or {}
+    if (cfg.get("objectives") or {}).get("time"):
+        return [metrics.get("val/psnr", float("nan")), metrics.get("time/ms", float("nan"))]
+    return metrics.get("val/psnr")
+
+
 @hydra.main(config_path=CONF_DIR, config_name="train", version_base="1.3")
-def main(cfg: DictConfig) -> float | None:
-    """Hydra entry point; returns val/psnr for sweepers that optimize it."""
-    metrics = guarded(train)(cfg)
-    return (metrics or {}).get("val/psnr")
+def main(cfg: DictConfig) -> float | list[float] | None:
+    """Hydra entry point; returns val/psnr (and ms per frame) for sweepers that optimize them."""
+    return objective_values(cfg, guarded(train)(cfg))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,236 @@
+"""The Pareto sweep (docs/pareto.md): the front function against a plain loop, denoiser-pareto on
+a real (tiny) multirun trained through denoiser-train -m, and the Optuna multi-objective sweeper
+(hydra/sweeper=optuna_pareto) running and resuming after being killed during a trial."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from denoiser.data.synthetic import write_synthetic_sequence
+from denoiser.pareto import front_indices, varying_overrides
+
+REPO = Path(__file__).resolve().parents[1]
+#: tiny, quiet training jobs: 2 steps of net=tiny on 16x16 crops, one validation at the end
+TINY = ["data=tiny", "net=tiny", "threads=1", "trainer.enable_progress_bar=false", "callbacks.progress=null",
+        "trainer.enable_model_summary=false", "trainer.max_steps=2", "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1", "model.image_interval=0", "hydra/job_logging=disabled",
+        "hydra/hydra_logging=disabled"]
+#: the time objective at a test size on eager PyTorch
+TIME = "objectives.time={size:[32,32],backend:{_target_:denoiser.backends.TorchBackend},warmup:1,repeats:2}"
+
+
+def plain_front(points):
+    """The definition, one pair at a time."""
+    out = []
+    for i, (qa, ta) in enumerate(points):
+        if math.isnan(qa) or math.isnan(ta):
+            continue
+        if not any(qb >= qa and tb <= ta and (qb > qa or tb < ta)
+                   for j, (qb, tb) in enumerate(points) if j != i and not (math.isnan(qb) or math.isnan(tb))):
+            out.append(i)
+    return out
+
+
+def test_front_matches_a_plain_loop():
+    rng = random.Random(0)
+    for trial in range(300):
+        n = rng.randint(0, 12)
+        # few distinct values: ties in time, in PSNR and exact duplicates happen often
+        points = [(float(rng.randint(0, 5)), float(rng.randint(1, 6))) for _ in range(n)]
+        if n and trial % 5 == 0:
+            points[0] = (math.nan, 1.0)
+        got = front_indices(points)
+        assert sorted(got) == plain_front(points), points
+        assert [points[i][1] for i in got] == sorted(points[i][1] for i in got)  # fastest first
+
+
+def test_front_of_known_points():
+    # (psnr, ms): a slow good one, a fast bad one, one dominated by both ends' neighbour
+    points = [(30.0, 10.0), (25.0, 1.0), (24.0, 2.0), (30.0, 12.0), (28.0, 5.0)]
+    assert front_indices(points) == [1, 4, 0]
+
+
+def test_varying_overrides_keeps_what_differs():
+    jobs = [["net=tiny", "kernel.sizes=[3]", "ablation=none"], ["net=tiny", "kernel.sizes=[5,5]", "ablation=none"],
+            ["net=tiny", "kernel.sizes=[5,5]", "ablation=none", "seed=1"]]
+    assert varying_overrides(jobs) == [["kernel.sizes=[3]"], ["kernel.sizes=[5,5]"], ["kernel.sizes=[5,5]", "seed=1"]]
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("paretodata")
+    for split, count in (("train", 2), ("val", 1)):
+        for i in range(count):
+            write_synthetic_sequence(root / split / f"seq{i}", frames=4, width=32, height=32, labeled=True,
+                                     seed=10 * i + len(split))
+    return root
+
+
+def command(module: str, *args: str) -> list[str]:
+    return [sys.executable, "-m", f"denoiser.commands.{module}", *args]
+
+
+def env() -> dict:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+            "HYDRA_FULL_ERROR": "1"}
+
+
+def run_ok(argv, cwd) -> subprocess.CompletedProcess:
+    proc = subprocess.run(argv, check=False, cwd=cwd, env=env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+@pytest.mark.slow
+def test_report_of_a_trained_multirun(data_root, tmp_path):
+    """Three variants trained by denoiser-train -m (the basic grid sweeper and launcher), then denoiser-pareto."""
+    sweep = tmp_path / "sweep"
+    run_ok(command("train", "-m", *TINY, f"data.root={data_root}", "kernel.sizes=[3],[5,5],[3,5,5]",
+                   f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=${hydra.job.num}", "skip_done=true"), tmp_path)
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2"]
+    assert all((sweep / j / "DONE").is_file() and (sweep / j / "metrics.json").is_file() for j in "012")
+
+    out = tmp_path / "report"
+    eval_csv = tmp_path / "metrics.csv"  # the shape of denoiser-eval's table, test PSNR of job 1 only
+    eval_csv.write_text("method,scene,sequence,psnr,tpsnr\njob1,a,seq0,30.0,29.0\njob1,mean,mean,31.5,30.5\n")
+    report = command("pareto", f"sweep_dir={sweep}", f"out_dir={out}", "backend=eager", "sizes=[[32,32],[16,16]]",
+                     "warmup=0", "repeats=1", "threads=1", f"eval_csv={eval_csv}")
+    run_ok(report, tmp_path)
+    with open(out / "pareto.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["variant"] for r in rows] == ["kernel.sizes=[3]", "kernel.sizes=[5,5]", "kernel.sizes=[3,5,5]"]
+    for r in rows:
+        assert float(r["val_psnr"]) > 0 and float(r["ms_32x32"]) > 0 and float(r["ms_16x16"]) > 0
+        assert int(r["params"]) > 0 and float(r["gflop"]) > 0 and r["backend"] == "eager fp32"
+    assert [r["test_psnr"] for r in rows] == ["", "31.5", ""] and rows[1]["test_tpsnr"] == "30.5"
+    front = [r for r in rows if r["front"] == "True"]
+    assert front and (out / "accuracy_vs_time.png").stat().st_size > 1000
+    lines = (out / "front.txt").read_text().splitlines()
+    assert len(lines) == len(front) and all("net=tiny" in line and "kernel.sizes=" in line for line in lines)
+    assert f"denoiser-train {lines[0]}" in (out / "pareto.md").read_text()
+    cached = sorted((out / "cache").iterdir())
+    assert len(cached) == 3
+
+    # a rerun reuses the cached timings; a rerun of the sweep skips the finished jobs
+    run_ok(report, tmp_path)
+    assert sorted((out / "cache").iterdir()) == cached
+    proc = run_ok(command("train", "-m", *TINY, f"data.root={data_root}", "kernel.sizes=[3],[5,5],[3,5,5]",
+                          f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=${hydra.job.num}", "skip_done=true"), tmp_path)
+    assert proc.stderr.count("finished before, skipped") == 3
+
+
+def trial_counts(db: Path) -> dict[str, int]:
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
+    try:
+        study = optuna.load_study(study_name="pareto", storage=f"sqlite:///{db}")
+    except Exception:  # noqa: BLE001 - not created yet
+        return {}
+    counts: dict[str, int] = {}
+    for t in study.get_trials(deepcopy=False):
+        counts[t.state.name] = counts.get(t.state.name, 0) + 1
+    return counts
+
+
+@pytest.mark.slow
+def test_optuna_sweeper_runs_and_resumes_after_a_kill(data_root, tmp_path):
+    pytest.importorskip("optuna")
+    sweep = tmp_path / "sweep"
+    db = sweep / "optuna.db"
+    argv = command("train", "-m", "hydra/sweeper=optuna_pareto", "hydra.sweeper.n_trials=6",
+                   "hydra.sweeper.population_size=4", *TINY, f"data.root={data_root}", TIME,
+                   "kernel.sizes=[3],[5,5],[3,5,5]", "ablation=none,no_temporal", f"hydra.sweep.dir={sweep}",
+                   "hydra.sweep.subdir=${hydra.job.num}")
+    first = subprocess.Popen(argv, cwd=tmp_path, env=env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 200
+    try:
+        while True:  # kill it during a trial, once two are complete
+            counts = trial_counts(db) if db.exists() else {}
+            if counts.get("COMPLETE", 0) >= 2 and counts.get("RUNNING", 0) >= 1:
+                break
+            assert first.poll() is None, f"the sweep ended before it could be killed: {counts}"
+            assert time.monotonic() < deadline, counts
+            time.sleep(0.1)
+    finally:
+        first.kill()
+        first.wait()
+    killed = trial_counts(db)
+    # one trial RUNNING (0 only if the kill fell in the instant between one trial's tell and the next ask)
+    running = killed.get("RUNNING", 0)
+    assert running <= 1 and 2 <= killed.get("COMPLETE", 0) < 6, killed
+
+    proc = run_ok(argv, tmp_path)
+    assert ("marked FAIL" in proc.stderr) == bool(running)
+    counts = trial_counts(db)
+    assert counts.get("COMPLETE") == 6 and counts.get("FAIL", 0) == running and "RUNNING" not in counts, counts
+
+    import optuna
+
+    study = optuna.load_study(study_name="pareto", storage=f"sqlite:///{db}")
+    complete = [t for t in study.trials if t.state.name == "COMPLETE"]
+    assert all(t.values[0] > 0 and t.values[1] > 0 for t in complete)  # [val PSNR, ms]
+    assert study.best_trials  # the front
+    from omegaconf import OmegaConf
+
+    results = OmegaConf.load(sweep / "optimization_results.yaml")
+    assert results.n_complete == 6 and len(results.pareto_front) == len(study.best_trials)
+    # each completed trial's job directory holds its run: ms in metrics.json, TensorBoard hparams with final/ms
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    job = sweep / str(complete[-1].number)
+    assert (job / "DONE").is_file()
+    acc = EventAccumulator(str(job / "tb"), size_guidance={"scalars": 0})
+    acc.Reload()
+    assert {"final/psnr", "final/ms"} <= set(acc.Tags()["scalars"])
+
+
+@pytest.mark.parametrize("backend", ["openvino", "onnxruntime"])
+def test_a_network_without_recurrence_times_on_the_graph_backends(backend):
+    """Without temporal recurrence the exported graph has no ``motion`` input: the feed leaves it out."""
+    from denoiser.backends import OnnxRuntimeBackend, OpenVinoBackend
+    from denoiser.configs import build_net, compose_net_config
+    from denoiser.pareto import time_network
+
+    impl = OpenVinoBackend() if backend == "openvino" else OnnxRuntimeBackend()
+    if impl.available():
+        pytest.skip(impl.available())
+    net = build_net(compose_net_config("tiny", "student", ["net.temporal=null"]))
+    row = time_network(net, impl, (16, 16), threads=1, warmup=1, repeats=1)
+    assert row["status"] == "ok" and row["ms_median"] > 0
+
+
+def test_the_pareto_experiment_grid():
+    """experiment=pareto: the demo_distill recipe for a fixed step count, the three axes of the issue
+    (54 variants), the widths 0.5x/1x/2x of the demo student; the Optuna sweeper keeps the axes."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from denoiser.conf import CONF_DIR
+    from denoiser.configs import build_net, compose_net_config
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=pareto", "output_dir=/tmp/x"], return_hydra_config=True)
+        optuna_cfg = compose("train", overrides=["experiment=pareto", "hydra/sweeper=optuna_pareto", "output_dir=/tmp/x"],
+                             return_hydra_config=True)
+    assert cfg.model._target_.endswith("DistillationModule") and cfg.trainer.max_steps == 300
+    assert cfg.trainer.max_time is None and cfg.seed == 0
+    params = dict(cfg.hydra.sweeper.params)
+    assert set(params) == {"net", "kernel.sizes", "ablation"}
+    parser = OverridesParser.create()
+    sizes = [len(list(parser.parse_overrides([f"{k}={v}"])[0].sweep_iterator())) for k, v in params.items()]
+    assert sizes == [3, 9, 2]
+    assert dict(optuna_cfg.hydra.sweeper.params) == params
+    assert optuna_cfg.hydra.sweeper._target_.endswith("OptunaParetoSweeper")
+    widths = [build_net(compose_net_config(n, "student")).num_parameters()
+              for n in ("demo_student_w05", "demo_student", "demo_student_w2")]
+    assert widths[0] < widths[1] < widths[2]

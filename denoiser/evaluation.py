@@ -18,8 +18,8 @@ from pathlib import Path
 import torch
 
 from denoiser.data.evalset import read_frame, sequence_reference
-from denoiser.errors import ConfigError
-from denoiser.measure import markdown_table
+from denoiser.errors import ConfigError, UserError
+from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import MetricAccumulator, flip_exposure, psnr
 from denoiser.plot_crops import crop_box, to_display
 
@@ -147,3 +147,14 @@ def markdown_report(ev: Evaluation, rows: list[dict], header: str) -> str:
              "\n## Per sequence\n",
              markdown_table(per_seq, ["sequence", "method", "frames", *metrics], METRIC_FORMATS, METRIC_HEADERS)]
     return "\n".join(parts)
+
+
+def eval_means(path) -> dict[str, dict]:
+    """``{method: {"psnr": ..., ...}}`` from the ``mean`` rows of ``denoiser-eval``'s metrics.csv
+    (``{}`` for no path); a CSV without the ``method`` and ``sequence`` columns is a UserError."""
+    if not path:
+        return {}
+    rows = read_csv(path)
+    if rows and ("method" not in rows[0] or "sequence" not in rows[0]):
+        raise UserError(f"{path}: not a denoiser-eval metrics.csv (needs columns method and sequence)")
+    return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}

@@ -64,14 +64,14 @@ from tqdm.auto import tqdm
 from denoiser.atomic import atomic_write_text
 from denoiser.backends import Stepper
 from denoiser.buffers import FRAME_INPUTS
-from denoiser.errors import ConfigError, UserError
+from denoiser.errors import ConfigError
+from denoiser.evaluation import eval_means
 from denoiser.frames import resize_frame
 from denoiser.measure import (
     PeakRss,
     count_flops,
     markdown_table,
     matmul_peak,
-    read_csv,
     summarize,
     time_steps,
     write_csv,
@@ -126,14 +126,6 @@ def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
     return out
 
 
-def quality_from_eval(path: str | os.PathLike | None) -> dict[str, dict]:
-    """``{method: {"psnr": ..., ...}}`` from the ``mean`` rows of ``denoiser-eval``'s metrics.csv."""
-    if not path:
-        return {}
-    rows = read_csv(path)
-    if rows and ("method" not in rows[0] or "sequence" not in rows[0]):
-        raise UserError(f"{path}: not a denoiser-eval metrics.csv (needs columns method and sequence)")
-    return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}
 
 
 def backend_quality(cfg: DictConfig, nets, backends, pairs, threads: int) -> dict[tuple[str, str], dict]:
@@ -395,7 +387,7 @@ def run(cfg: DictConfig) -> list[dict]:
     threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
     torch.set_num_threads(threads)
     out_dir = Path(cfg.out_dir)
-    quality = quality_from_eval(cfg.get("eval_csv"))
+    quality = eval_means(cfg.get("eval_csv"))
     seq_name, frames = load_frames(cfg.data, cfg.split, cfg.get("sequence"), int(cfg.warmup) + int(cfg.repeats),
                                    samples=baselines_use_samples(cfg.get("baselines")))
     peak = matmul_peak()

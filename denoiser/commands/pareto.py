@@ -33,6 +33,7 @@ from omegaconf import DictConfig
 from denoiser.atomic import atomic_write_text
 from denoiser.configs import instantiate_config
 from denoiser.errors import ConfigError, UserError
+from denoiser.evaluation import eval_means
 from denoiser.measure import count_flops, markdown_table, read_csv, write_csv
 from denoiser.pareto import (
     cache_key,
@@ -76,14 +77,6 @@ def measure_job(ckpt: Path, cfg: DictConfig, backend, sizes: list[tuple[int, int
     return out
 
 
-def eval_means(path) -> dict[str, dict]:
-    """``{method: mean row}`` of denoiser-eval's metrics.csv (methods named by job directory)."""
-    if not path:
-        return {}
-    rows = read_csv(path)
-    if rows and ("method" not in rows[0] or "sequence" not in rows[0]):
-        raise UserError(f"{path}: not a denoiser-eval metrics.csv (needs columns method and sequence)")
-    return {str(r["method"]): r for r in rows if r["sequence"] == "mean"}
 
 
 def oidn_rows(path, sizes: list[tuple[int, int]]) -> list[dict]:

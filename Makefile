@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo readme-results pareto lint clean-cache blender
+.PHONY: setup test demo readme-results pareto compare lint clean-cache blender
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -36,6 +36,11 @@ readme-results:
 # them one at a time and writes reports/pareto/. Resumable. Knobs: PARETO_* in scripts/pareto.sh.
 pareto: setup
 	VENV=$(VENV) bash scripts/pareto.sh
+
+# The paper's comparison on the demo's held-out scenes (docs/baselines.md): NPPD and WS trained by
+# the demo student's recipe, evaluated and timed with OIDN, the teacher and the student -> reports/compare/.
+compare: setup
+	VENV=$(VENV) bash scripts/compare.sh
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py

@@ -39,7 +39,6 @@ from ``seed`` (the paper's script starts each scene from a fresh network), unles
 
 from __future__ import annotations
 
-
 import torch
 import torch.nn.functional as F
 

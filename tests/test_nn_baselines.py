@@ -257,7 +257,7 @@ def test_forward_with_reset_gradients_and_training(name, kernel, ablation):
     frames["color"][:, 2, :, 8, 11] = 1e6  # firefly
     frames["color"].requires_grad_(True)
     reset = torch.tensor([[True, False, True], [True, False, False]])
-    outs, state, extras = net(frames, reset=reset)
+    outs, _state, extras = net(frames, reset=reset)
     assert outs.shape == (2, 3, 3, 17, 23) and torch.isfinite(outs).all() and len(extras) == 3
     # a reset frame has no history: within the range of its own (sanitised) input
     first = sanitize(frames["color"][:, 0].detach())

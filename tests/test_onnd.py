@@ -1,5 +1,6 @@
 """ONND baseline (denoiser/onnd.py): cross-regression against a loop, the online step, robustness."""
 
+import itertools
 import math
 
 import numpy as np
@@ -179,7 +180,7 @@ def test_online_steps_lower_the_self_supervised_loss():
         method(seq[0], reset=True)
         losses.append(method.last_loss)
     assert losses[-1] < losses[0], losses
-    assert all(later <= earlier + 1e-7 for earlier, later in zip(losses, losses[1:])), losses
+    assert all(later <= earlier + 1e-7 for earlier, later in itertools.pairwise(losses)), losses
 
 
 def test_compare_is_default_plus_onnd():

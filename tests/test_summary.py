@@ -71,7 +71,7 @@ def test_summary_and_readme_copy(tmp_path):
     (data / "test" / "s0_000").mkdir(parents=True)
     (data / "test" / "s0_000" / "frame_0000.exr").write_bytes(b"x")
     proc = subprocess.run([sys.executable, "-m", "denoiser.commands.demo_summary", f"report={report}",
-                           f"data_root={data}", "seeds=[0,1,2]"], capture_output=True, text=True, cwd=tmp_path)
+                           f"data_root={data}", "seeds=[0,1,2]"], capture_output=True, text=True, cwd=tmp_path, check=False)
     assert proc.returncode == 0, proc.stderr
     summary = (report / "summary.md").read_text()
     assert tree_hash(data / "test") in summary
@@ -80,12 +80,12 @@ def test_summary_and_readme_copy(tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text("# x\n\n<!-- results:begin -->\nold table\n<!-- results:end -->\n\ntail\n")
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--summary",
-                           str(report / "summary.md"), "--readme", str(readme)], capture_output=True, text=True)
+                           str(report / "summary.md"), "--readme", str(readme)], capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
     text = readme.read_text()
     assert "old table" not in text and student in text and text.endswith("\n\ntail\n")
     bad = subprocess.run([sys.executable, "-m", "denoiser.commands.demo_summary", f"report={tmp_path / 'none'}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+                         capture_output=True, text=True, cwd=tmp_path, check=False)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "metrics.csv" in bad.stderr
 
 

@@ -40,8 +40,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.buffers import NETWORK_INPUTS
-from denoiser.nn.inputs import (GUIDE_CHANNELS, color_feature, color_scale, demodulation_albedo, guide_features,
-                                 sanitize)
+from denoiser.nn.inputs import (
+    GUIDE_CHANNELS,
+    color_feature,
+    color_scale,
+    demodulation_albedo,
+    guide_features,
+    sanitize,
+)
 from denoiser.runner import unroll
 
 

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.nn.kernels import apply_kernels, scale_logits
-from denoiser.nn.pyramid import check_kernel_sizes, normalize, with_ones
+from denoiser.nn.pyramid import check_kernel_sizes, normalize, partition_levels
 
 #: splat footprint per axis: a coarse pixel covers fine offsets -1, 0, 1, 2 from its block's first pixel
 FOOTPRINT = 4
@@ -131,14 +131,10 @@ class LearnedUpsamplingPyramid(nn.Module):
         Returns ``(output [B, 3, H, W] float32, {"partition": [B, L, H, W]})``.
         """
         with torch.autocast(device_type=x.device.type, enabled=False):
-            x1 = with_ones(x)
             head0 = heads[0].float()
-            partition = torch.softmax(scale_logits(head0[:, : self.levels], self.logit_scale), dim=1)
+            x1, partition, parts = partition_levels(x, head0, self.levels, self.logit_scale)
             filtered, upsampling = [], [None]
-            for i in range(self.levels):
-                part = partition[:, i: i + 1] * x1
-                if i > 0:
-                    part = F.avg_pool2d(part, 2 ** i)
+            for i, part in enumerate(parts):
                 head = head0[:, self.levels:] if i == 0 else heads[i].float()
                 k2 = self.kernel_sizes[i] ** 2
                 filtered.append(apply_kernels(part, head[:, :k2], self.logit_scale))

@@ -48,6 +48,24 @@ def normalize(acc: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
     return torch.where(den > NORM_EPS, acc[:, :-1] / den.clamp_min(NORM_EPS), fallback)
 
 
+def partition_levels(x: torch.Tensor, head0: torch.Tensor, levels: int, logit_scale: float | None
+                     ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+    """The partitioning step shared by the pyramid filters (float32, call without autocast).
+
+    x: ``[B, 3, H, W]`` linear radiance; head0: ``[B, >= levels, H, W]`` whose first ``levels``
+    channels are the partition logits. Returns ``(x1 [B, 4, H, W]`` = :func:`with_ones` of x,
+    ``partition [B, L, H, W]`` softmax weights, ``parts``: level i's ``w_i * x1`` average-pooled
+    to ``[B, 4, H/2^i, W/2^i]``).
+    """
+    x1 = with_ones(x)
+    partition = torch.softmax(scale_logits(head0[:, :levels], logit_scale), dim=1)
+    parts = []
+    for i in range(levels):
+        part = partition[:, i: i + 1] * x1
+        parts.append(F.avg_pool2d(part, 2 ** i) if i > 0 else part)
+    return x1, partition, parts
+
+
 def check_kernel_sizes(kernel_sizes: Sequence[int]) -> list[int]:
     sizes = [int(k) for k in kernel_sizes]
     if not sizes or any(k < 1 or k % 2 == 0 for k in sizes):
@@ -85,16 +103,10 @@ class PyramidFilter(nn.Module):
         Returns ``(output [B, 3, H, W] float32, {"partition": [B, L, H, W]})``.
         """
         with torch.autocast(device_type=x.device.type, enabled=False):
-            x1 = with_ones(x)
             head0 = heads[0].float()
-            partition = torch.softmax(scale_logits(head0[:, : self.levels], self.logit_scale), dim=1)
+            x1, partition, parts = partition_levels(x, head0, self.levels, self.logit_scale)
             logits = [head0[:, self.levels:]] + [heads[i].float() for i in range(1, self.levels)]
-            filtered = []
-            for i in range(self.levels):
-                part = partition[:, i: i + 1] * x1
-                if i > 0:
-                    part = F.avg_pool2d(part, 2 ** i)
-                filtered.append(apply_kernels(part, logits[i], self.logit_scale))
+            filtered = [apply_kernels(part, logits[i], self.logit_scale) for i, part in enumerate(parts)]
             acc = filtered[-1]
             for i in range(self.levels - 2, -1, -1):
                 acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",

@@ -27,7 +27,7 @@ from denoiser.errors import UserError
 DATA_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data").glob("*.yaml"))
 LAYOUT_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "layout").glob("*.yaml"))
 REQUIRED_KEYS = {"root", "layout", "window", "crop", "batch_size", "num_workers", "persistent_workers",
-                 "pin_memory", "cache_dir", "augment", "use_unlabeled", "unlabeled_ratio", "val_split",
+                 "pin_memory", "multiprocessing_context", "cache_dir", "augment", "use_unlabeled", "unlabeled_ratio", "val_split",
                  "test_split"}
 
 
@@ -244,3 +244,8 @@ def test_collate_matches_default_and_rejects_mixed_keys():
     with pytest.raises(UserError, match=r"batch mixes items of train/s0 and train/s1 with different buffers "
                                         r"\(reference\)"):
         collate_items(items)
+
+
+def test_bad_worker_start_method_is_one_config_error(root):
+    with pytest.raises(UserError, match="data.multiprocessing_context: 'threads' is not one of"):
+        make(root, "data.multiprocessing_context=threads", "data.num_workers=1")

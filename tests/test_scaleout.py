@@ -182,3 +182,24 @@ def test_slurm_ddp_preset_makes_the_expected_sbatch_script(tmp_path, monkeypatch
                  "#SBATCH --cpus-per-task=8", "#SBATCH --partition=gpu", "#SBATCH --mem=480GB",
                  "#SBATCH --time=2880"):
         assert line in text, text
+
+
+def _first_batch_in_a_worker(root: str) -> tuple[int, ...]:
+    """Runs in a joblib (loky) worker process: one training batch through DataLoader workers."""
+    from denoiser.data.datamodule import SequenceDataModule
+    from denoiser.data.layouts import NativeLayout
+
+    layout = NativeLayout({"color": ["color.R", "color.G", "color.B"],
+                           "reference": ["reference.R", "reference.G", "reference.B"]})
+    dm = SequenceDataModule(root, layout=layout, buffers=["color"], window=2, crop=16, batch_size=1, num_workers=1)
+    dm.setup("fit")
+    return tuple(next(iter(dm.train_dataloader()))["color"].shape)
+
+
+def test_dataloader_workers_start_inside_a_joblib_worker(data):
+    """hydra/launcher=joblib runs each job in a loky process, whose default start method ('loky')
+    cannot start DataLoader workers; the loaders use the standard library's start method."""
+    from joblib import Parallel, delayed
+
+    shapes = Parallel(n_jobs=2, backend="loky")(delayed(_first_batch_in_a_worker)(str(data)) for _ in range(1))
+    assert shapes == [(1, 2, 3, 16, 16)]

@@ -14,12 +14,14 @@ live at ``<root>/<split>/<sequence>/`` in the configured layout. Loaders:
   :class:`~denoiser.data.sampler.SequenceShardSampler`, which Lightning leaves in place.
 
 Streaming: datasets hold only the index; ``num_workers``, ``persistent_workers`` and
-``pin_memory`` go to every DataLoader; ``cache_dir`` (or null) enables the decoded-frame cache;
+``pin_memory`` go to every DataLoader, whose workers start with ``multiprocessing_context``
+(null: the standard library's start method, see :func:`worker_context`); ``cache_dir`` (or null) enables the decoded-frame cache;
 ``precache: true`` fills it for all splits in ``prepare_data`` (with a progress bar).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from collections.abc import Mapping, Sequence
 
@@ -36,6 +38,23 @@ from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
 from denoiser.data.sampler import MixedSampler, SequenceShardSampler
 from denoiser.errors import ConfigError
+
+
+def worker_context(name: str | None = None):
+    """The ``multiprocessing`` context that starts DataLoader workers: ``name`` (fork, spawn or
+    forkserver), else the process's start method when it is one of the standard library's, else
+    the platform's default. A job run by ``hydra/launcher=joblib`` lives in a loky worker whose
+    start method is ``'loky'``; its processes cannot start DataLoader workers (AttributeError on
+    ``Process.env``), so that one is never used."""
+    if name:
+        if name not in multiprocessing.get_all_start_methods():
+            raise ConfigError(f"data.multiprocessing_context: {name!r} is not one of "
+                              f"{', '.join(multiprocessing.get_all_start_methods())}")
+        return multiprocessing.get_context(name)
+    method = multiprocessing.get_start_method(allow_none=True)
+    if method in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context(method)
+    return multiprocessing.get_context(multiprocessing.get_all_start_methods()[0])
 
 
 def _instantiate(obj, cls, key: str):
@@ -66,6 +85,7 @@ class SequenceDataModule(L.LightningDataModule):
         num_workers: int = 0,
         persistent_workers: bool = False,
         pin_memory: bool = False,
+        multiprocessing_context: str | None = None,
         cache_dir: str | None = None,
         precache: bool = False,
         augment: Augment | Mapping | None = None,
@@ -89,6 +109,8 @@ class SequenceDataModule(L.LightningDataModule):
         self.num_workers = int(num_workers)
         self.persistent_workers = bool(persistent_workers) and self.num_workers > 0
         self.pin_memory = bool(pin_memory)
+        self.multiprocessing_context = multiprocessing_context
+        worker_context(multiprocessing_context)  # a bad name fails here, before any training
         self.cache_dir = str(cache_dir) if cache_dir else None
         self.precache = bool(precache)
         self.augment = _instantiate(augment, Augment, "data.augment")
@@ -159,7 +181,9 @@ class SequenceDataModule(L.LightningDataModule):
     def _loader(self, dataset, batch_size: int, shuffle: bool = False, sampler=None) -> DataLoader:
         return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, sampler=sampler,
                           num_workers=self.num_workers, persistent_workers=self.persistent_workers,
-                          pin_memory=self.pin_memory, collate_fn=collate_items)
+                          pin_memory=self.pin_memory, collate_fn=collate_items,
+                          multiprocessing_context=worker_context(self.multiprocessing_context)
+                          if self.num_workers > 0 else None)
 
     def train_dataloader(self) -> DataLoader:
         if self.train_set is None:

@@ -247,5 +247,9 @@ def test_collate_matches_default_and_rejects_mixed_keys():
 
 
 def test_bad_worker_start_method_is_one_config_error(root):
-    with pytest.raises(UserError, match="data.multiprocessing_context: 'threads' is not one of"):
-        make(root, "data.multiprocessing_context=threads", "data.num_workers=1")
+    from denoiser.configs import instantiate_config
+
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        cfg = compose(overrides=["+data=tiny", f"data.root={root}", "data.multiprocessing_context=threads"])
+    with pytest.raises(UserError, match="data.multiprocessing_context: 'threads' is not one of fork, spawn"):
+        instantiate_config(cfg.data, "data")

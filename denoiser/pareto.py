@@ -5,7 +5,9 @@ time objective and ``denoiser-pareto``'s sequential timing pass use it (docs/par
 * :func:`front_indices`: the non-dominated points, O(n log n) (tests check it against a plain loop);
 * :func:`time_network`: median ms per recurrent step of a network on a backend of
   :mod:`denoiser.backends` (``denoiser-bench``'s measurement: :func:`denoiser.measure.time_steps`);
-* :func:`read_multirun`: the jobs of a finished Hydra multirun directory.
+* :func:`job_dirs`, :func:`read_job`: the jobs of a finished Hydra multirun directory;
+* :func:`group_seeds`: jobs that differ only by ``seed=`` (a variant retrained with more seeds);
+* :func:`dominates`: whether one ``(psnr, ms)`` point beats another on both axes.
 """
 
 from __future__ import annotations
@@ -39,6 +41,14 @@ def front_indices(points: Sequence[tuple[float, float]]) -> list[int]:
         elif (q, t) == best_at:  # an exact duplicate of a front point is not dominated either
             front.append(i)
     return front
+
+
+def dominates(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """Whether ``a = (psnr, ms)`` dominates ``b``: at least as good and as fast, strictly better in
+    one; False when either has a NaN."""
+    if any(math.isnan(v) for v in (*a, *b)):
+        return False
+    return a[0] >= b[0] and a[1] <= b[1] and (a[0] > b[0] or a[1] < b[1])
 
 
 def random_frames(height: int, width: int, count: int = 2, seed: int = 0) -> list[dict]:
@@ -117,6 +127,27 @@ def varying_overrides(override_lists: Sequence[Sequence[str]]) -> list[list[str]
     counts = {k: sum(any(split(o)[0] == k for o in ol) for ol in override_lists) for k in values}
     varying = {k for k, v in values.items() if len(v) > 1 or counts[k] < len(override_lists)}
     return [[o for o in ol if split(o)[0] in varying] for ol in override_lists]
+
+
+def seed_of(overrides: Sequence[str]) -> int | None:
+    """The ``seed=`` of a job's overrides (None when it keeps the config's)."""
+    for o in overrides:
+        key, _, value = o.partition("=")
+        if key.lstrip("+") == "seed":
+            return int(value)
+    return None
+
+
+def group_seeds(jobs: Sequence[Mapping]) -> list[list[Mapping]]:
+    """Jobs (:func:`read_job` dicts) grouped by their overrides without ``seed=``: one group per
+    variant, in order of first appearance, its jobs in seed order (a job without ``seed=`` is the
+    config's seed and comes first)."""
+    groups: dict[tuple[str, ...], list[Mapping]] = {}
+    for job in jobs:
+        key = tuple(sorted(o for o in job["overrides"] if o.partition("=")[0].lstrip("+") != "seed"))
+        groups.setdefault(key, []).append(job)
+    return [sorted(g, key=lambda j: (seed_of(j["overrides"]) is not None, seed_of(j["overrides"]) or 0))
+            for g in groups.values()]
 
 
 def cache_key(path: str | os.PathLike, **what) -> str:

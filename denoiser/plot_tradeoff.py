@@ -52,8 +52,11 @@ def pareto_front_of_rows(rows: Sequence[Mapping], size: tuple[int, int]) -> list
 
 def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size: tuple[int, int],
                           curves: Mapping[str, Sequence[str]] | None = None, noisy_psnr: float | None = None,
-                          title: str = "") -> Path | None:
-    """Write the plot for frames of ``size`` ``(H, W)``; None when no method has time and PSNR."""
+                          title: str = "", front_kinds: Sequence[str] | None = None) -> Path | None:
+    """Write the plot for frames of ``size`` ``(H, W)``; None when no method has time and PSNR.
+
+    ``front_kinds``: only rows of these ``kind`` values make the front (None: every row); a row
+    with ``psnr_std`` (a mean over seeds) gets that error bar."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -76,9 +79,13 @@ def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size
         baseline = r.get("kind") == "baseline"
         ax.scatter(*points[k], marker="s" if baseline else "o", s=55, zorder=3,
                    color=cmap(0) if baseline else cmap(1), edgecolor="black", linewidth=0.6)
+        std = float(r.get("psnr_std", float("nan")))
+        if not math.isnan(std):
+            ax.errorbar(*points[k], yerr=std, color="black", lw=0.8, capsize=3, zorder=2)
         text = k if baseline else f"{k} ({r['backend']})"
         ax.annotate(text, points[k], textcoords="offset points", xytext=offsets[rank % len(offsets)], fontsize=7.5)
-    front = pareto_front(points)
+    front = pareto_front({k: p for k, p in points.items()
+                          if front_kinds is None or best[k].get("kind") in front_kinds})
     xs, ys = [], []
     for k in front:
         t, q = points[k]

@@ -5,9 +5,11 @@ a real (tiny) multirun trained through denoiser-train -m, and the Optuna multi-o
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import random
+import statistics
 import subprocess
 import sys
 import time
@@ -16,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from denoiser.data.synthetic import write_synthetic_sequence
-from denoiser.pareto import front_indices, varying_overrides
+from denoiser.pareto import dominates, front_indices, group_seeds, seed_of, varying_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 #: tiny, quiet training jobs: 2 steps of net=tiny on 16x16 crops, one validation at the end
@@ -63,6 +65,49 @@ def test_varying_overrides_keeps_what_differs():
     jobs = [["net=tiny", "kernel.sizes=[3]", "ablation=none"], ["net=tiny", "kernel.sizes=[5,5]", "ablation=none"],
             ["net=tiny", "kernel.sizes=[5,5]", "ablation=none", "seed=1"]]
     assert varying_overrides(jobs) == [["kernel.sizes=[3]"], ["kernel.sizes=[5,5]"], ["kernel.sizes=[5,5]", "seed=1"]]
+
+
+def test_seeds_of_one_variant_are_one_group():
+    def job(name, *overrides):
+        return {"dir": Path(name), "overrides": list(overrides)}
+
+    jobs = [job("0", "net=tiny", "kernel.sizes=[3]"), job("1", "net=tiny", "kernel.sizes=[5]"),
+            job("0_s2", "net=tiny", "seed=2", "kernel.sizes=[3]"), job("0_s1", "net=tiny", "kernel.sizes=[3]", "seed=1"),
+            job("1_s1", "net=tiny", "kernel.sizes=[5]", "+seed=1")]
+    groups = group_seeds(jobs)
+    assert [[j["dir"].name for j in g] for g in groups] == [["0", "0_s1", "0_s2"], ["1", "1_s1"]]
+    assert [seed_of(j["overrides"]) for j in groups[0]] == [None, 1, 2]
+
+
+def test_dominates_is_the_definition():
+    nan = math.nan
+    assert dominates((30.0, 10.0), (29.0, 12.0)) and dominates((30.0, 10.0), (30.0, 11.0))
+    assert dominates((30.5, 10.0), (30.0, 10.0))
+    assert not dominates((30.0, 10.0), (30.0, 10.0))        # equal: neither dominates
+    assert not dominates((31.0, 12.0), (30.0, 10.0))        # better but slower
+    assert not dominates((nan, 1.0), (30.0, 10.0)) and not dominates((31.0, 1.0), (30.0, nan))
+
+
+def test_mean_std_of_seed_values():
+    from denoiser.commands.pareto import mean_std
+
+    mean, std = mean_std([30.0, 31.0, 32.0, math.nan])
+    assert mean == pytest.approx(31.0) and std == pytest.approx(1.0)  # sample std, NaN left out
+    assert math.isnan(mean_std([29.0])[1]) and all(math.isnan(v) for v in mean_std([]))
+
+
+def test_dominance_lines_name_the_winners_or_the_gap():
+    from denoiser.commands.pareto import dominance_lines
+
+    rows = [{"kind": "network", "job": "0", "front": True, "val_psnr": 29.0, "n_seeds": 3, "ms": 50.0},
+            {"kind": "network", "job": "1", "front": True, "val_psnr": 31.0, "n_seeds": 3, "ms": 200.0},
+            {"kind": "network", "job": "2", "front": False, "val_psnr": 32.0, "n_seeds": 1, "ms": 90.0},
+            {"kind": "baseline", "variant": "OIDN-fast", "front": False, "val_psnr": 30.0, "ms": 100.0},
+            {"kind": "baseline", "variant": "OIDN-slow", "front": False, "val_psnr": 30.0, "ms": 300.0}]
+    fast, slow = dominance_lines(rows, "ms")
+    assert fast.startswith("- OIDN-fast (val PSNR 30.00 dB, 100 ms): no front variant dominates it")
+    assert "#0, is -1.00 dB" in fast  # #2 would dominate it, but it is not on the front
+    assert slow.startswith("- OIDN-slow (val PSNR 30.00 dB, 300 ms) is dominated by #1 (31.00 dB over 3 seed(s)")
 
 
 @pytest.fixture(scope="module")
@@ -123,6 +168,33 @@ def test_report_of_a_trained_multirun(data_root, tmp_path):
     # a rerun reuses the cached timings; a rerun of the sweep skips the finished jobs
     run_ok(report, tmp_path)
     assert sorted((out / "cache").iterdir()) == cached
+
+    # variant 0 retrained with seeds 1 and 2 (as make pareto does for the front) is one row: mean ± std,
+    # timed once; OIDN-fast is timed in the same process, with its val PSNR from denoiser-eval's table
+    seeds = tmp_path / "seeds"
+    run_ok(command("train", "-m", *TINY, f"data.root={data_root}", "kernel.sizes=[3]", "skip_done=true",
+                   "seed=1,2", f"hydra.sweep.dir={seeds}", "hydra.sweep.subdir=0_s${seed}"), tmp_path)
+    val_csv = tmp_path / "val.csv"
+    val_csv.write_text("method,scene,sequence,psnr,tpsnr\nOIDN-fast,mean,mean,99.0,98.0\n")
+    run_ok(command("pareto", f"sweep_dir=[{sweep},{seeds}]", f"out_dir={out}", "backend=eager",
+                   "sizes=[[32,32],[16,16]]", "warmup=0", "repeats=1", "threads=1", "baselines=default",
+                   "baselines.noisy=null", "baselines.oidn_balanced=null", "baselines.oidn_high=null",
+                   f"baseline_eval_csv={val_csv}"), tmp_path)
+    with open(out / "pareto.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["variant"] for r in rows] == ["kernel.sizes=[3]", "kernel.sizes=[5,5]", "kernel.sizes=[3,5,5]",
+                                            "OIDN-fast"]
+    vals = [json.loads((d / "metrics.json").read_text())["metrics"]["val/psnr"] for d in
+            (sweep / "0", seeds / "0_s1", seeds / "0_s2")]
+    assert rows[0]["seeds"] == "cfg 1 2" and float(rows[0]["val_psnr"]) == pytest.approx(sum(vals) / 3, abs=1e-6)
+    assert float(rows[0]["val_psnr_std"]) == pytest.approx(statistics.stdev(vals), abs=1e-6)
+    assert rows[1]["val_psnr_std"] == ""  # one seed: no spread
+    assert len(list((out / "cache").iterdir())) == 3  # the seeds were not timed again
+    oidn = rows[3]
+    assert oidn["kind"] == "baseline" and float(oidn["val_psnr"]) == 99.0 and float(oidn["ms_32x32"]) > 0
+    assert oidn["front"] == "False"  # the front is the variants'; OIDN is measured against it
+    text = (out / "pareto.md").read_text()
+    assert "- OIDN-fast (val PSNR 99.00 dB," in text and "no front variant dominates it" in text
     proc = run_ok(command("train", "-m", *TINY, f"data.root={data_root}", "kernel.sizes=[3],[5,5],[3,5,5]",
                           f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=${hydra.job.num}", "skip_done=true"), tmp_path)
     assert proc.stderr.count("finished before, skipped") == 3

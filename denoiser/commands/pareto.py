@@ -28,7 +28,7 @@ import math
 import shlex
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from denoiser.atomic import atomic_write_text
 from denoiser.configs import instantiate_config
@@ -37,9 +37,12 @@ from denoiser.evaluation import eval_means
 from denoiser.measure import count_flops, markdown_table, read_csv, write_csv
 from denoiser.pareto import (
     cache_key,
+    dominates,
     front_indices,
+    group_seeds,
     job_dirs,
     read_job,
+    seed_of,
     time_network,
     varying_overrides,
 )
@@ -100,12 +103,74 @@ def oidn_rows(path, sizes: list[tuple[int, int]]) -> list[dict]:
     return list(by_method.values())
 
 
+def mean_std(values: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation of the finite values (NaN when there are none; std NaN for one)."""
+    vals = [v for v in values if not math.isnan(v)]
+    if not vals:
+        return NAN, NAN
+    mean = sum(vals) / len(vals)
+    if len(vals) < 2:
+        return mean, NAN
+    return mean, math.sqrt(sum((v - mean) ** 2 for v in vals) / (len(vals) - 1))
+
+
+def read_jobs(sweep_dirs: list[Path]) -> list[dict]:
+    """Every job of the sweep directories, named by its directory (names must not repeat)."""
+    jobs, seen = [], {}
+    for sweep_dir in sweep_dirs:
+        dirs = job_dirs(sweep_dir)
+        if not dirs:
+            raise UserError(f"sweep_dir={sweep_dir}: no job directories (<job>/.hydra/overrides.yaml) there")
+        for d in dirs:
+            if d.name in seen:
+                raise UserError(f"sweep_dir: job {d.name} is in both {seen[d.name]} and {sweep_dir} "
+                                f"(name the jobs of each sweep apart, e.g. hydra.sweep.subdir)")
+            seen[d.name] = sweep_dir
+            jobs.append(read_job(d))
+    return jobs
+
+
+def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int) -> list[dict]:
+    """The baselines of ``cfg.baselines`` (OIDN) timed in this process on the networks' frames and
+    threads, with their validation PSNR from ``baseline_eval_csv`` (denoiser-eval on the val split)."""
+    if not cfg.get("baselines"):
+        return []
+    import torch
+
+    from denoiser.backends import Stepper
+    from denoiser.baselines import build_baselines
+    from denoiser.measure import summarize, time_steps
+    from denoiser.pareto import random_frames
+
+    torch.set_num_threads(threads)
+
+    evaluated = eval_means(cfg.get("baseline_eval_csv"))
+    rows = []
+    for label, method in build_baselines(cfg.baselines).items():
+        row = {"job": "", "variant": label, "kind": "baseline", "seeds": "", "backend": getattr(method, "backend",
+                                                                                               "OIDN (pyoidn)"),
+               "threads": threads, "val_psnr": float(evaluated.get(label, {}).get("psnr", NAN)),
+               "val_tpsnr": float(evaluated.get(label, {}).get("tpsnr", NAN))}
+        for size in sizes:
+            print(f"[baseline] {label} at {size_tag(size)}", flush=True)
+            frames = random_frames(*size)
+            stepper = Stepper(lambda f, s, m=method: (m(f, s is None), None))
+            row[f"ms_{size_tag(size)}"] = 1000 * summarize(time_steps(stepper, frames, int(cfg.warmup),
+                                                                      int(cfg.repeats)))["median"]
+        close = getattr(method, "close", None)
+        if close:
+            close()
+        rows.append(row)
+    return rows
+
+
 def run(cfg: DictConfig) -> list[dict]:
-    """The ``denoiser-pareto`` task; returns the table rows (networks, then OIDN)."""
-    sweep_dir, out_dir = Path(cfg.sweep_dir), Path(cfg.out_dir)
-    jobs = [read_job(d) for d in job_dirs(sweep_dir)]
-    if not jobs:
-        raise UserError(f"sweep_dir={sweep_dir}: no job directories (<job>/.hydra/overrides.yaml) there")
+    """The ``denoiser-pareto`` task; returns the table rows (variants, then baselines)."""
+    import torch
+
+    sweep_dirs = [Path(d) for d in (cfg.sweep_dir if isinstance(cfg.sweep_dir, (list, ListConfig))
+                                    else [cfg.sweep_dir])]
+    out_dir = Path(cfg.out_dir)
     sizes = [tuple(int(v) for v in s) for s in cfg.sizes]
     if not sizes:
         raise ConfigError("sizes: at least one [H, W]")
@@ -115,64 +180,119 @@ def run(cfg: DictConfig) -> list[dict]:
     reason = backend.available()
     if reason:
         raise ConfigError(f"backend={cfg.backend}: {reason}")
-    labels = varying_overrides([j["overrides"] for j in jobs])
+    groups = group_seeds(read_jobs(sweep_dirs))
+    labels = varying_overrides([[o for o in g[0]["overrides"] if o.partition("=")[0].lstrip("+") != "seed"]
+                                for g in groups])
     tested = eval_means(cfg.get("eval_csv"))
     rows = []
-    for i, (job, varying) in enumerate(zip(jobs, labels)):
-        metrics = job["metrics"].get("metrics", {})
-        test = tested.get(job["dir"].name, tested.get(f"job{job['dir'].name}", {}))
-        row = {"job": job["dir"].name, "variant": " ".join(varying) or job["dir"].name, "kind": "network",
-               "val_psnr": float(metrics.get("val/psnr", NAN)), "val_tpsnr": float(metrics.get("val/tpsnr", NAN)),
-               "test_psnr": float(test.get("psnr", NAN)), "test_tpsnr": float(test.get("tpsnr", NAN)),
-               "done": job["done"], "overrides": job["overrides"]}
-        if job["ckpt"] is None:
+    for i, (group, varying) in enumerate(zip(groups, labels)):
+        first = group[0]
+        tests = [tested.get(j["dir"].name, tested.get(f"job{j['dir'].name}", {})) for j in group]
+        val = mean_std([float(j["metrics"].get("metrics", {}).get("val/psnr", NAN)) for j in group])
+        val_t = mean_std([float(j["metrics"].get("metrics", {}).get("val/tpsnr", NAN)) for j in group])
+        test = mean_std([float(t.get("psnr", NAN)) for t in tests])
+        test_t = mean_std([float(t.get("tpsnr", NAN)) for t in tests])
+        seeds = [seed_of(j["overrides"]) for j in group]
+        row = {"job": first["dir"].name, "variant": " ".join(varying) or first["dir"].name, "kind": "network",
+               "seeds": " ".join("cfg" if s is None else str(s) for s in seeds), "n_seeds": len(group),
+               "val_psnr": val[0], "val_psnr_std": val[1], "val_tpsnr": val_t[0],
+               "test_psnr": test[0], "test_psnr_std": test[1], "test_tpsnr": test_t[0],
+               "done": all(j["done"] for j in group), "overrides": first["overrides"]}
+        timed = next((j for j in group if j["ckpt"] is not None), None)  # one architecture: time one of its runs
+        if timed is None:
             rows.append({**row, "status": "no checkpoint"})
             continue
-        print(f"[{i + 1}/{len(jobs)}] {job['dir']}: {row['variant']}", flush=True)
-        rows.append({**row, **measure_job(job["ckpt"], cfg, backend, sizes, out_dir / "cache")})
+        print(f"[{i + 1}/{len(groups)}] {timed['dir']}: {row['variant']} ({len(group)} seed(s))", flush=True)
+        rows.append({**row, **measure_job(timed["ckpt"], cfg, backend, sizes, out_dir / "cache")})
+    threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
+    rows += baseline_rows(cfg, sizes, threads)
     rows += oidn_rows(cfg.get("oidn_csv"), sizes)
     ms_key = f"ms_{size_tag(sizes[0])}"
-    points = [(float(r.get("val_psnr", NAN)), float(r.get(ms_key, NAN))) for r in rows]
-    front = set(front_indices(points))
+    nets = [i for i, r in enumerate(rows) if r["kind"] == "network"]
+    front = {nets[k] for k in front_indices([(float(rows[i].get("val_psnr", NAN)), float(rows[i].get(ms_key, NAN)))
+                                             for i in nets])}
     for i, r in enumerate(rows):
         r["front"] = i in front
-    write_report(out_dir, rows, sizes, sweep_dir)
+    write_report(out_dir, rows, sizes, sweep_dirs)
     return rows
 
 
-def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dir: Path) -> None:
+def dominance_lines(rows: list[dict], ms_key: str) -> list[str]:
+    """Per baseline with a validation PSNR: the front's variants that dominate it (faster and better)."""
+    lines = []
+    for b in rows:
+        if b["kind"] != "baseline" or math.isnan(float(b.get("val_psnr", NAN))):
+            continue
+        point = (float(b["val_psnr"]), float(b.get(ms_key, NAN)))
+        winners = [r for r in rows if r["front"]
+                   and dominates((float(r["val_psnr"]), float(r.get(ms_key, NAN))), point)]
+        if winners:
+            lines.append(f"- {b['variant']} (val PSNR {point[0]:.2f} dB, {point[1]:.0f} ms) is dominated by "
+                         + ", ".join(f"#{r['job']} ({r['val_psnr']:.2f} dB over {r['n_seeds']} seed(s), "
+                                     f"{float(r[ms_key]):.0f} ms)" for r in winners) + ".")
+        else:
+            faster = [r for r in rows if r["front"] and float(r.get(ms_key, NAN)) < point[1]]
+            best = max(faster, key=lambda r: float(r["val_psnr"]), default=None)
+            gap = (f"; the best front variant faster than it, #{best['job']}, is {best['val_psnr'] - point[0]:+.2f} dB"
+                   if best else "; no front variant is faster")
+            lines.append(f"- {b['variant']} (val PSNR {point[0]:.2f} dB, {point[1]:.0f} ms): no front variant "
+                         f"dominates it{gap}.")
+    return lines
+
+
+def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dirs: list[Path]) -> None:
     ms_cols = [f"ms_{size_tag(s)}" for s in sizes]
-    columns = ["job", "variant", "front", "params", "gflop", "val_psnr", "val_tpsnr", "test_psnr", "test_tpsnr",
-               *ms_cols,
+    columns = ["job", "variant", "front", "seeds", "params", "gflop", "val_psnr", "val_psnr_std", "val_tpsnr",
+               "test_psnr", "test_psnr_std", "test_tpsnr", *ms_cols,
                "backend", "threads", "kind", "done", "overrides"]
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(out_dir / "pareto.csv", [{**r, "overrides": " ".join(r.get("overrides", []))} for r in rows], columns)
     ms_key = ms_cols[0]
     ordered = sorted(rows, key=lambda r: (math.isnan(float(r.get(ms_key, NAN))), float(r.get(ms_key, NAN))))
-    table = markdown_table([{**r, "front": "★" if r["front"] else ""} for r in ordered],
-                           [c for c in columns if c not in ("overrides", "kind", "done")],
-                           formats={"gflop": ".3g", "val_psnr": ".2f", "val_tpsnr": ".2f", "test_psnr": ".2f",
-                                    "test_tpsnr": ".2f",
+
+    def pm(mean, std) -> str:
+        if math.isnan(float(mean)):
+            return ""
+        return f"{mean:.2f}" + ("" if math.isnan(float(std)) else f" ± {std:.2f}")
+
+    shown = [{**r, "front": "★" if r["front"] else "",
+              "val_psnr": pm(r.get("val_psnr", NAN), r.get("val_psnr_std", NAN)),
+              "test_psnr": pm(r.get("test_psnr", NAN), r.get("test_psnr_std", NAN))} for r in ordered]
+    table = markdown_table(shown, [c for c in columns if c not in ("overrides", "kind", "done", "val_psnr_std",
+                                                                   "test_psnr_std")],
+                           formats={"gflop": ".3g", "val_tpsnr": ".2f", "test_tpsnr": ".2f",
                                     **{c: ".3g" for c in ms_cols}},
-                           headers={"gflop": f"GFLOP {size_tag(sizes[0])}", **{c: f"ms {c[3:]}" for c in ms_cols}})
-    front_rows = [r for r in ordered if r["front"] and r["kind"] == "network"]
+                           headers={"gflop": f"GFLOP {size_tag(sizes[0])}", **{c: f"ms {c[3:]}" for c in ms_cols},
+                                    "val_psnr": "val PSNR dB", "test_psnr": "test PSNR dB"})
+    front_rows = [r for r in ordered if r["front"]]
     lines = [" ".join(shlex.quote(o) for o in r["overrides"]) for r in front_rows]
     atomic_write_text(out_dir / "front.txt", "".join(f"{line}\n" for line in lines))
     plot_rows = [{"method": f"#{r['job']}" if r["kind"] == "network" else r["variant"], "backend": r.get("backend", ""),
                   "device": "cpu", "height": sizes[0][0], "width": sizes[0][1], "ms_median": float(r.get(ms_key, NAN)),
-                  "psnr": float(r.get("val_psnr", NAN)), "kind": r["kind"]} for r in rows]
-    plot = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", plot_rows, sizes[0],
-                                 title=f"Pareto front of {sweep_dir} (val PSNR vs ms at {size_tag(sizes[0])})")
-    text = [f"# Pareto front of {sweep_dir}", "",
-            (f"{sum(r['kind'] == 'network' for r in rows)} variants; val PSNR of the final weights (denoiser-train's "
-             f"metrics.json), ms per frame: median of the timed steps on the backend named, one network at a time. "
-             f"★: on the front (no other row both faster at {size_tag(sizes[0])} and better)."), "", table, "",
+                  "psnr": float(r.get("val_psnr", NAN)), "psnr_std": float(r.get("val_psnr_std", NAN)),
+                  "kind": r["kind"]} for r in rows]
+    where = ", ".join(str(d) for d in sweep_dirs)
+    plot = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", plot_rows, sizes[0], front_kinds=["network"],
+                                 title=f"Pareto front of {where} (val PSNR vs ms at {size_tag(sizes[0])})")
+    n_nets = sum(r["kind"] == "network" for r in rows)
+    one_seed = [r for r in front_rows if r["n_seeds"] < 3]
+    text = [f"# Pareto front of {where}", "",
+            (f"{n_nets} variants; val PSNR of the final weights (denoiser-train's metrics.json), the mean ± std "
+             f"over the seeds listed where a variant was trained with more than one; ms per frame: median of the "
+             f"timed steps on the backend named, one network at a time, the baselines on the same frames and "
+             f"threads. ★: on the front of the variants (no other variant both faster at {size_tag(sizes[0])} and "
+             f"better)."), "", table, "",
+            "## The front against the baselines (val PSNR, same frames and threads)", "",
+            *(dominance_lines(rows, ms_key) or ["- no baseline with a validation PSNR (baselines, baseline_eval_csv)"]),
+            *([f"- front variants with fewer than 3 seeds (no claim rests on them yet): "
+               + ", ".join(f"#{r['job']}" for r in one_seed)] if one_seed else []), "",
             "## The front as train overrides", "",
             "```", *(f"denoiser-train {line}" for line in lines), "```", ""]
     if plot:
         text += ["![accuracy vs time](accuracy_vs_time.png)", ""]
     atomic_write_text(out_dir / "pareto.md", "\n".join(text))
     print(table)
+    print("\n".join(dominance_lines(rows, ms_key)))
     print(f"wrote {out_dir}/pareto.md, pareto.csv, front.txt" + (", accuracy_vs_time.png" if plot else ""))
 
 

@@ -284,7 +284,7 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dirs: list[Path])
              f"better)."), "", table, "",
             "## The front against the baselines (val PSNR, same frames and threads)", "",
             *(dominance_lines(rows, ms_key) or ["- no baseline with a validation PSNR (baselines, baseline_eval_csv)"]),
-            *([f"- front variants with fewer than 3 seeds (no claim rests on them yet): "
+            *(["- front variants with fewer than 3 seeds (no claim rests on them yet): "
                + ", ".join(f"#{r['job']}" for r in one_seed)] if one_seed else []), "",
             "## The front as train overrides", "",
             "```", *(f"denoiser-train {line}" for line in lines), "```", ""]

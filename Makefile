@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo readme-results pareto compare lint clean-cache blender
+.PHONY: setup test demo readme-results readme-pareto pareto compare lint clean-cache blender
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -30,6 +30,11 @@ demo: setup
 # Copy the results table of reports/demo/summary.md into README.md (never typed by hand).
 readme-results:
 	python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md
+
+# Copy the Pareto table of reports/pareto/pareto.md and its plot (docs/images/pareto.png) into README.md.
+readme-pareto:
+	python3 scripts/readme_results.py --summary reports/pareto/pareto.md --marker pareto \
+		--image reports/pareto/accuracy_vs_time.png:docs/images/pareto.png
 
 # The accuracy-vs-time Pareto front of the demo student (docs/pareto.md): reuses make demo's data
 # and teacher (or makes them), trains 8 distilled variants (experiment=pareto, short runs), times

@@ -81,3 +81,17 @@ def tree_hash(root: str | os.PathLike) -> str:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 digest.update(chunk)
     return digest.hexdigest()
+
+
+def git_commit() -> str:
+    """The checkout's short commit (``-dirty`` with uncommitted changes to tracked files), or
+    ``unknown`` outside a git checkout: what a report names as the code that wrote it."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               check=False, text=True).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"

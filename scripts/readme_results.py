@@ -1,52 +1,69 @@
 #!/usr/bin/env python3
-"""Copy the results table of ``reports/demo/summary.md`` into ``README.md`` (``make readme-results``).
+"""Copy a generated table (and pictures) into ``README.md``: ``make readme-results`` (the demo's
+``reports/demo/summary.md``) and ``make readme-pareto`` (``reports/pareto/pareto.md`` and its plot).
 
-The table is the block between ``<!-- results:begin -->`` and ``<!-- results:end -->`` in both
-files; the README's block is replaced, with a line naming the summary's run id, commit and
-test-split hash. Figures in the README are therefore never typed by hand.
+The table is the block between ``<!-- <marker>:begin -->`` and ``<!-- <marker>:end -->`` in both
+files; the README's block is replaced, with a line naming the source file (and its run id, commit
+and test-split hash when it states them). ``--image SRC:DST`` copies a picture the README shows
+(e.g. to ``docs/images/``). Figures in the README are therefore never typed by hand.
 
     python scripts/readme_results.py [--summary reports/demo/summary.md] [--readme README.md]
+    python scripts/readme_results.py --summary reports/pareto/pareto.md --marker pareto \\
+        --image reports/pareto/accuracy_vs_time.png:docs/images/pareto.png
 """
 
 from __future__ import annotations
 
 import argparse
 import re
+import shutil
 import sys
 from pathlib import Path
 
-BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 
-
-def block(text: str, where: str) -> tuple[int, int]:
-    start, end = text.find(BEGIN), text.find(END)
+def block(text: str, where: str, marker: str) -> tuple[int, int]:
+    begin, end_mark = f"<!-- {marker}:begin -->", f"<!-- {marker}:end -->"
+    start, end = text.find(begin), text.find(end_mark)
     if start < 0 or end < start:
-        sys.exit(f"error: {where}: no {BEGIN} ... {END} block")
-    return start, end + len(END)
+        sys.exit(f"error: {where}: no {begin} ... {end_mark} block")
+    return start, end + len(end_mark)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--summary", default="reports/demo/summary.md")
     parser.add_argument("--readme", default="README.md")
+    parser.add_argument("--marker", default="results", help="the block's name: <!-- NAME:begin --> ... end")
+    parser.add_argument("--image", action="append", default=[], metavar="SRC:DST", help="also copy a picture")
     args = parser.parse_args()
     summary_path, readme_path = Path(args.summary), Path(args.readme)
     if not summary_path.exists():
-        sys.exit(f"error: {summary_path}: not found (run make demo first)")
+        sys.exit(f"error: {summary_path}: not found (run the make target that writes it first)")
+    images = [tuple(Path(p) for p in spec.split(":", 1)) for spec in args.image]
+    for spec, pair in zip(args.image, images):
+        if len(pair) != 2:
+            sys.exit(f"error: --image {spec}: expected SRC:DST")
+        if not pair[0].is_file():
+            sys.exit(f"error: {pair[0]}: not found (run the make target that writes it first)")
+    begin, end = f"<!-- {args.marker}:begin -->", f"<!-- {args.marker}:end -->"
     summary = summary_path.read_text()
-    s0, s1 = block(summary, str(summary_path))
-    facts = {k: (re.search(rf"^- {k}: (.+)$", summary, re.M) or [None, "?"])[1]
-             for k in ("run id", "commit", "seeds \\(students\\)", "test split")}
-    source = (f"<!-- copied by scripts/readme_results.py from {summary_path}: run {facts['run id']}, "
-              f"commit {facts['commit']} -->\n")
-    table = summary[s0 + len(BEGIN): s1 - len(END)].strip("\n")
+    s0, s1 = block(summary, str(summary_path), args.marker)
+    facts = {k: m[1] for k in ("run id", "commit") if (m := re.search(rf"^- {k}: (.+)$", summary, re.MULTILINE))}
+    stated = "".join(f", {k} {v}" for k, v in facts.items())
+    source = f"<!-- copied by scripts/readme_results.py from {summary_path}{stated} -->\n"
+    table = summary[s0 + len(begin): s1 - len(end)].strip("\n")
     readme = readme_path.read_text()
-    r0, r1 = block(readme, str(readme_path))
-    new = readme[:r0] + BEGIN + "\n" + source + table + "\n" + END + readme[r1:]
+    r0, r1 = block(readme, str(readme_path), args.marker)
+    new = readme[:r0] + begin + "\n" + source + table + "\n" + end + readme[r1:]
+    for src, dst in images:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, dst.with_suffix(".tmp"))
+        dst.with_suffix(".tmp").replace(dst)
     tmp = readme_path.with_suffix(".tmp")
     tmp.write_text(new)
     tmp.replace(readme_path)
-    print(f"{readme_path}: results table from {summary_path} (run {facts['run id']}, commit {facts['commit']})")
+    print(f"{readme_path}: {args.marker} block from {summary_path}{stated}"
+          + "".join(f"; {src} -> {dst}" for src, dst in images))
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ files, and the tables. ``scripts/readme_results.py`` copies its results table in
 from __future__ import annotations
 
 import datetime
-import subprocess
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -29,20 +28,18 @@ from denoiser.atomic import atomic_write_text
 from denoiser.checkpoint import read_checkpoint
 from denoiser.errors import UserError
 from denoiser.measure import markdown_table, read_csv
-from denoiser.summary import METRICS, format_mean_std, method_means, seed_groups, split_seed, tree_hash
+from denoiser.summary import (
+    METRICS,
+    format_mean_std,
+    git_commit,
+    method_means,
+    seed_groups,
+    split_seed,
+    tree_hash,
+)
 
 #: the README copies the lines between these markers (scripts/readme_results.py)
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, check=False,
-                               text=True).stdout.strip()
-        return out.stdout.strip() + ("-dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def run_rows(runs: Path) -> list[dict]:
@@ -113,7 +110,7 @@ def run(cfg: DictConfig) -> Path:
         "# Demo summary",
         "",
         f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
-        f"- commit: {_commit()}",
+        f"- commit: {git_commit()}",
         f"- seeds (students): {list(cfg.seeds)}",
         f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
         "",

@@ -23,6 +23,7 @@ line per point, the whole command line of the job: paste it after ``denoiser-tra
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import shlex
@@ -47,6 +48,7 @@ from denoiser.pareto import (
     varying_overrides,
 )
 from denoiser.plot_tradeoff import plot_accuracy_vs_time
+from denoiser.summary import git_commit
 
 NAN = float("nan")
 
@@ -277,6 +279,8 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dirs: list[Path])
     n_nets = sum(r["kind"] == "network" for r in rows)
     one_seed = [r for r in front_rows if r["n_seeds"] < 3]
     text = [f"# Pareto front of {where}", "",
+            f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
+            f"- commit: {git_commit()}", "", "<!-- pareto:begin -->",
             (f"{n_nets} variants; val PSNR of the final weights (denoiser-train's metrics.json), the mean ± std "
              f"over the seeds listed where a variant was trained with more than one; ms per frame: median of the "
              f"timed steps on the backend named, one network at a time, the baselines on the same frames and "
@@ -285,7 +289,7 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dirs: list[Path])
             "## The front against the baselines (val PSNR, same frames and threads)", "",
             *(dominance_lines(rows, ms_key) or ["- no baseline with a validation PSNR (baselines, baseline_eval_csv)"]),
             *(["- front variants with fewer than 3 seeds (no claim rests on them yet): "
-               + ", ".join(f"#{r['job']}" for r in one_seed)] if one_seed else []), "",
+               + ", ".join(f"#{r['job']}" for r in one_seed)] if one_seed else []), "<!-- pareto:end -->", "",
             "## The front as train overrides", "",
             "```", *(f"denoiser-train {line}" for line in lines), "```", ""]
     if plot:

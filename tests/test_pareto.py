@@ -306,3 +306,18 @@ def test_the_pareto_experiment_grid():
     widths = [build_net(compose_net_config(n, "student")).num_parameters()
               for n in ("demo_student_w05", "demo_student", "demo_student_w2")]
     assert widths[0] < widths[1] < widths[2]
+
+
+def test_the_installed_package_finds_the_sweeper_plugin(tmp_path):
+    """hydra/sweeper=optuna_pareto is found outside the source tree: through the installed package
+    (make's editable install, or a wheel: tests/test_wheel.py), not through the current directory."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    probe = ("import importlib.util, sys; sys.exit(0 if importlib.util.find_spec('denoiser') else 3)")
+    if subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, env=env, check=False).returncode == 3:
+        pytest.skip("the denoiser package is not installed in this interpreter (make setup installs it)")
+    code = ("from hydra.core.plugins import Plugins; from hydra.plugins.sweeper import Sweeper; "
+            "print(*[p.__module__ + '.' + p.__name__ for p in Plugins.instance().discover(Sweeper)], sep='\\n')")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          check=False, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "hydra_plugins.denoiser_optuna.optuna_pareto_sweeper.OptunaParetoSweeper" in proc.stdout.split()

@@ -265,7 +265,8 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dirs: list[Path])
                            formats={"gflop": ".3g", "val_tpsnr": ".2f", "test_tpsnr": ".2f",
                                     **{c: ".3g" for c in ms_cols}},
                            headers={"gflop": f"GFLOP {size_tag(sizes[0])}", **{c: f"ms {c[3:]}" for c in ms_cols},
-                                    "val_psnr": "val PSNR dB", "test_psnr": "test PSNR dB"})
+                                    "val_psnr": "val PSNR dB", "test_psnr": "test PSNR dB", "val_tpsnr": "val tPSNR dB",
+                                    "test_tpsnr": "test tPSNR dB"})
     front_rows = [r for r in ordered if r["front"]]
     lines = [" ".join(shlex.quote(o) for o in r["overrides"]) for r in front_rows]
     atomic_write_text(out_dir / "front.txt", "".join(f"{line}\n" for line in lines))

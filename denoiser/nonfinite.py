@@ -12,8 +12,10 @@ read from a file).
 Defined here, at the top of the package beside :mod:`denoiser.errors`, because both sides use
 it and neither may import the other: ``denoiser.data`` must not import from ``denoiser.nn``,
 and ``denoiser.nn`` stays plain torch (it imports no data, Lightning or I/O code). This module
-imports only numpy; the torch version uses the tensor's own ``nan_to_num`` method, so the EXR
-reader does not import torch through it.
+imports only numpy; the torch version uses the tensor's own methods, so the EXR reader does not
+import torch through it. Traced or exported (``denoiser-export``, ONNX Runtime, OpenVINO), the
+replacement is recorded as two comparisons and two selects (:func:`nan_to_num`), which inference
+engines fuse with their neighbours, instead of ``nan_to_num``'s IsNaN/IsInf/Where chain.
 """
 
 from __future__ import annotations
@@ -39,6 +41,22 @@ def replace_array(array: np.ndarray) -> int:
     return count
 
 
+def nan_to_num(x: torch.Tensor, nan: float, posinf: float, neginf: float) -> torch.Tensor:
+    """``x.nan_to_num(nan, posinf, neginf)`` (any shape; finite values kept, however large).
+
+    Traced or exported, the same values through comparisons and selects: ``x > -inf`` is false
+    exactly for NaN and -Inf, ``x < inf`` exactly for NaN and +Inf, ``x == x`` for NaN.
+    """
+    import torch
+
+    if not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
+        return x.nan_to_num(nan=nan, posinf=posinf, neginf=neginf)
+    inf = float("inf")
+    if nan == neginf:
+        return torch.where(x > -inf, torch.where(x < inf, x, posinf), nan)
+    return torch.where(x == x, torch.where(x < inf, torch.where(x > -inf, x, neginf), posinf), nan)
+
+
 def replace_tensor(x: torch.Tensor) -> torch.Tensor:
     """The rule on a tensor (any shape): a float32 copy with NaN/-Inf -> 0 and +Inf -> 65504."""
-    return x.float().nan_to_num(nan=NAN, posinf=POSINF, neginf=NEGINF)
+    return nan_to_num(x.float(), nan=NAN, posinf=POSINF, neginf=NEGINF)

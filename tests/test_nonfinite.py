@@ -111,3 +111,20 @@ def test_onnx_export_applies_the_rule(net, tmp_path):
             np.testing.assert_array_equal(got, got_fixed)
             scale = max(1.0, float(expected.abs().max()))
             assert np.abs(got - expected.numpy()).max() <= 1e-4 * scale
+
+
+@pytest.mark.filterwarnings("ignore::torch.jit.TracerWarning")
+@pytest.mark.parametrize("values", [(0.0, 65504.0, 0.0), (0.0, 1e4, -1e4), (1.0, 2.0, 3.0)])
+def test_traced_selects_equal_nan_to_num(values):
+    """The traced form of nan_to_num (comparisons and selects) gives torch's values bit for bit,
+    finite values beyond the replacements included."""
+    from denoiser.nonfinite import nan_to_num
+
+    nan, posinf, neginf = values
+    x = torch.tensor([float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1.5, -2.0, 3e38, -3e38, 1e-40])
+    with torch.no_grad():
+        traced = torch.jit.trace(lambda t: nan_to_num(t, nan, posinf, neginf), (x,))
+    assert "aten::nan_to_num" not in [n.kind() for n in traced.graph.nodes()]
+    expected = x.nan_to_num(nan=nan, posinf=posinf, neginf=neginf)
+    assert torch.equal(traced(x), expected)
+    assert torch.equal(nan_to_num(x, nan, posinf, neginf), expected)

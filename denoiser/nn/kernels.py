@@ -33,6 +33,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from denoiser.nonfinite import nan_to_num
+
 
 def kernel_size_of(logits: torch.Tensor) -> int:
     """k such that ``logits.shape[1] == k*k`` (k odd)."""
@@ -75,7 +77,7 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
     ``scale=None`` leaves the logits as they are (networks configured before this existed).
     Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4). Computed in float32.
     """
-    logits = torch.nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
+    logits = nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
     if scale is None:
         return logits
     var = logits.var(dim=dim, unbiased=False, keepdim=True) if logits.shape[dim] > 1 else torch.zeros_like(logits)

@@ -43,6 +43,7 @@ from torch import nn
 from denoiser.errors import ConfigError
 from denoiser.nn.kernels import scale_logits
 from denoiser.nn.pyramid import check_kernel_sizes, normalize, with_ones
+from denoiser.nonfinite import nan_to_num
 
 
 def box_sum(x: torch.Tensor, size: int, dilation: int = 1) -> torch.Tensor:
@@ -93,7 +94,7 @@ class WeightSharingFilter(nn.Module):
     def shared_weights(self, logits: torch.Tensor) -> torch.Tensor:
         """``[B, n, H, W]`` weight logits -> positive shared weights ``[B, n, H, W]`` float32 in
         ``[exp(-M), exp(M)]`` (non-finite logits replaced first)."""
-        z = torch.nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
+        z = nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
         m = self.max_log_weight
         return torch.exp(m * torch.tanh(z / m))
 

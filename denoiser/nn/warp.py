@@ -7,6 +7,8 @@ frame's buffer at ``p + motion(p)`` with bilinear ``grid_sample`` and zeros outs
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 
@@ -39,6 +41,17 @@ def warp_to_current(x: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     x: ``[B, C, H, W]`` buffer of frame t-1; motion: ``[B, 2, H, W]`` backward motion of frame t.
     Returns ``[B, C, H, W]`` float32: ``x`` sampled bilinearly at ``p + motion(p)``, zeros outside.
     """
-    with torch.autocast(device_type=x.device.type, enabled=False):
-        return F.grid_sample(x.float(), sampling_grid(motion), mode="bilinear",
-                             padding_mode="zeros", align_corners=False)
+    return warp_all([x], motion)[0]
+
+
+def warp_all(buffers: Sequence[torch.Tensor], motion: torch.Tensor) -> list[torch.Tensor]:
+    """:func:`warp_to_current` of several buffers ``[B, C_i, H, W]`` with one sampling grid.
+
+    One ``grid_sample`` per buffer, no concatenation: the same numbers as warping their
+    concatenation (bilinear sampling is per channel), without the full-resolution copies in
+    and out of one stacked tensor. Returns a list of ``[B, C_i, H, W]`` float32.
+    """
+    with torch.autocast(device_type=motion.device.type, enabled=False):
+        grid = sampling_grid(motion)
+        return [F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+                for x in buffers]

@@ -169,3 +169,11 @@ def test_a_table_without_rows_is_one_line_error(tmp_path):
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "title and rows" in proc.stderr
     proc = _summary(tmp_path, PSNR, "table_metrics=[psnr,sharpness]")
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "sharpness" in proc.stderr
+
+
+def test_ranking_by_a_lower_is_better_metric(tmp_path):
+    """FLIP (lower is better) = 1 / PSNR here, so the ranking matches PSNR's."""
+    assert _summary(tmp_path, PSNR, "rank_metric=flip").returncode == 0
+    notes = _section((tmp_path / "report" / "summary.md").read_text(), _tables()[0].title)[1]
+    assert "baselines: NPPD > ONND > WS: yes (FLIP ↓)" in notes
+    assert "student (ours) ranks above ONND, WS, NPPD; below none (FLIP ↓, mean over seeds)" in notes

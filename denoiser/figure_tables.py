@@ -20,6 +20,7 @@ empty, and is named under the table: a comparison run without ONND still reads a
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from itertools import pairwise
 
 from denoiser.errors import ConfigError
 from denoiser.measure import markdown_table
@@ -114,7 +115,7 @@ def order_line(spec: Mapping, groups: Mapping[str, Mapping], metric: str) -> str
     if missing:
         return f"{claim}: n/a (not evaluated: {', '.join(missing)})"
     values = [groups[m][metric] for m in methods]
-    if all(_better(a, b, metric) for a, b in zip(values, values[1:])):
+    if all(_better(a, b, metric) for a, b in pairwise(values)):
         return f"{claim}: yes ({METRICS[metric]})"
     measured = sorted(methods, key=lambda m: groups[m][metric], reverse=metric not in LOWER_IS_BETTER)
     return f"{claim}: no (measured: {' > '.join(labels[m] for m in measured)}; {METRICS[metric]})"

@@ -15,6 +15,13 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its e
 
 and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of the test split's
 files, and the tables. ``scripts/readme_results.py`` copies its results table into the README.
+
+``make compare`` (``scripts/compare.sh``) runs it over ``conf/compare_summary.yaml``::
+
+    python -m denoiser.commands.demo_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
+
+which adds the figure tables declared under ``tables`` (the paper's Fig. A.2 and A.3, with
+their ranking lines; :mod:`denoiser.figure_tables`) above the table of every method.
 """
 
 from __future__ import annotations
@@ -27,8 +34,8 @@ from omegaconf import DictConfig
 from denoiser.atomic import atomic_write_text
 from denoiser.checkpoint import read_checkpoint
 from denoiser.errors import UserError
-from denoiser.measure import markdown_table, read_csv
 from denoiser.figure_tables import figure_sections
+from denoiser.measure import markdown_table, read_csv
 from denoiser.summary import (
     DIGITS,
     METRICS,
@@ -117,8 +124,8 @@ def run(cfg: DictConfig) -> Path:
     ]
     if cfg.tables:
         lines += [
-            "Every table: the mean over the test sequences; mean ± std over seeds for a method trained with "
-            "several seeds (column seeds), one run otherwise; ms per frame from bench/bench.csv (fastest backend).",
+            ("Every table: the mean over the test sequences; mean ± std over seeds for a method trained with "
+             "several seeds (column seeds), one run otherwise; ms per frame from bench/bench.csv (fastest backend)."),
             "",
             *figure_sections(cfg.tables, groups, bench, size, list(cfg.table_metrics), cfg.rank_metric),
         ]

@@ -177,3 +177,76 @@ def test_ranking_by_a_lower_is_better_metric(tmp_path):
     notes = _section((tmp_path / "report" / "summary.md").read_text(), _tables()[0].title)[1]
     assert "baselines: NPPD > ONND > WS: yes (FLIP ↓)" in notes
     assert "student (ours) ranks above ONND, WS, NPPD; below none (FLIP ↓, mean over seeds)" in notes
+
+
+# --- scripts/compare.sh, with stub commands ------------------------------------------------------
+
+STUB = """#!/usr/bin/env bash
+printf '%s\\0' "$(basename "$0")" "$@" >> "$STUB_LOG"; printf '\\n' >> "$STUB_LOG"
+for arg in "$@"; do case "$arg" in hydra.run.dir=*)
+  mkdir -p "${arg#hydra.run.dir=}/checkpoints"; touch "${arg#hydra.run.dir=}/checkpoints/last.ckpt";; esac; done
+"""
+
+
+def _calls(log: Path) -> list[list[str]]:
+    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
+
+
+def _arg(call: list[str], key: str) -> str:
+    return next(a.split("=", 1)[1] for a in call if a.startswith(f"{key}="))
+
+
+def _compare_sh(root: Path, **env: str) -> list[list[str]]:
+    import os
+
+    log = root / "calls.log"
+    log.unlink(missing_ok=True)
+    subprocess.run(["bash", str(root / "scripts" / "compare.sh")], check=True, capture_output=True, text=True,
+                   env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), **env})
+    return _calls(log)
+
+
+def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
+    import shutil
+
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / "compare.sh", tmp_path / "scripts")
+    (tmp_path / "venv" / "bin").mkdir(parents=True)
+    for name in ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"):
+        (tmp_path / "venv" / "bin" / name).write_text(STUB)
+        (tmp_path / "venv" / "bin" / name).chmod(0o755)
+    demo = tmp_path / "reports" / "demo" / "runs"
+    for run in ("teacher", "student_distilled_s0", "student_distilled_s1", "student_distilled_s2"):
+        (demo / run / "checkpoints").mkdir(parents=True)
+        (demo / run / "checkpoints" / "best.ckpt").touch()
+        (demo / run / "DONE").touch()
+
+    calls = _compare_sh(tmp_path)
+    names = [c[0] if c[0] != "python" else c[1] for c in calls]
+    assert names[0] == "denoiser-render" and calls[0][1:] == ["dataset=demo_compare"]
+    trained = [(_arg(c, "net"), _arg(c, "seed")) for c in calls if "train.py" in c]
+    assert trained == [(net, s) for s in "012" for net in ("nppd_demo", "ws_demo")]
+    (ev,) = [c for c in calls if c[0] == "denoiser-eval"]
+    (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
+    assert _arg(ev, "data") == _arg(bench, "data") == "demo_compare"
+    assert _arg(ev, "baselines") == _arg(bench, "baselines") == "compare"
+    ckpts = dict(kv.split(": ") for kv in _arg(ev, "ckpt").strip("{}").split(", "))
+    assert ckpts.pop("teacher") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
+    for s in "012":
+        assert ckpts.pop(f"student_s{s}") == f"reports/demo/runs/student_distilled_s{s}/checkpoints/best.ckpt"
+        for net in ("nppd", "ws"):
+            assert ckpts.pop(f"{net}_s{s}") == f"reports/compare/runs/{net}_demo_s{s}/checkpoints/last.ckpt"
+    assert not ckpts
+    assert sorted(kv.split(": ")[0] for kv in _arg(bench, "ckpt").strip("{}").split(", ")) == \
+        ["nppd_s0", "student_s0", "teacher", "ws_s0"]
+    (summary,) = [c for c in calls if "denoiser.commands.demo_summary" in c]
+    assert "--config-name" in summary and summary[summary.index("--config-name") + 1] == "compare_summary"
+    assert _arg(summary, "seeds") == "[0,1,2]"
+
+    # finished runs are skipped, an interrupted one resumes from last.ckpt; ONND off on request
+    (tmp_path / "reports" / "compare" / "runs" / "ws_demo_s1" / "DONE").unlink()
+    calls = _compare_sh(tmp_path, COMPARE_ONND="0", COMPARE_SEEDS="1")
+    (train,) = [c for c in calls if "train.py" in c]
+    assert _arg(train, "net") == "ws_demo" and _arg(train, "ckpt_path") == "last"
+    assert calls[0][0] == "denoiser-render"
+    assert {_arg(c, "baselines") for c in calls if c[0] in ("denoiser-eval", "denoiser-bench")} == {"default"}

@@ -42,8 +42,11 @@ readme-pareto:
 pareto: setup
 	VENV=$(VENV) bash scripts/pareto.sh
 
-# The paper's comparison on the demo's held-out scenes (docs/baselines.md): NPPD and WS trained by
-# the demo student's recipe, evaluated and timed with OIDN, the teacher and the student -> reports/compare/.
+# The paper's comparison on the demo's held-out scenes (docs/baselines.md): renders data/demo_compare
+# (demo's test split with per-sample radiance, for ONND), trains NPPD and WS by the demo student's
+# recipe (seeds COMPARE_SEEDS, default "0 1 2"), evaluates and times them with ONND (COMPARE_ONND=0:
+# off), OIDN, the teacher and the students of make demo -> reports/compare/summary.md with the
+# Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml). Resumable.
 compare: setup
 	VENV=$(VENV) bash scripts/compare.sh
 

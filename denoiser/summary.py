@@ -20,6 +20,10 @@ from pathlib import Path
 
 #: metrics summarised, with their Markdown headers (↑ higher is better, ↓ lower is better)
 METRICS = {"psnr": "PSNR dB ↑", "ssim": "SSIM ↑", "tpsnr": "tPSNR dB ↑", "flip": "FLIP ↓", "relmse": "relMSE ↓"}
+#: metrics where lower is better (the others: higher)
+LOWER_IS_BETTER = frozenset(m for m, header in METRICS.items() if header.endswith("↓"))
+#: decimals shown per metric
+DIGITS = {"psnr": 2, "ssim": 4, "tpsnr": 2, "flip": 4, "relmse": 4}
 
 SEED_SUFFIX = re.compile(r"^(?P<group>.+)_s(?P<seed>\d+)$")
 
@@ -68,6 +72,17 @@ def format_mean_std(row: Mapping, metric: str, digits: int) -> str:
         return ""
     text = f"{row[metric]:.{digits}f}"
     return text + f" ± {row[metric + '_std']:.{digits}f}" if len(row.get("seeds", [])) > 1 else text
+
+
+def group_timing(group: Mapping, bench: Mapping[str, Mapping]) -> Mapping | None:
+    """A seed group's bench row: the method's own (e.g. ``OIDN-fast``), else its first timed
+    seed's (``student_s0``; the networks of a group are the same size), else None.
+
+    group: a :func:`seed_groups` row; bench: ``{method label: bench row}``.
+    """
+    if group["method"] in bench:
+        return bench[group["method"]]
+    return next((bench[f"{group['method']}_s{s}"] for s in group["seeds"] if f"{group['method']}_s{s}" in bench), None)
 
 
 def tree_hash(root: str | os.PathLike) -> str:

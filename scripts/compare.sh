@@ -1,13 +1,16 @@
 #!/usr/bin/env bash
 # `make compare`: the paper's comparison on the demo's held-out scenes -> reports/compare/.
 #
-#   1. reuse make demo's data, teacher and distilled students (run make demo first)
-#   2. train the CPU-sized NPPD and WS baselines (net=nppd_demo, net=ws_demo) by the demo
-#      student's recipe (experiment=demo_distill: same data, losses, steps and crops, taught by
-#      the demo teacher), one run per seed of COMPARE_SEEDS (default "0")
-#   3. denoiser-eval on the test split: OIDN (baselines=default, or baselines=compare with ONND
-#      when COMPARE_ONND=1 and the data holds per-sample radiance), teacher, student, NPPD, WS
-#   4. denoiser-bench at 1080p (OpenVINO bf16 and eager) for the same networks
+#   1. render data/demo_compare (denoiser-render dataset=demo_compare): data/demo's test job with
+#      per-sample radiance (save_samples), which ONND reads; frames that exist are kept
+#   2. reuse make demo's teacher and distilled students (reports/demo/runs/student_distilled_s<k>;
+#      run make demo first) and train the CPU-sized NPPD and WS baselines (net=nppd_demo,
+#      net=ws_demo) by the demo student's recipe (experiment=demo_distill: same data, losses,
+#      steps and crops, taught by the demo teacher), one run per seed of COMPARE_SEEDS (default "0 1 2")
+#   3. denoiser-eval on data/demo_compare's test split: noisy input, OIDN fast/balanced/high, ONND
+#      (baselines=compare; COMPARE_ONND=0 leaves it out: baselines=default), teacher, students, NPPD, WS
+#   4. denoiser-bench at 1080p (OpenVINO bf16 and eager) for the same methods (networks: first seed)
+#   5. summary.md with the Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml)
 # Finished runs (DONE) are skipped; an interrupted one resumes from last.ckpt.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -17,16 +20,26 @@ BIN="$VENV/bin"
 DEMO=reports/demo/runs
 REPORT=reports/compare
 RUNS=$REPORT/runs
-SEEDS=${COMPARE_SEEDS:-0}
-BASELINES=default
-[ "${COMPARE_ONND:-0}" = 1 ] && BASELINES=compare
+SEEDS=${COMPARE_SEEDS:-0 1 2}
+FIRST=${SEEDS%% *}
+BASELINES=compare
+[ "${COMPARE_ONND:-1}" = 0 ] && BASELINES=default
 mkdir -p "$RUNS"
 best() { if [ -f "$1/checkpoints/best.ckpt" ]; then echo "$1/checkpoints/best.ckpt"; else echo "$1/checkpoints/last.ckpt"; fi; }
 [ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
+echo "==> [render data/demo_compare]"
+"$BIN/denoiser-render" dataset=demo_compare
 TEACHER=$(best "$DEMO/teacher")
 CKPTS="teacher: $TEACHER"
+BENCH_CKPTS="teacher: $TEACHER"   # a seed group is timed once (its networks are the same size)
 for seed in $SEEDS; do
-    [ -f "$DEMO/student_distilled_s$seed/DONE" ] && CKPTS="$CKPTS, student_s$seed: $(best "$DEMO/student_distilled_s$seed")"
+    student=$DEMO/student_distilled_s$seed
+    if [ -f "$student/DONE" ]; then
+        CKPTS="$CKPTS, student_s$seed: $(best "$student")"
+        [ "$seed" = "$FIRST" ] && BENCH_CKPTS="$BENCH_CKPTS, student_s$seed: $(best "$student")"
+    else
+        echo "warning: $student: no finished distilled student for seed $seed (make demo DEMO_SEEDS)" >&2
+    fi
     for net in nppd_demo ws_demo; do
         dir=$RUNS/${net}_s$seed
         if [ ! -f "$dir/DONE" ]; then
@@ -37,12 +50,14 @@ for seed in $SEEDS; do
             touch "$dir/DONE"
         fi
         CKPTS="$CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
+        [ "$seed" = "$FIRST" ] && BENCH_CKPTS="$BENCH_CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
     done
 done
-"$BIN/denoiser-eval" data=demo "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
-FIRST=${SEEDS%% *}
-"$BIN/denoiser-bench" data=demo "baselines=$BASELINES" "ckpt={$CKPTS}" "eval_csv=$REPORT/eval/metrics.csv" \
-    "out_dir=$REPORT/bench" "sizes=[[1080,1920]]" "use_backends=[eager,openvino_bf16]" "skip={teacher: [[1080,1920]]}" \
-    repeats=3 quality=false
-"$PY" -m denoiser.commands.demo_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
-echo "==== compare finished: $REPORT/summary.md (tables), $REPORT/eval/images (crops), $REPORT/bench (plot) ===="
+echo "==> [eval]"
+"$BIN/denoiser-eval" data=demo_compare "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
+echo "==> [bench]"
+"$BIN/denoiser-bench" data=demo_compare "baselines=$BASELINES" "ckpt={$BENCH_CKPTS}" \
+    "eval_csv=$REPORT/eval/metrics.csv" "out_dir=$REPORT/bench" "sizes=[[1080,1920]]" \
+    "use_backends=[eager,openvino_bf16]" "skip={teacher: [[1080,1920]]}" repeats=3 quality=false
+"$PY" -m denoiser.commands.demo_summary --config-name compare_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
+echo "==== compare finished: $REPORT/summary.md (Fig. A.2 / A.3 tables), $REPORT/eval/images (crops), $REPORT/bench (plot) ===="

@@ -15,6 +15,13 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its e
 
 and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of the test split's
 files, and the tables. ``scripts/readme_results.py`` copies its results table into the README.
+
+``make compare`` (``scripts/compare.sh``) runs it over ``conf/compare_summary.yaml``::
+
+    python -m denoiser.commands.demo_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
+
+which adds the figure tables declared under ``tables`` (the paper's Fig. A.2 and A.3, with
+their ranking lines; :mod:`denoiser.figure_tables`) above the table of every method.
 """
 
 from __future__ import annotations
@@ -27,11 +34,14 @@ from omegaconf import DictConfig
 from denoiser.atomic import atomic_write_text
 from denoiser.checkpoint import read_checkpoint
 from denoiser.errors import UserError
+from denoiser.figure_tables import figure_sections
 from denoiser.measure import markdown_table, read_csv
 from denoiser.summary import (
+    DIGITS,
     METRICS,
     format_mean_std,
     git_commit,
+    group_timing,
     method_means,
     seed_groups,
     split_seed,
@@ -71,15 +81,12 @@ def bench_rows(path: Path, size: tuple[int, int]) -> dict[str, dict]:
 
 
 def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, int], reference: str) -> str:
-    digits = {"psnr": 2, "ssim": 4, "tpsnr": 2, "flip": 4, "relmse": 4}
     ref_ms = float(bench[reference]["ms_median"]) if reference in bench else None
     rows = []
     for g in groups:
         row = {"method": g["method"], "seeds": len(g["seeds"]) or ""}
-        row.update({m: format_mean_std(g, m, digits[m]) for m in METRICS})
-        # a seed group's time: its first seed's (the networks of a group are the same size)
-        timed = bench.get(g["method"]) or next((bench[f"{g['method']}_s{s}"] for s in g["seeds"]
-                                                if f"{g['method']}_s{s}" in bench), None)
+        row.update({m: format_mean_std(g, m, DIGITS[m]) for m in METRICS})
+        timed = group_timing(g, bench)
         if timed:
             row["ms"] = f"{float(timed['ms_median']):.0f}"
             dtype = str(timed.get("dtype") or "")
@@ -107,14 +114,23 @@ def run(cfg: DictConfig) -> Path:
     runs = run_rows(report / "runs") if (report / "runs").is_dir() else []
     test_dir = Path(cfg.data_root) / "test"
     lines = [
-        "# Demo summary",
+        f"# {cfg.title}",
         "",
         f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
         f"- commit: {git_commit()}",
         f"- seeds (students): {list(cfg.seeds)}",
         f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
         "",
-        "## Test split (students: mean ± std over seeds)",
+    ]
+    if cfg.tables:
+        lines += [
+            ("Every table: the mean over the test sequences; mean ± std over seeds for a method trained with "
+             "several seeds (column seeds), one run otherwise; ms per frame from bench/bench.csv (fastest backend)."),
+            "",
+            *figure_sections(cfg.tables, groups, bench, size, list(cfg.table_metrics), cfg.rank_metric),
+        ]
+    lines += [
+        "## Test split, every method" if cfg.tables else "## Test split (students: mean ± std over seeds)",
         "",
         BEGIN,
         results_table(groups, bench, size, cfg.speed_reference).rstrip(),

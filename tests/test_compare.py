@@ -1,0 +1,252 @@
+"""`make compare`: its data (dataset=demo_compare: demo's test job with per-sample radiance, in
+its own root) and its summary (the Fig. A.2 / A.3 tables of conf/compare_summary.yaml, their
+mean ± std over seeds, 1080p times and ranking lines), checked against plain computations."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+from denoiser.commands.render import plan
+from denoiser.conf import CONF_DIR
+
+
+def _render_cfg(*overrides: str):
+    with initialize_config_dir(CONF_DIR, version_base=None):
+        return compose("render", overrides=list(overrides))
+
+
+def test_demo_compare_renders_exactly_demos_test_job_with_samples_in_its_own_root():
+    demo, compare = _render_cfg("dataset=demo"), _render_cfg("dataset=demo_compare")
+    demo_test = [j for j in plan(demo) if j.split == "test"]
+    jobs = plan(compare)
+    assert demo_test and len(jobs) == len(demo_test)
+    for ours, theirs in zip(jobs, demo_test):
+        assert ours.directory == theirs.directory and ours.index == theirs.index
+        assert ours.scene_config == theirs.scene_config
+        assert ours.settings.save_samples and not theirs.settings.save_samples
+        assert ours.settings == dataclasses.replace(theirs.settings, save_samples=True)
+    # sequence seeds derive from seed, scene, split and index: the same scenes, cameras and references
+    assert compare.seed == demo.seed
+    assert Path(compare.root).name == "demo_compare" and Path(compare.root).parent == Path(demo.root).parent
+    with initialize_config_dir(CONF_DIR, version_base=None):
+        data = compose("eval", overrides=["data=demo_compare"]).data
+        demo_data = compose("eval", overrides=["data=demo"]).data
+    assert data.root == compare.root
+    assert {k: v for k, v in data.items() if k != "root"} == {k: v for k, v in demo_data.items() if k != "root"}
+
+
+# --- the summary's figure tables -------------------------------------------------------------
+
+PSNR = {  # method label -> per-sequence PSNR (two sequences); students and NPPD/WS with seeds
+    "OIDN-fast": [30.0, 31.0], "OIDN-high": [31.0, 32.5], "ONND": [27.0, 26.0], "teacher": [33.0, 34.0],
+    "student_s0": [29.0, 30.0], "student_s1": [29.5, 31.0], "student_s2": [28.0, 29.0],
+    "nppd_s0": [28.0, 28.5], "nppd_s1": [27.0, 29.0], "nppd_s2": [28.5, 28.0],
+    "ws_s0": [26.0, 25.0], "ws_s1": [25.5, 26.5], "ws_s2": [24.0, 27.0],
+}
+
+
+def _metric_rows(psnr: dict[str, list[float]]) -> list[dict]:
+    rows = []
+    for method, values in psnr.items():
+        for i, p in enumerate(values):
+            rows.append({"method": method, "scene": f"s{i}", "sequence": f"test/s{i}_002", "frames": 8,
+                         "psnr": p, "ssim": p / 40, "tpsnr": p - 1.5, "flip": 1 / p, "relmse": 0.01})
+    return rows
+
+
+def _bench_rows() -> list[dict]:
+    rows = []
+    for i, method in enumerate(["OIDN-fast", "OIDN-high", "ONND", "student_s0", "nppd_s0", "ws_s0"]):
+        for backend, ms in (("eager", 100.0 + 10 * i), ("openvino_bf16", 40.0 + 7 * i)):
+            rows.append({"method": method, "backend": backend, "dtype": "", "height": 1080, "width": 1920,
+                         "status": "ok", "ms_median": ms})
+        rows.append({"method": method, "backend": "openvino_bf16", "dtype": "", "height": 256, "width": 256,
+                     "status": "ok", "ms_median": 1.0})  # another size: never the 1080p time
+        rows.append({"method": method, "backend": "onnxruntime", "dtype": "", "height": 1080, "width": 1920,
+                     "status": "error", "ms_median": 0.5})  # failed: never the time
+    return rows
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    import csv
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _summary(tmp_path: Path, psnr: dict[str, list[float]], *overrides: str) -> subprocess.CompletedProcess:
+    report = tmp_path / "report"
+    _write_csv(report / "eval" / "metrics.csv", _metric_rows(psnr))
+    _write_csv(report / "bench" / "bench.csv", _bench_rows())
+    return subprocess.run([sys.executable, "-m", "denoiser.commands.demo_summary", "--config-name", "compare_summary",
+                           f"report={report}", f"data_root={tmp_path / 'data'}", "seeds=[0,1,2]", *overrides],
+                          capture_output=True, text=True, cwd=tmp_path, check=False)
+
+
+def _section(summary: str, title: str) -> tuple[list[list[str]], list[str]]:
+    """(table rows as cells, bullet lines) of the section ``## title``."""
+    lines = summary.split(f"## {title}\n", 1)[1].split("\n## ", 1)[0].splitlines()
+    table = [[c.strip() for c in line.strip("|").split("|")] for line in lines if line.startswith("| ")]
+    return table[1:], [line[2:] for line in lines if line.startswith("- ")]
+
+
+def _tables():
+    with initialize_config_dir(CONF_DIR, version_base=None):
+        return compose("compare_summary").tables
+
+
+def _plain_psnr(psnr: dict[str, list[float]], group: str) -> list[float]:
+    """Per-seed (or single-run) PSNR of a group: the mean over its sequences."""
+    return [statistics.fmean(v) for m, v in psnr.items() if m == group or re.fullmatch(rf"{re.escape(group)}_s\d+", m)]
+
+
+def test_figure_tables_rows_means_std_times_and_ranking(tmp_path):
+    proc = _summary(tmp_path, PSNR)
+    assert proc.returncode == 0, proc.stderr
+    summary = (tmp_path / "report" / "summary.md").read_text()
+    tables = _tables()
+    assert [t.title for t in tables][:2] == ["Fig. A.2: real-time denoisers at 4 spp", "Fig. A.3: OIDN, teacher and student"]
+    bench = _bench_rows()
+    for spec in tables:
+        rows, notes = _section(summary, spec.title)
+        assert [r[0] for r in rows] == [r.label for r in spec.rows]
+        means = {}
+        for cells, row in zip(rows, spec.rows):
+            per_seed = _plain_psnr(PSNR, row.method)
+            means[row.method] = statistics.fmean(per_seed)
+            expect = f"{statistics.fmean(per_seed):.2f}"
+            if len(per_seed) > 1:
+                expect += f" ± {statistics.stdev(per_seed):.2f}"
+            seeds = [m for m in PSNR if re.fullmatch(rf"{re.escape(row.method)}_s\d+", m)]
+            assert cells[1] == (str(len(seeds)) if seeds else "")
+            assert cells[2] == expect, (row.method, cells)
+            timed = row.method if row.method in {b["method"] for b in bench} else f"{row.method}_s0"
+            ms = [b["ms_median"] for b in bench if b["method"] == timed and b["status"] == "ok" and b["height"] == 1080]
+            assert cells[-1] == (f"{min(ms):.0f}" if ms else ""), (row.method, cells)
+        labels = {r.method: r.label for r in spec.rows}
+        mine = means[spec.rank]
+        above = [labels[m] for m, v in means.items() if m != spec.rank and v < mine]
+        below = [labels[m] for m, v in means.items() if m != spec.rank and v > mine]
+        assert f"{labels[spec.rank]} ranks above {', '.join(above) or 'none'}; below {', '.join(below) or 'none'} " \
+               "(PSNR dB ↑, mean over seeds)" in notes
+        claimed = [means[m] for m in spec.order.methods]
+        verdict = "yes" if claimed == sorted(claimed, reverse=True) else "no"
+        order = [n for n in notes if n.startswith(f"{spec.order.name}: ")]
+        assert len(order) == 1 and order[0].split(": ")[2].split(" ")[0] == verdict
+    # the paper's claims hold in these numbers: NPPD > ONND > WS, teacher > OIDN high > student
+    a2 = _section(summary, tables[0].title)[1]
+    assert "baselines: NPPD > ONND > WS: yes (PSNR dB ↑)" in a2
+    assert "student (ours) ranks above ONND, WS, NPPD; below none (PSNR dB ↑, mean over seeds)" in a2
+    assert summary.count("mean ± std over seeds") == 1
+
+
+def test_figure_tables_say_no_and_name_missing_methods(tmp_path):
+    swapped = {**PSNR, "ONND": [20.0, 21.0]}  # ONND below WS: the paper's order does not hold
+    assert _summary(tmp_path, swapped).returncode == 0
+    notes = _section((tmp_path / "report" / "summary.md").read_text(), _tables()[0].title)[1]
+    assert "baselines: NPPD > ONND > WS: no (measured: NPPD > WS > ONND; PSNR dB ↑)" in notes
+    without = {k: v for k, v in PSNR.items() if k != "ONND"}  # COMPARE_ONND=0
+    assert _summary(tmp_path, without).returncode == 0
+    rows, notes = _section((tmp_path / "report" / "summary.md").read_text(), _tables()[0].title)
+    assert rows[0][0] == "ONND" and set(rows[0][1:]) == {""}
+    assert "not evaluated: ONND" in notes
+    assert "baselines: NPPD > ONND > WS: n/a (not evaluated: ONND)" in notes
+    assert "student (ours) ranks above WS, NPPD; below none (PSNR dB ↑, mean over seeds)" in notes
+
+
+def test_a_table_without_rows_is_one_line_error(tmp_path):
+    proc = _summary(tmp_path, PSNR, "tables=[{title: empty}]")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "title and rows" in proc.stderr
+    proc = _summary(tmp_path, PSNR, "table_metrics=[psnr,sharpness]")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "sharpness" in proc.stderr
+
+
+def test_ranking_by_a_lower_is_better_metric(tmp_path):
+    """FLIP (lower is better) = 1 / PSNR here, so the ranking matches PSNR's."""
+    assert _summary(tmp_path, PSNR, "rank_metric=flip").returncode == 0
+    notes = _section((tmp_path / "report" / "summary.md").read_text(), _tables()[0].title)[1]
+    assert "baselines: NPPD > ONND > WS: yes (FLIP ↓)" in notes
+    assert "student (ours) ranks above ONND, WS, NPPD; below none (FLIP ↓, mean over seeds)" in notes
+
+
+# --- scripts/compare.sh, with stub commands ------------------------------------------------------
+
+STUB = """#!/usr/bin/env bash
+printf '%s\\0' "$(basename "$0")" "$@" >> "$STUB_LOG"; printf '\\n' >> "$STUB_LOG"
+for arg in "$@"; do case "$arg" in hydra.run.dir=*)
+  mkdir -p "${arg#hydra.run.dir=}/checkpoints"; touch "${arg#hydra.run.dir=}/checkpoints/last.ckpt";; esac; done
+"""
+
+
+def _calls(log: Path) -> list[list[str]]:
+    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
+
+
+def _arg(call: list[str], key: str) -> str:
+    return next(a.split("=", 1)[1] for a in call if a.startswith(f"{key}="))
+
+
+def _compare_sh(root: Path, **env: str) -> list[list[str]]:
+    import os
+
+    log = root / "calls.log"
+    log.unlink(missing_ok=True)
+    subprocess.run(["bash", str(root / "scripts" / "compare.sh")], check=True, capture_output=True, text=True,
+                   env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), **env})
+    return _calls(log)
+
+
+def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
+    import shutil
+
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / "compare.sh", tmp_path / "scripts")
+    (tmp_path / "venv" / "bin").mkdir(parents=True)
+    for name in ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"):
+        (tmp_path / "venv" / "bin" / name).write_text(STUB)
+        (tmp_path / "venv" / "bin" / name).chmod(0o755)
+    demo = tmp_path / "reports" / "demo" / "runs"
+    for run in ("teacher", "student_distilled_s0", "student_distilled_s1", "student_distilled_s2"):
+        (demo / run / "checkpoints").mkdir(parents=True)
+        (demo / run / "checkpoints" / "best.ckpt").touch()
+        (demo / run / "DONE").touch()
+
+    calls = _compare_sh(tmp_path)
+    names = [c[0] if c[0] != "python" else c[1] for c in calls]
+    assert names[0] == "denoiser-render" and calls[0][1:] == ["dataset=demo_compare"]
+    trained = [(_arg(c, "net"), _arg(c, "seed")) for c in calls if "train.py" in c]
+    assert trained == [(net, s) for s in "012" for net in ("nppd_demo", "ws_demo")]
+    (ev,) = [c for c in calls if c[0] == "denoiser-eval"]
+    (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
+    assert _arg(ev, "data") == _arg(bench, "data") == "demo_compare"
+    assert _arg(ev, "baselines") == _arg(bench, "baselines") == "compare"
+    ckpts = dict(kv.split(": ") for kv in _arg(ev, "ckpt").strip("{}").split(", "))
+    assert ckpts.pop("teacher") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
+    for s in "012":
+        assert ckpts.pop(f"student_s{s}") == f"reports/demo/runs/student_distilled_s{s}/checkpoints/best.ckpt"
+        for net in ("nppd", "ws"):
+            assert ckpts.pop(f"{net}_s{s}") == f"reports/compare/runs/{net}_demo_s{s}/checkpoints/last.ckpt"
+    assert not ckpts
+    assert sorted(kv.split(": ")[0] for kv in _arg(bench, "ckpt").strip("{}").split(", ")) == \
+        ["nppd_s0", "student_s0", "teacher", "ws_s0"]
+    (summary,) = [c for c in calls if "denoiser.commands.demo_summary" in c]
+    assert "--config-name" in summary and summary[summary.index("--config-name") + 1] == "compare_summary"
+    assert _arg(summary, "seeds") == "[0,1,2]"
+
+    # finished runs are skipped, an interrupted one resumes from last.ckpt; ONND off on request
+    (tmp_path / "reports" / "compare" / "runs" / "ws_demo_s1" / "DONE").unlink()
+    calls = _compare_sh(tmp_path, COMPARE_ONND="0", COMPARE_SEEDS="1")
+    (train,) = [c for c in calls if "train.py" in c]
+    assert _arg(train, "net") == "ws_demo" and _arg(train, "ckpt_path") == "last"
+    assert calls[0][0] == "denoiser-render"
+    assert {_arg(c, "baselines") for c in calls if c[0] in ("denoiser-eval", "denoiser-bench")} == {"default"}

@@ -192,6 +192,31 @@ def test_guide_disagreement_terms():
     assert torch.allclose(guide_disagreement(guide(tex + 0.9, n, d), g), tex[:, :1] + 0.3)
 
 
+def test_gate_terms_match_plain_loops():
+    """The fast forms of the gate (box max by shifted slices, one-log depth ratio) against a plain
+    loop over pixels and the four-log formula, on random guides with odd sizes and extreme depths."""
+    from denoiser.nn.temporal import DEPTH_LOGIT_EPS, _box_max, _log_depth_ratio
+
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(2, 3, 5, 7, generator=g)
+    box = _box_max(x)
+    ref = torch.empty_like(x)
+    for y in range(5):
+        for xx in range(7):
+            ref[..., y, xx] = x[..., max(y - 1, 0): y + 2, max(xx - 1, 0): xx + 2].amax(dim=(-2, -1))
+    assert torch.equal(box, ref)
+
+    p, c = torch.rand(2, 1, 5, 7, generator=g), torch.rand(2, 1, 5, 7, generator=g)
+    p[0, 0, 0, :3] = torch.tensor([0.0, 1.0, 1e-9])
+    c[0, 0, 0, :3] = torch.tensor([1.0, 0.0, 0.5])
+
+    def logit(f):
+        f = f.clamp(DEPTH_LOGIT_EPS, 1 - DEPTH_LOGIT_EPS).double()  # clamped in float32, as the network does
+        return f.log() - (-f).log1p()
+
+    torch.testing.assert_close(_log_depth_ratio(p, c).double(), (logit(p) - logit(c)).abs(), rtol=1e-5, atol=1e-5)
+
+
 def moving_object_sequence(count=6, size=32, step=3):
     """A red square (albedo (0.9, 0.1, 0.1), colour (20, 2, 2), depth 2) sliding right by ``step``
     pixels per frame over a grey checker background (depth 10), exact backward motion.

@@ -199,3 +199,17 @@ def test_copy_keeps_behaviour(net):
     """Deep copies (used for EMA / teacher init by the training code) behave identically."""
     f = random_frame(1, 8, 8)
     assert torch.equal(copy.deepcopy(net).step(f, None)[0], net.step(f, None)[0])
+
+
+def test_unet_input_parts_equal_their_concatenation():
+    """UNet(parts) (the exported graph's form: first convolution per part) equals UNet(cat(parts))."""
+    from denoiser.nn.unet import UNet
+
+    torch.manual_seed(0)
+    unet = UNet(in_channels=7, encoder=[4, 8], bottleneck=8, decoder=[4], head_channels=[3, 2]).eval()
+    parts = [torch.randn(2, 5, 8, 12), torch.randn(2, 2, 8, 12)]
+    with torch.no_grad():
+        heads, features = unet(torch.cat(parts, 1))
+        heads_p, features_p = unet(parts)
+    for a, b in zip(heads + features, heads_p + features_p):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)

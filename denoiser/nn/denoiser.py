@@ -151,8 +151,13 @@ class Denoiser(nn.Module):
             if motion is None:  # no motion vectors: a static camera and scene
                 motion = torch.zeros_like(color[:, :2])
             history = self.temporal.warp(state, motion, reset, like=color, guide=guide)
-            net_in = torch.cat([net_in, self.temporal.inputs(history, scale).to(net_in.dtype)], dim=1)
-        heads, features = self.unet(pad_to_multiple(net_in, self.multiple))
+            parts = [net_in, self.temporal.inputs(history, scale).to(net_in.dtype)]
+            # traced or exported: the U-Net's first convolution runs per part (no concatenation)
+            graph = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
+            net_in = [pad_to_multiple(p, self.multiple) for p in parts] if graph else torch.cat(parts, dim=1)
+        if isinstance(net_in, torch.Tensor):
+            net_in = pad_to_multiple(net_in, self.multiple)
+        heads, features = self.unet(net_in)
         filter_heads = [heads[0][:, : self.filter_head0]] + list(heads[1:])
         weights: dict[str, torch.Tensor] = {}
         filter_in = color

@@ -96,16 +96,35 @@ class UNet(nn.Module):
     def _up(self, x: torch.Tensor) -> torch.Tensor:
         return F.interpolate(x, scale_factor=2, mode=self.upsample_mode, align_corners=self.align)
 
-    def forward(self, x: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """x: ``[B, C_in, H, W]`` with H, W multiples of ``self.multiple``.
+    def first_conv_of_parts(self, parts: Sequence[torch.Tensor]) -> torch.Tensor:
+        """The first convolution of ``torch.cat(parts, 1)`` without the concatenation: a sum of
+        one convolution per part with its slice of the weights (convolution is linear in its
+        input channels). parts: ``[B, C_i, H, W]`` with ``sum C_i == in_channels`` ->
+        ``[B, encoder[0], H, W]`` (before its LeakyReLU). Same numbers up to float rounding
+        of the sum's order; what the exported graph runs (no full-resolution concatenation
+        and layout reorder of the U-Net input)."""
+        conv = self.encoder[0][0]
+        out, start = None, 0
+        for part in parts:
+            n = part.shape[1]
+            y = F.conv2d(part, conv.weight[:, start: start + n], None, conv.stride, conv.padding)
+            out, start = (y if out is None else out + y), start + n
+        return out + conv.bias.view(1, -1, 1, 1)
+
+    def forward(self, x: torch.Tensor | Sequence[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """x: ``[B, C_in, H, W]`` with H, W multiples of ``self.multiple``, or a list of parts
+        whose channel concatenation is that input (:meth:`first_conv_of_parts`).
 
         Returns ``(heads, features)``: ``heads[i]``: ``[B, head_channels[i], H/2^i, W/2^i]``
         (None where head_channels[i] == 0); ``features[i]``: ``[B, feature_channels[i], H/2^i,
         W/2^i]`` for i in 0..levels-1.
         """
         skips = []
-        for block in self.encoder:
-            x = block(x)
+        for i, block in enumerate(self.encoder):
+            if i == 0 and not isinstance(x, torch.Tensor):
+                x = block[1:](self.first_conv_of_parts(x))
+            else:
+                x = block(x)
             skips.append(x)
             x = F.max_pool2d(x, 2)
         x = self._up(self.bottleneck(x))

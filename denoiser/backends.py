@@ -21,11 +21,15 @@ import torch
 
 class Stepper:
     """A prepared network: ``step(frame, state) -> (output, state)`` (the runner's contract,
-    :mod:`denoiser.runner`: ``state=None`` starts a sequence); ``sync()`` waits for the device."""
+    :mod:`denoiser.runner`: ``state=None`` starts a sequence); ``sync()`` waits for the device.
+    ``profile()``, where the backend can say, gives the last step's time per operation type:
+    ``{op type: ms}``; None where it cannot."""
 
-    def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None):
+    def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
+                 profile: Callable[[], dict[str, float]] | None = None):
         self.step = step
         self.sync = sync
+        self.profile = profile
 
 
 class TorchBackend:
@@ -151,12 +155,16 @@ class OpenVinoBackend(_ExportedGraphBackend):
         label: backend name in tables.
         precision: ``f32`` or ``bf16`` (OpenVINO's ``INFERENCE_PRECISION_HINT``).
         device: OpenVINO device (``CPU``).
+        profile: turn on OpenVINO's per-node performance counters, so the prepared
+            :class:`Stepper` says where a step's time goes (``profile()``: ms per node type of
+            the last step). The counters cost a little time: profile runs are not headline timings.
 
     The export happens once per network and the compilation once per frame size (in the
     warm-up step, untimed); the recurrent state is carried as graph inputs and outputs.
     """
 
-    def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU"):
+    def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU",
+                 profile: bool = False):
         from denoiser.step_graph import OPENVINO_PRECISIONS
 
         if precision not in OPENVINO_PRECISIONS:
@@ -166,6 +174,7 @@ class OpenVinoBackend(_ExportedGraphBackend):
         self.dtype = {"f32": "fp32"}.get(precision, precision)
         self.ov_device = device
         self.device = device.lower()
+        self.profile = bool(profile)
 
     def available(self) -> str | None:
         try:
@@ -183,5 +192,6 @@ class OpenVinoBackend(_ExportedGraphBackend):
     def prepare(self, net, example, threads: int) -> Stepper:
         from denoiser.step_graph import OpenVinoStep
 
-        runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device)
-        return Stepper(runner.step)
+        runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device,
+                              profile=self.profile)
+        return Stepper(runner.step, profile=runner.last_profile if self.profile else None)

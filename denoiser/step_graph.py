@@ -171,10 +171,11 @@ class OpenVinoStep:
     (OpenVINO's ``INFERENCE_PRECISION_HINT``; bf16 runs the convolutions, and whatever
     OpenVINO decides with them, in bfloat16 where the CPU has AVX512-BF16/AMX). ``threads``:
     ``INFERENCE_NUM_THREADS`` (None = OpenVINO's default). ``device``: an OpenVINO device name.
+    ``profile``: per-node performance counters on (``PERF_COUNT``), read by :meth:`last_profile`.
     """
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None, precision: str = "f32",
-                 device: str = "CPU"):
+                 device: str = "CPU", profile: bool = False):
         import openvino as ov
 
         if precision not in OPENVINO_PRECISIONS:
@@ -185,6 +186,9 @@ class OpenVinoStep:
         self.config = {"INFERENCE_PRECISION_HINT": OPENVINO_PRECISIONS[precision], "PERFORMANCE_HINT": "LATENCY"}
         if threads:
             self.config["INFERENCE_NUM_THREADS"] = int(threads)
+        if profile:
+            self.config["PERF_COUNT"] = True
+        self._last = None
         self.inputs = [i.get_any_name() for i in self.model.inputs]
         self.outputs = [o.get_any_name() for o in self.model.outputs]
         self.keys = [n[len("state_"):] for n in self.inputs if n.startswith("state_")]
@@ -219,8 +223,20 @@ class OpenVinoStep:
         b, _, h, w = feed["color"].shape
         _, request = self.compiled(b, h, w)
         request.infer(feed)
+        self._last = request
         named = {name: np.array(request.get_tensor(name).data, copy=True) for name in self.outputs}
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
+
+
+    def last_profile(self) -> dict[str, float]:
+        """Milliseconds per node type (``Convolution``, ``Reorder``, ``Subgraph`` for fused
+        elementwise ops, ...) of the last :meth:`step`, largest first; needs ``profile=True``."""
+        if self._last is None or "PERF_COUNT" not in self.config:
+            raise RuntimeError("last_profile needs OpenVinoStep(profile=True) and a step run first")
+        totals: dict[str, float] = {}
+        for node in self._last.profiling_info:
+            totals[node.node_type] = totals.get(node.node_type, 0.0) + node.real_time.total_seconds() * 1000
+        return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
 
 
 def graph_feed(frame: dict, state: dict | None, reset: bool, keys: list[str], channels: dict[str, int],

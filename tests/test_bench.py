@@ -168,6 +168,27 @@ def test_bench_openvino_rows(setup, tmp_path):
     assert by["openvino bf16"]["status"] == "ok" or by["openvino bf16"]["status"].startswith("skipped: ")
 
 
+def test_bench_profile_says_where_the_time_goes(setup, tmp_path):
+    """profile=true: the OpenVINO row carries its op types' times; profile.csv and the report
+    section hold them (shares of one step sum to 1, the network's convolutions are among them);
+    a backend that cannot profile (eager) adds no rows."""
+    pytest.importorskip("openvino", reason="openvino is not installed")
+    from denoiser.commands.bench import run as bench
+
+    root, ckpt = setup
+    rows = bench(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
+                                   "sizes=[[16,24]]", "repeats=1", "warmup=1", "use_backends=[eager,openvino_f32]",
+                                   "profile=true", "quality=false", "baselines={}", f"out_dir={tmp_path}"]))
+    by = {r["backend"]: r for r in rows}
+    assert "profile" not in by["eager fp32"]
+    ops = by["openvino f32"]["profile"]
+    assert "Convolution" in ops and all(ms >= 0 for ms in ops.values()) and list(ops.values()) == sorted(ops.values(), reverse=True)
+    table = read_csv(tmp_path / "profile.csv")
+    assert {r["backend"] for r in table} == {"openvino f32"} and {r["op_type"] for r in table} == set(ops)
+    assert abs(sum(float(r["share"]) for r in table) - 1.0) < 1e-6
+    assert "## Where the time goes" in (tmp_path / "report.md").read_text()
+
+
 def test_bench_quality_false_borrows_eval_psnr(setup, tmp_path):
     """quality=false: no backend run for quality; the networks' psnr is denoiser-eval's, marked so."""
     from denoiser.commands.bench import run as bench

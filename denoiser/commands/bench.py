@@ -242,6 +242,8 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
                 peak = (torch.cuda.max_memory_allocated() / 2**20 if backend.device.startswith("cuda")
                         else mem.megabytes)
                 row = bench_row(label, backend.label, backend.device, size, times, peak_mb=peak, **base)
+                if stepper.profile is not None:
+                    row["profile"] = stepper.profile()  # {op type: ms} of the last timed step
                 row["gflops_per_s"] = gflop / (row["ms_median"] / 1000)
                 if backend.device == "cpu":
                     row["peak_fraction"] = row["gflops_per_s"] / peak_gflops
@@ -356,6 +358,9 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
                                            "ratio": "speed-up (x)", "psnr_gain": "PSNR gain dB",
                                            "student_psnr": "student PSNR dB", "baseline_psnr": "baseline PSNR dB"}), ""]
     parts += ["## All measurements\n", markdown_table(rows, [c for c in COLUMNS if c not in ("kind",)], FORMATS, HEADERS)]
+    profiled = profile_section(rows)
+    if profiled:
+        parts += ["", *profiled]
     if plot is not None:
         from denoiser.plot_tradeoff import pareto_front_of_rows
 
@@ -366,6 +371,37 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
     text = "\n".join(parts)
     atomic_write_text(out_dir / "report.md", text)
     return text
+
+
+def profile_rows(rows: list[dict]) -> list[dict]:
+    """One row per (method, backend, size, op type) of the rows that carry a profile
+    (``profile: true``): ``ms`` of that op type in the last timed step and its ``share`` of the
+    step's summed node time."""
+    out = []
+    for r in rows:
+        total = sum((r.get("profile") or {}).values())
+        for op, ms in (r.get("profile") or {}).items():
+            out.append({"method": r["method"], "backend": r["backend"], "height": r["height"], "width": r["width"],
+                        "op_type": op, "ms": ms, "share": ms / total if total else float("nan")})
+    return out
+
+
+def profile_section(rows: list[dict], top: int = 8) -> list[str]:
+    """report.md lines: per profiled row, its ``top`` op types by time (the rest summed)."""
+    prof = profile_rows(rows)
+    if not prof:
+        return []
+    parts = ["## Where the time goes (OpenVINO per-node counters, last timed step)\n"]
+    keys = list(OrderedDict.fromkeys((p["method"], p["backend"], p["height"], p["width"]) for p in prof))
+    for key in keys:
+        ops = [p for p in prof if (p["method"], p["backend"], p["height"], p["width"]) == key]
+        rest = ops[top:]
+        shown = ops[:top] + ([{"op_type": f"{len(rest)} other op types", "ms": sum(p["ms"] for p in rest),
+                               "share": sum(p["share"] for p in rest)}] if rest else [])
+        parts += [f"**{key[0]}**, {key[1]}, {key[3]}x{key[2]}: {sum(p['ms'] for p in ops):.0f} ms of node time\n",
+                  markdown_table(shown, ["op_type", "ms", "share"], {"ms": ".1f", "share": ".1%"},
+                                 {"op_type": "op type"}), ""]
+    return parts
 
 
 def quality_note(cfg: DictConfig) -> str:
@@ -400,6 +436,9 @@ def run(cfg: DictConfig) -> list[dict]:
             r["psnr_from"] = "eval" if not math.isnan(r["psnr"]) else ""
         r.setdefault("status", "ok")
     write_csv(out_dir / "bench.csv", rows, COLUMNS)
+    if any("profile" in r for r in rows):
+        write_csv(out_dir / "profile.csv", profile_rows(rows), ["method", "backend", "height", "width", "op_type", "ms",
+                                                                "share"])
     plot_path = None
     if any(not math.isnan(r["psnr"]) for r in rows):
         from denoiser.plot_tradeoff import plot_accuracy_vs_time

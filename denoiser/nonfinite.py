@@ -45,7 +45,7 @@ def nan_to_num(x: torch.Tensor, nan: float, posinf: float, neginf: float) -> tor
     """``x.nan_to_num(nan, posinf, neginf)`` (any shape; finite values kept, however large).
 
     Traced or exported, the same values through comparisons and selects: ``x > -inf`` is false
-    exactly for NaN and -Inf, ``x < inf`` exactly for NaN and +Inf, ``x == x`` for NaN.
+    exactly for NaN and -Inf, ``x < inf`` exactly for NaN and +Inf.
     """
     import torch
 
@@ -54,7 +54,7 @@ def nan_to_num(x: torch.Tensor, nan: float, posinf: float, neginf: float) -> tor
     inf = float("inf")
     if nan == neginf:
         return torch.where(x > -inf, torch.where(x < inf, x, posinf), nan)
-    return torch.where(x == x, torch.where(x < inf, torch.where(x > -inf, x, neginf), posinf), nan)
+    return torch.where(torch.isnan(x), nan, torch.where(x < inf, torch.where(x > -inf, x, neginf), posinf))
 
 
 def replace_tensor(x: torch.Tensor) -> torch.Tensor:

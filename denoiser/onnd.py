@@ -145,6 +145,9 @@ class OnlineCrossRegression:
         kernel_size: k of the per-pixel k x k filter the network predicts (odd).
         widths: U-Net encoder widths (finest first); the bottleneck is twice the last.
         lr: Adam learning rate (one step per frame).
+        centre_logit: initial logit of the kernel's centre tap (the others start at 0): 0 starts
+            from a k x k box filter of the pilot estimates, a large value from the pilot itself
+            (the identity filter), which the online steps then widen where the loss asks for it.
         seed: initialisation seed of the network.
         keep_weights: keep the trained network across :meth:`reset` (new sequences).
         threads: torch intra-op threads during a call (None: torch's current setting).
@@ -159,8 +162,8 @@ class OnlineCrossRegression:
     uses_samples = True  # evaluation passes frame["samples"] only to methods that say so
 
     def __init__(self, label: str = "ONND", regression_radius: int = 3, ridge: float = 1e-2,
-                 kernel_size: int = 5, widths=(8, 16), lr: float = 1e-3, seed: int = 0,
-                 keep_weights: bool = False, threads: int | None = None, device: str = "cpu"):
+                 kernel_size: int = 5, widths=(8, 16), lr: float = 1e-3, centre_logit: float = 8.0,
+                 seed: int = 0, keep_weights: bool = False, threads: int | None = None, device: str = "cpu"):
         if kernel_size < 1 or kernel_size % 2 == 0:
             raise ConfigError(f"ONND kernel_size must be odd and >= 1, got {kernel_size}")
         if regression_radius < 0:
@@ -169,6 +172,7 @@ class OnlineCrossRegression:
         self.radius, self.ridge, self.k = int(regression_radius), float(ridge), int(kernel_size)
         self.widths = [int(w) for w in widths]
         self.lr, self.seed, self.keep_weights = float(lr), int(seed), bool(keep_weights)
+        self.centre_logit = float(centre_logit)
         self.threads = int(threads) if threads else None
         self.device = torch.device(device)
         self.last_loss: float | None = None
@@ -182,8 +186,10 @@ class OnlineCrossRegression:
             w = self.widths
             self.net = UNet(15, w, 2 * w[-1], list(reversed(w[:-1])), [self.k * self.k + 1]).to(self.device)
             head = self.net.heads[0]
-            torch.nn.init.zeros_(head.weight)  # start from a box filter and alpha = 0.5
+            torch.nn.init.zeros_(head.weight)  # start from one fixed filter everywhere and alpha = 0.5
             torch.nn.init.zeros_(head.bias)
+            with torch.no_grad():
+                head.bias[(self.k * self.k) // 2] = self.centre_logit  # 0: a box filter
         self.net.train()
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=self.lr)
 

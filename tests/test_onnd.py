@@ -207,3 +207,24 @@ def test_resize_frame_resamples_each_sample():
     assert out["samples"].shape == (1, 3, 3, 16, 24) and out["color"].shape == (1, 3, 16, 24)
     want = F.interpolate(f["samples"][:, 1], size=(16, 24), mode="bilinear", align_corners=False)
     torch.testing.assert_close(out["samples"][:, 1], want)
+
+
+@pytest.mark.parametrize("centre", [0.0, 30.0])
+def test_initial_filter_is_set_by_centre_logit(centre):
+    """The first frame of a fresh network is the pilot estimate filtered by the initial kernel:
+    exactly the pilot with a dominant centre logit (identity filter), its k x k box mean with 0."""
+    seq, _ = smooth_sequence(frames=1)
+    f = seq[0]
+    method = OnlineCrossRegression(centre_logit=centre, kernel_size=3)
+    out = method(f, reset=True)
+    a, b = half_buffers(f["samples"])
+    y_a, y_b = torch.log1p(a), torch.log1p(b)
+    feats = torch.cat([f["albedo"], f["normal"]], dim=1)
+    var = half_variance(y_a, y_b)
+    pilot = 0.5 * (cross_regression(y_a, y_b, var, feats) + cross_regression(y_b, y_a, var, feats))
+    if centre:
+        expected = torch.expm1(pilot)
+    else:  # 3x3 box over the in-image taps
+        box = torch.nn.functional.avg_pool2d(pilot, 3, stride=1, padding=1, count_include_pad=False)
+        expected = torch.expm1(box)
+    torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)

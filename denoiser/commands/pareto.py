@@ -263,7 +263,7 @@ def write_report(out_dir: Path, rows: list[dict], sizes, sweep_dirs: list[Path])
     table = markdown_table(shown, [c for c in columns if c not in ("overrides", "kind", "done", "val_psnr_std",
                                                                    "test_psnr_std")],
                            formats={"gflop": ".3g", "val_tpsnr": ".2f", "test_tpsnr": ".2f",
-                                    **{c: ".3g" for c in ms_cols}},
+                                    **{c: ".1f" for c in ms_cols}},
                            headers={"gflop": f"GFLOP {size_tag(sizes[0])}", **{c: f"ms {c[3:]}" for c in ms_cols},
                                     "val_psnr": "val PSNR dB", "test_psnr": "test PSNR dB", "val_tpsnr": "val tPSNR dB",
                                     "test_tpsnr": "test tPSNR dB"})

@@ -189,12 +189,22 @@ def test_report_of_a_trained_multirun(data_root, tmp_path):
     assert rows[0]["seeds"] == "cfg 1 2" and float(rows[0]["val_psnr"]) == pytest.approx(sum(vals) / 3, abs=1e-6)
     assert float(rows[0]["val_psnr_std"]) == pytest.approx(statistics.stdev(vals), abs=1e-6)
     assert rows[1]["val_psnr_std"] == ""  # one seed: no spread
-    assert len(list((out / "cache").iterdir())) == 3  # the seeds were not timed again
+    networks = [p for p in (out / "cache").iterdir() if not p.name.startswith("baseline_")]
+    assert len(networks) == 3  # the seeds were not timed again
+    assert len(list((out / "cache").glob("baseline_*.json"))) == 1  # OIDN-fast's times, cached like the networks'
     oidn = rows[3]
     assert oidn["kind"] == "baseline" and float(oidn["val_psnr"]) == 99.0 and float(oidn["ms_32x32"]) > 0
     assert oidn["front"] == "False"  # the front is the variants'; OIDN is measured against it
     text = (out / "pareto.md").read_text()
     assert "- OIDN-fast (val PSNR 99.00 dB," in text and "no front variant dominates it" in text
+    # a later report keeps OIDN's times of the first timing pass (not re-timed under other conditions)
+    run_ok(command("pareto", f"sweep_dir=[{sweep},{seeds}]", f"out_dir={out}", "backend=eager",
+                   "sizes=[[32,32],[16,16]]", "warmup=0", "repeats=1", "threads=1", "baselines=default",
+                   "baselines.noisy=null", "baselines.oidn_balanced=null", "baselines.oidn_high=null",
+                   f"baseline_eval_csv={val_csv}"), tmp_path)
+    with open(out / "pareto.csv", newline="") as fh:
+        again = list(csv.DictReader(fh))
+    assert again[3]["ms_32x32"] == oidn["ms_32x32"] and again[3]["ms_16x16"] == oidn["ms_16x16"]
     proc = run_ok(command("train", "-m", *TINY, f"data.root={data_root}", "kernel.sizes=[3],[5,5],[3,5,5]",
                           f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=${hydra.job.num}", "skip_done=true"), tmp_path)
     assert proc.stderr.count("finished before, skipped") == 3

@@ -29,7 +29,7 @@ import math
 import shlex
 from pathlib import Path
 
-from omegaconf import DictConfig, ListConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from denoiser.atomic import atomic_write_text
 from denoiser.configs import instantiate_config
@@ -132,11 +132,18 @@ def read_jobs(sweep_dirs: list[Path]) -> list[dict]:
     return jobs
 
 
-def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int) -> list[dict]:
+def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, cache_dir: Path | None = None
+                  ) -> list[dict]:
     """The baselines of ``cfg.baselines`` (OIDN) timed in this process on the networks' frames and
-    threads, with their validation PSNR from ``baseline_eval_csv`` (denoiser-eval on the val split)."""
+    threads, with their validation PSNR from ``baseline_eval_csv`` (denoiser-eval on the val split).
+
+    With ``cache_dir`` the times are cached like the networks' (per baseline config, sizes, threads,
+    warm-up and repeats), so a later report over more seeds keeps every time of one timing pass
+    instead of re-timing the baselines under other conditions."""
     if not cfg.get("baselines"):
         return []
+    import hashlib
+
     import torch
 
     from denoiser.backends import Stepper
@@ -148,17 +155,30 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int) -
 
     evaluated = eval_means(cfg.get("baseline_eval_csv"))
     rows = []
+    nodes = OmegaConf.to_container(cfg.baselines, resolve=True)
     for label, method in build_baselines(cfg.baselines).items():
         row = {"job": "", "variant": label, "kind": "baseline", "seeds": "", "backend": getattr(method, "backend",
                                                                                                "OIDN (pyoidn)"),
                "threads": threads, "val_psnr": float(evaluated.get(label, {}).get("psnr", NAN)),
                "val_tpsnr": float(evaluated.get(label, {}).get("tpsnr", NAN))}
-        for size in sizes:
-            print(f"[baseline] {label} at {size_tag(size)}", flush=True)
-            frames = random_frames(*size)
-            stepper = Stepper(lambda f, s, m=method: (m(f, s is None), None))
-            row[f"ms_{size_tag(size)}"] = 1000 * summarize(time_steps(stepper, frames, int(cfg.warmup),
-                                                                      int(cfg.repeats)))["median"]
+        what = {"baseline": label, "config": nodes, "sizes": sizes, "threads": threads, "warmup": int(cfg.warmup),
+                "repeats": int(cfg.repeats)}
+        key = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:20]
+        cached = cache_dir / f"baseline_{key}.json" if cache_dir is not None else None
+        if cached is not None and cached.is_file():
+            row.update(json.loads(cached.read_text()))
+        else:
+            times = {}
+            for size in sizes:
+                print(f"[baseline] {label} at {size_tag(size)}", flush=True)
+                frames = random_frames(*size)
+                stepper = Stepper(lambda f, s, m=method: (m(f, s is None), None))
+                times[f"ms_{size_tag(size)}"] = 1000 * summarize(time_steps(stepper, frames, int(cfg.warmup),
+                                                                            int(cfg.repeats)))["median"]
+            row.update(times)
+            if cached is not None:
+                cache_dir.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(cached, json.dumps(times, indent=1))
         close = getattr(method, "close", None)
         if close:
             close()
@@ -207,7 +227,7 @@ def run(cfg: DictConfig) -> list[dict]:
         print(f"[{i + 1}/{len(groups)}] {timed['dir']}: {row['variant']} ({len(group)} seed(s))", flush=True)
         rows.append({**row, **measure_job(timed["ckpt"], cfg, backend, sizes, out_dir / "cache")})
     threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
-    rows += baseline_rows(cfg, sizes, threads)
+    rows += baseline_rows(cfg, sizes, threads, out_dir / "cache")
     rows += oidn_rows(cfg.get("oidn_csv"), sizes)
     ms_key = f"ms_{size_tag(sizes[0])}"
     nets = [i for i, r in enumerate(rows) if r["kind"] == "network"]

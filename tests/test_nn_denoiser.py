@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import random_frame
-from denoiser.nn.inputs import sanitize
+from denoiser.nn.inputs import guide_features, sanitize
 
 
 def make_net(ablation="none", gain=1.0, seed=0):
@@ -213,3 +213,30 @@ def test_unet_input_parts_equal_their_concatenation():
         heads_p, features_p = unet(parts)
     for a, b in zip(heads + features, heads_p + features_p):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_embed_input_parts_equal_their_concatenation():
+    """EmbedNet(parts) (the exported graph's form: first layer per part) equals EmbedNet(cat(parts))."""
+    from denoiser.nn.embed import EmbedNet
+
+    torch.manual_seed(0)
+    embed = EmbedNet(in_channels=10, hidden=6, out_channels=5).eval()
+    parts = [torch.randn(2, 3, 8, 12), torch.randn(2, 7, 8, 12)]
+    with torch.no_grad():
+        torch.testing.assert_close(embed(parts), embed(torch.cat(parts, 1)), rtol=1e-5, atol=1e-5)
+
+
+def test_temporal_input_parts_follow_the_input_layout(net):
+    """The history inputs, part by part, are the slices of their concatenation named by
+    ``input_layout`` (what the exported graph feeds the U-Net's first convolution)."""
+    temporal = net.temporal
+    f = random_frame(2, 8, 8)
+    _, state, _ = net.step(f, None)
+    history = temporal.warp(state, f["motion"], None, like=f["color"], guide=guide_features(f))
+    scale = torch.full((2, 1, 1, 1), 0.5)
+    parts = dict(zip([name for name, _ in temporal.input_layout], temporal.input_parts(history, scale)))
+    assert {k: p.shape[1] for k, p in parts.items()} == dict(temporal.input_layout)
+    for name in ("guide", "features", "valid"):
+        assert torch.equal(parts[name], history[name])
+    for name in ("output", "color"):
+        torch.testing.assert_close(parts[name], torch.log1p(history[name].clamp_min(0) / scale))

@@ -42,3 +42,21 @@ def test_far_and_nonfinite_motion_gives_zeros():
     for value in (float("nan"), float("-inf")):  # NaN, -Inf -> 0 (denoiser.nonfinite): no motion
         out = warp_to_current(prev, torch.full((1, 2, 6, 7), value))
         assert torch.allclose(out, prev), value
+
+
+def test_sampling_grid_against_a_loop_over_pixels():
+    """The grid (built per axis and transposed, the exported graph's form) is, pixel by pixel,
+    ``(p + motion + 0.5) * 2 / size - 1`` with x first, motion clamped to 4 frame sizes."""
+    from denoiser.nn.warp import sampling_grid
+
+    torch.manual_seed(0)
+    motion = torch.randn(2, 2, 5, 7) * 3
+    motion[0, 0, 1, 2] = 1e6  # clamped to 4 * max(H, W)
+    grid = sampling_grid(motion)
+    assert grid.shape == (2, 5, 7, 2)
+    for b in range(2):
+        for y in range(5):
+            for x in range(7):
+                mx, my = (float(v.clamp(-28, 28)) for v in motion[b, :, y, x])
+                assert abs(float(grid[b, y, x, 0]) - ((x + mx + 0.5) * 2 / 7 - 1)) < 1e-5
+                assert abs(float(grid[b, y, x, 1]) - ((y + my + 0.5) * 2 / 5 - 1)) < 1e-5

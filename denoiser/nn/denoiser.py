@@ -144,17 +144,23 @@ class Denoiser(nn.Module):
         # the transforms run in float32; a network converted to bfloat16/float16 weights (fast
         # CPU/GPU inference without autocast) gets its inputs in its own dtype
         net_dtype = self.embed.layers[0].weight.dtype
-        net_in = self.embed(self.embed_inputs(frame, color, scale, guide, albedo).to(net_dtype))
+        if (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()) and frame.get("samples") is None:
+            # exported: the EmbedNet's first layer runs per input part (no concatenation)
+            net_in = self.embed([color_feature(color, scale).to(net_dtype), guide.to(net_dtype)])
+        else:
+            net_in = self.embed(self.embed_inputs(frame, color, scale, guide, albedo).to(net_dtype))
         history = None
         if self.temporal is not None:
             motion = frame.get("motion")
             if motion is None:  # no motion vectors: a static camera and scene
                 motion = torch.zeros_like(color[:, :2])
             history = self.temporal.warp(state, motion, reset, like=color, guide=guide)
-            parts = [net_in, self.temporal.inputs(history, scale).to(net_in.dtype)]
             # traced or exported: the U-Net's first convolution runs per part (no concatenation)
-            graph = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
-            net_in = [pad_to_multiple(p, self.multiple) for p in parts] if graph else torch.cat(parts, dim=1)
+            if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+                parts = [net_in] + [p.to(net_in.dtype) for p in self.temporal.input_parts(history, scale)]
+                net_in = [pad_to_multiple(p, self.multiple) for p in parts]
+            else:
+                net_in = torch.cat([net_in, self.temporal.inputs(history, scale).to(net_in.dtype)], dim=1)
         if isinstance(net_in, torch.Tensor):
             net_in = pad_to_multiple(net_in, self.multiple)
         heads, features = self.unet(net_in)

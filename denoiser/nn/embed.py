@@ -8,7 +8,10 @@ so a network trained with samples also runs on frames without them.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -36,11 +39,23 @@ class EmbedNet(nn.Module):
             nn.LeakyReLU(negative_slope, inplace=True),
         )
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Per-pixel path ``x: [B, C_in, H, W]`` or per-sample path ``x: [B, S, C_in, H, W]``.
+    def forward(self, x: torch.Tensor | Sequence[torch.Tensor]) -> torch.Tensor:
+        """Per-pixel path ``x: [B, C_in, H, W]`` or per-sample path ``x: [B, S, C_in, H, W]``,
+        or the per-pixel input as a list of parts ``[B, C_i, H, W]`` whose channel concatenation
+        it is (``sum C_i == C_in``): the first layer then runs per part with its slice of the
+        weights and the results are summed (what the exported graph runs: no full-resolution
+        concatenation of the inputs; the same numbers up to float rounding of the sum).
 
         Returns ``[B, C_out, H, W]`` (for samples: the mean over S of the per-sample output).
         """
+        if not isinstance(x, torch.Tensor):
+            first = self.layers[0]
+            out, start = None, 0
+            for part in x:
+                n = part.shape[1]
+                y = F.conv2d(part, first.weight[:, start: start + n])
+                out, start = (y if out is None else out + y), start + n
+            return self.layers[1:](out + first.bias.view(1, -1, 1, 1))
         if x.dim() == 5:
             b, s, c, h, w = x.shape
             y = self.layers(x.reshape(b * s, c, h, w))

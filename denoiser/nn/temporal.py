@@ -182,14 +182,20 @@ class TemporalRecurrence(nn.Module):
             history["valid"] = history["valid"] * self.gate(history["guide"], guide)
         return history
 
-    def inputs(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> torch.Tensor:
-        """Network inputs from the warped history: ``[B, input_channels, H, W]`` float32.
-
-        scale: ``[B, 1, 1, 1]`` current color scale.
+    def input_parts(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> list[torch.Tensor]:
+        """Network inputs from the warped history, one ``[B, C_i, H, W]`` float32 tensor per
+        entry of ``input_layout``, in its order (what an exported graph feeds the U-Net's first
+        convolution part by part). scale: ``[B, 1, 1, 1]`` current color scale.
         """
         parts = {"output": color_feature(history["output"], scale), "color": color_feature(history["color"], scale),
                  "guide": history["guide"], "features": history["features"], "valid": history["valid"]}
-        return torch.cat([parts[part] for part, _ in self.input_layout], dim=1)
+        return [parts[part] for part, _ in self.input_layout]
+
+    def inputs(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> torch.Tensor:
+        """Network inputs from the warped history: ``[B, input_channels, H, W]`` float32, the
+        concatenation of :meth:`input_parts`. scale: ``[B, 1, 1, 1]`` current color scale.
+        """
+        return torch.cat(self.input_parts(history, scale), dim=1)
 
     def blend_in(self, color: torch.Tensor, history: dict[str, torch.Tensor], head: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:

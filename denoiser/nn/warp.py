@@ -28,11 +28,13 @@ def sampling_grid(motion: torch.Tensor) -> torch.Tensor:
     h, w = motion.shape[-2:]
     limit = MOTION_LIMIT * max(h, w)
     m = sanitize(motion).clamp(-limit, limit)
-    ys = torch.arange(h, device=motion.device, dtype=torch.float32).view(1, h, 1)
-    xs = torch.arange(w, device=motion.device, dtype=torch.float32).view(1, 1, w)
-    gx = (xs + m[:, 0] + 0.5) * (2.0 / w) - 1.0
-    gy = (ys + m[:, 1] + 0.5) * (2.0 / h) - 1.0
-    return torch.stack([gx, gy], dim=-1)
+    ys = torch.arange(h, device=motion.device, dtype=torch.float32).view(1, 1, h, 1)
+    xs = torch.arange(w, device=motion.device, dtype=torch.float32).view(1, 1, 1, w)
+    gx = (xs + m[:, 0:1] + 0.5) * (2.0 / w) - 1.0
+    gy = (ys + m[:, 1:2] + 0.5) * (2.0 / h) - 1.0
+    # [B, 2, H, W] then one transpose to [B, H, W, 2]: stacking x and y along a new last axis
+    # is an interleaving copy that inference engines run slowly (OpenVINO: a reference Concat)
+    return torch.cat([gx, gy], dim=1).permute(0, 2, 3, 1)
 
 
 def warp_to_current(x: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:

@@ -76,12 +76,15 @@ class DenoiserModule(pl.LightningModule):
     * ``detach_every``: truncated BPTT, the recurrent state is detached every k frames (0: never);
     * ``warmup_frames``: frames after a reset excluded from validation metrics;
     * ``image_interval``: training steps between image panels (0: never; validation panels
-      are logged once per validation run regardless).
+      are logged once per validation run regardless);
+    * ``logit_penalty``: weight of the ``logit`` loss term, the mean square of the trained
+      network's head outputs (:func:`denoiser.nn.denoiser.logit_energy`; 0: off). It keeps the
+      scale of the activations from drifting up without bound (docs/training.md, "Collapse").
     """
 
     def __init__(self, net: Mapping, optimizer: Callable | Mapping, scheduler: Callable | Mapping | None = None,
                  scheduler_interval: str = "step", detach_every: int = 0, warmup_frames: int = 2,
-                 image_interval: int = 100, grad_clip: float = 0.0):
+                 image_interval: int = 100, grad_clip: float = 0.0, logit_penalty: float = 0.0):
         super().__init__()
         self.net = build_net(net, "model.net")
         self._optimizer_factory = self._factory(optimizer)
@@ -91,6 +94,7 @@ class DenoiserModule(pl.LightningModule):
         self.warmup_frames = int(warmup_frames)
         self.image_interval = int(image_interval)
         self.grad_clip = float(grad_clip or 0.0)
+        self.logit_penalty = float(logit_penalty or 0.0)
         self.val_metrics = MetricAccumulator(VAL_METRICS, warmup=self.warmup_frames)
         self.val_input_metrics = MetricAccumulator(("psnr", "ssim"), warmup=self.warmup_frames)
         #: global step of the last (non-sanity) validation, -1 before any
@@ -110,6 +114,13 @@ class DenoiserModule(pl.LightningModule):
         """Unroll ``net`` over a window: -> ``(outputs [B,T,3,H,W], extras_list)`` (one extras dict per frame)."""
         outputs, _, extras = net(network_inputs(batch), state=None, reset=batch["reset"], detach_every=detach_every)
         return outputs, extras
+
+    def logit_term(self, extras: list[dict]) -> torch.Tensor | None:
+        """``logit_penalty`` times the mean over frames and items of the trained network's
+        ``logit_energy`` (extras of :meth:`run_net`); None when off or the network has no heads."""
+        if self.logit_penalty <= 0 or not extras or "logit_energy" not in extras[0]:
+            return None
+        return self.logit_penalty * torch.stack([e["logit_energy"] for e in extras]).mean()
 
     # ----------------------------------------------------------------- optimizers
 

@@ -71,9 +71,9 @@ class DistillationModule(DenoiserModule):
                  critic_steps: int = 1, param_transfer: Mapping | None = None,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
                  detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
-                 trust_teacher_ckpt: bool = False):
+                 trust_teacher_ckpt: bool = False, logit_penalty: float = 0.0):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
-                         image_interval, grad_clip)
+                         image_interval, grad_clip, logit_penalty)
         self.automatic_optimization = False
         loss_cfg = {**DEFAULT_LOSS, **(plain(loss) or {})}
         self.save_hyperparameters({
@@ -82,6 +82,7 @@ class DistillationModule(DenoiserModule):
             "adversarial": plain(adversarial), "critic_steps": critic_steps, "param_transfer": plain(param_transfer),
             "scheduler": plain(scheduler), "scheduler_interval": scheduler_interval, "detach_every": detach_every,
             "warmup_frames": warmup_frames, "image_interval": image_interval, "grad_clip": grad_clip,
+            "logit_penalty": logit_penalty,
         })
         self.weights = {k: float(loss_cfg[f"{k}_weight"]) for k in ("kd", "gt", "feature", "adversarial")}
         self.kd_loss = self._factory(loss_cfg["kd"])
@@ -159,6 +160,9 @@ class DistillationModule(DenoiserModule):
             fake = log_compress(student).flatten(0, 1)
             terms["adversarial"] = self.weights["adversarial"] * self.adversarial.generator_loss(self.critic, fake)
             self.critic.requires_grad_(True)
+        logit = self.logit_term(s_extras)
+        if logit is not None:
+            terms["logit"] = logit
         if not terms:  # e.g. no_kd on a batch of unlabeled items: nothing to learn, keep the graph
             terms["none"] = student.sum() * 0.0
         return terms

@@ -33,15 +33,17 @@ class SupervisedModule(DenoiserModule):
 
     def __init__(self, net: Mapping, loss: Mapping | DenoiseLoss, optimizer: Callable | Mapping,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
-                 detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0):
+                 detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
+                 logit_penalty: float = 0.0):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
-                         image_interval, grad_clip)
+                         image_interval, grad_clip, logit_penalty)
         self.save_hyperparameters({
             "net": plain(net), "loss": plain(loss) if not callable(loss) else repr(loss),
             "optimizer": plain(optimizer) if not callable(optimizer) else repr(optimizer),
             "scheduler": plain(scheduler) if not callable(scheduler) else repr(scheduler),
             "scheduler_interval": scheduler_interval, "detach_every": detach_every,
             "warmup_frames": warmup_frames, "image_interval": image_interval, "grad_clip": grad_clip,
+            "logit_penalty": logit_penalty,
         })
         self.loss = self._factory(loss) if not isinstance(loss, DenoiseLoss) else loss
 
@@ -58,8 +60,11 @@ class SupervisedModule(DenoiserModule):
         return {k: masked_mean(v, mask) for k, v in terms.items()}
 
     def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> torch.Tensor:
-        outputs, _ = self.run_net(self.net, batch, detach_every=self.detach_every)
+        outputs, extras = self.run_net(self.net, batch, detach_every=self.detach_every)
         terms = self.loss_terms(batch, outputs)
+        logit = self.logit_term(extras)
+        if logit is not None:
+            terms["logit"] = logit
         loss = torch.stack(list(terms.values())).sum()
         b = outputs.shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=b)

@@ -60,6 +60,23 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
+def logit_energy(heads) -> torch.Tensor:
+    """Mean square of the U-Net head outputs (every logit the filter, the temporal blend and the
+    state features are made of): ``heads`` list of ``[B, C_i, H_i, W_i]`` (or None) -> ``[B]``
+    float32, the mean over heads of each head's mean square.
+
+    Why it is penalised in training (``model.logit_penalty``): the filter's softmaxes see
+    scale-normalised logits (:func:`denoiser.nn.kernels.scale_logits`), so the loss hardly
+    changes when every head output is multiplied by a large factor; nothing then holds the
+    activations' scale, and once a step pushed it up it kept growing (the demo teacher's U-Net
+    activations went from about 10 to 10^7 in 20 steps, its output froze at 25 dB). A small
+    penalty on this energy gives the scale a restoring force, as the z-loss does for softmax
+    logits in large language models.
+    """
+    values = [h.float().pow(2).mean(dim=(1, 2, 3)) for h in heads if h is not None and h.shape[1] > 0]
+    return torch.stack(values).mean(dim=0)
+
+
 def detach_state(state: dict | None) -> dict | None:
     """Detach every tensor of a state dict (truncated backpropagation through time)."""
     return None if state is None else {k: v.detach() for k, v in state.items()}
@@ -180,7 +197,10 @@ class Denoiser(nn.Module):
             new_state = self.temporal.next_state(output, filter_in, temporal_head, guide)
         if albedo is not None:
             output = output * albedo
-        return output, new_state, {"features": features, "weights": weights}
+        extras = {"features": features, "weights": weights}
+        if self.training:
+            extras["logit_energy"] = logit_energy(heads)
+        return output, new_state, extras
 
     def forward(self, frames: dict, state: dict | None = None, reset: torch.Tensor | None = None,
                 detach_every: int = 0):

@@ -127,3 +127,49 @@ def test_without_the_logit_penalty_the_head_outputs_run_away(data, tmp_path):
     metrics = train(data, tmp_path, 0, "model.logit_penalty=0", setting=RUNAWAY)
     assert head_energy(tmp_path) > 1e6
     assert metrics["val/psnr"] < metrics["val/input_psnr"] + 6.0, metrics
+
+
+def run_detector(tmp_path, psnrs, noisy=22.48, **kwargs):
+    """Feed a CollapseDetector the val PSNRs of a run; -> (validation index it fired at or None, trainer)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from denoiser.lit.callbacks import CollapseDetector
+
+    detector = CollapseDetector(**kwargs)
+    trainer = SimpleNamespace(sanity_checking=False, global_step=0, logger=None, default_root_dir=str(tmp_path),
+                              is_global_zero=True, should_stop=False, callback_metrics={})
+    for i, psnr in enumerate(psnrs):
+        trainer.global_step = 50 * (i + 1) - 1
+        trainer.callback_metrics = {"val/psnr": torch.tensor(psnr), "val/input_psnr": torch.tensor(noisy)}
+        detector.on_validation_end(trainer, None)
+        if trainer.should_stop:
+            return i, trainer
+    return None, trainer
+
+
+def test_detector_names_a_run_that_lost_what_it_had_learned(tmp_path, capsys):
+    """The val PSNRs of the demo teacher whose head outputs ran away (make demo, seed 0): the
+    breakdown rule fires at the third validation more than 3 dB below the best, with one line."""
+    fired, trainer = run_detector(tmp_path, [28.22, 29.62, 25.03, 25.03, 24.96, 25.13, 25.21])
+    assert fired == 4
+    line = (tmp_path / "COLLAPSED").read_text().strip()
+    assert line.startswith("collapse: val PSNR 24.96 dB") and "below the run's best 29.62 dB" in line
+    assert "broke down" in line and line in capsys.readouterr().err
+
+
+def test_detector_lets_healthy_and_noisy_runs_train(tmp_path):
+    """A healthy run (the demo teacher that trained) and a run dipping by less than 3 dB, or
+    by more but recovering within 3 validations, are not stopped; drop_db=None turns the rule off."""
+    healthy = [27.99, 30.37, 30.20, 31.05, 30.84, 31.24, 31.53, 31.70, 31.91, 31.97]
+    assert run_detector(tmp_path, healthy)[0] is None
+    assert run_detector(tmp_path, [30.0, 27.5, 27.2, 27.4, 27.1])[0] is None
+    assert run_detector(tmp_path, [30.0, 26.0, 26.5, 29.0, 26.0, 26.0, 29.5])[0] is None
+    assert run_detector(tmp_path, [28.22, 29.62, 25.03, 25.03, 24.96, 25.13], drop_db=None)[0] is None
+    assert not (tmp_path / "COLLAPSED").exists()
+
+
+def test_detector_still_names_the_identity(tmp_path):
+    fired, _ = run_detector(tmp_path, [22.6, 22.5, 22.7, 22.4])
+    assert fired == 2 and "returns its input" in (tmp_path / "COLLAPSED").read_text()

@@ -43,32 +43,44 @@ class FinalCheckpoint(pl.Callback):
 
 
 class CollapseDetector(pl.Callback):
-    """Detect a collapsed run: the network returns its noisy input.
+    """Detect a collapsed run: the network returns its noisy input, or its training broke down.
 
-    After every validation (sanity checks excluded) it compares ``val/psnr`` with the noisy
+    After every validation (sanity checks excluded) it reads ``val/psnr`` and the noisy
     input's ``val/input_psnr`` (both logged by :class:`~denoiser.lit.common.DenoiserModule`).
-    When they are within ``margin_db`` for ``patience`` validations in a row, the run has
-    collapsed to (about) the identity: it says so in one line on stderr, logs
-    ``val/collapsed = 1`` and the same line as TensorBoard text, writes ``<run dir>/COLLAPSED``
-    holding that line (``make demo`` fails when it finds one), and stops training when ``stop``.
-    A run whose output merely has low partition entropy is not a collapse; only the output is
-    judged.
+    Two rules, each over ``patience`` validations in a row:
+
+    * identity: val PSNR within ``margin_db`` of the noisy input's (the run has collapsed to
+      about the identity);
+    * breakdown: val PSNR more than ``drop_db`` below the best val PSNR of the run so far (the
+      run had learned and lost it, e.g. the runaway of the head outputs in docs/training.md;
+      ``drop_db: null`` turns the rule off).
+
+    When one fires it says so in one line on stderr, logs ``val/collapsed = 1`` and the same
+    line as TensorBoard text, writes ``<run dir>/COLLAPSED`` holding that line (``make demo``
+    fails when it finds one), and stops training when ``stop``. A run whose output merely has
+    low partition entropy is not a collapse; only the output is judged.
     """
 
-    def __init__(self, margin_db: float = 0.5, patience: int = 3, stop: bool = True, marker: str | None = None):
+    def __init__(self, margin_db: float = 0.5, patience: int = 3, stop: bool = True, marker: str | None = None,
+                 drop_db: float | None = 3.0):
         self.margin_db = float(margin_db)
         self.patience = int(patience)
         self.stop = bool(stop)
         self.marker = Path(marker) if marker else None
+        self.drop_db = None if drop_db is None else float(drop_db)
         self.streak = 0
+        self.drop_streak = 0
+        self.best = float("-inf")
         self.fired = False
 
     def state_dict(self) -> dict:
-        return {"streak": self.streak, "fired": self.fired}
+        return {"streak": self.streak, "fired": self.fired, "drop_streak": self.drop_streak, "best": self.best}
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.streak = int(state_dict.get("streak", 0))
         self.fired = bool(state_dict.get("fired", False))
+        self.drop_streak = int(state_dict.get("drop_streak", 0))
+        self.best = float(state_dict.get("best", float("-inf")))
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if trainer.sanity_checking:
@@ -78,11 +90,20 @@ class CollapseDetector(pl.Callback):
             return
         psnr, noisy = float(metrics["val/psnr"]), float(metrics["val/input_psnr"])
         self.streak = self.streak + 1 if abs(psnr - noisy) < self.margin_db else 0
-        if self.streak < self.patience or self.fired:
+        dropped = self.drop_db is not None and psnr < self.best - self.drop_db
+        self.drop_streak = self.drop_streak + 1 if dropped else 0
+        self.best = max(self.best, psnr)
+        if self.fired:
+            return
+        if self.streak >= self.patience:
+            line = (f"collapse: val PSNR {psnr:.2f} dB has stayed within {self.margin_db:g} dB of the noisy input's "
+                    f"{noisy:.2f} dB for {self.streak} validations (step {trainer.global_step}): the network returns its input")
+        elif self.drop_streak >= self.patience:
+            line = (f"collapse: val PSNR {psnr:.2f} dB has stayed more than {self.drop_db:g} dB below the run's best "
+                    f"{self.best:.2f} dB for {self.drop_streak} validations (step {trainer.global_step}): the training broke down")
+        else:
             return
         self.fired = True
-        line = (f"collapse: val PSNR {psnr:.2f} dB has stayed within {self.margin_db:g} dB of the noisy input's "
-                f"{noisy:.2f} dB for {self.streak} validations (step {trainer.global_step}): the network returns its input")
         print(line, file=sys.stderr, flush=True)
         if trainer.logger is not None:  # self.log is not allowed after the epoch: write to the logger itself
             trainer.logger.log_metrics({"val/collapsed": 1.0}, step=trainer.global_step)

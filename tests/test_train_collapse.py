@@ -152,7 +152,7 @@ def run_detector(tmp_path, psnrs, noisy=22.48, **kwargs):
 def test_detector_names_a_run_that_lost_what_it_had_learned(tmp_path, capsys):
     """The val PSNRs of the demo teacher whose head outputs ran away (make demo, seed 0): the
     breakdown rule fires at the third validation more than 3 dB below the best, with one line."""
-    fired, trainer = run_detector(tmp_path, [28.22, 29.62, 25.03, 25.03, 24.96, 25.13, 25.21])
+    fired, _ = run_detector(tmp_path, [28.22, 29.62, 25.03, 25.03, 24.96, 25.13, 25.21])
     assert fired == 4
     line = (tmp_path / "COLLAPSED").read_text().strip()
     assert line.startswith("collapse: val PSNR 24.96 dB") and "below the run's best 29.62 dB" in line

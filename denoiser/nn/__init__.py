@@ -5,6 +5,7 @@ Parts, each in its own module:
 * :mod:`.inputs`   - input sanitising and the half-precision-safe feature transforms;
 * :mod:`.embed`    - :class:`EmbedNet`, per-sample / per-pixel 1x1 feature extractor;
 * :mod:`.unet`     - :class:`UNet` with one output head per pyramid level;
+* :mod:`.parts`    - :func:`conv_of_parts`, a convolution of a concatenation run part by part (export);
 * :mod:`.kernels`  - :func:`apply_kernels`, per-pixel softmax-normalised k x k kernels;
 * :mod:`.pyramid`  - :class:`PyramidFilter` (partitioning pyramid);
 * :mod:`.filters`  - ablation filters :class:`SingleKernelFilter` and :class:`DirectColor`;

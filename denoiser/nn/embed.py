@@ -11,8 +11,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import nn
+
+from denoiser.nn.parts import conv_of_parts
 
 
 class EmbedNet(nn.Module):
@@ -49,13 +50,7 @@ class EmbedNet(nn.Module):
         Returns ``[B, C_out, H, W]`` (for samples: the mean over S of the per-sample output).
         """
         if not isinstance(x, torch.Tensor):
-            first = self.layers[0]
-            out, start = None, 0
-            for part in x:
-                n = part.shape[1]
-                y = F.conv2d(part, first.weight[:, start: start + n])
-                out, start = (y if out is None else out + y), start + n
-            return self.layers[1:](out + first.bias.view(1, -1, 1, 1))
+            return self.layers[1:](conv_of_parts(self.layers[0], x))
         if x.dim() == 5:
             b, s, c, h, w = x.shape
             y = self.layers(x.reshape(b * s, c, h, w))

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
+from denoiser.nn.parts import conv_of_parts
 
 
 def conv_block(cin: int, cout: int, negative_slope: float) -> nn.Sequential:
@@ -103,13 +104,7 @@ class UNet(nn.Module):
         ``[B, encoder[0], H, W]`` (before its LeakyReLU). Same numbers up to float rounding
         of the sum's order; what the exported graph runs (no full-resolution concatenation
         and layout reorder of the U-Net input)."""
-        conv = self.encoder[0][0]
-        out, start = None, 0
-        for part in parts:
-            n = part.shape[1]
-            y = F.conv2d(part, conv.weight[:, start: start + n], None, conv.stride, conv.padding)
-            out, start = (y if out is None else out + y), start + n
-        return out + conv.bias.view(1, -1, 1, 1)
+        return conv_of_parts(self.encoder[0][0], parts)
 
     def forward(self, x: torch.Tensor | Sequence[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """x: ``[B, C_in, H, W]`` with H, W multiples of ``self.multiple``, or a list of parts

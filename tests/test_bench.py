@@ -259,3 +259,21 @@ def test_bench_quality_limits_match_eval(tmp_path):
                                    f"out_dir={tmp_path / 'bench'}"]))
     (row,) = rows
     assert abs(row["psnr"] - first["psnr"]) < 1e-4
+
+
+def test_share_of_the_peak_uses_the_larger_of_the_peaks_before_and_after(setup, tmp_path, monkeypatch):
+    """The matmul peak is taken before and after the methods; the larger one is the peak of the
+    report and of every row's share (a share must not look better because the machine was slow
+    when one of them was taken)."""
+    import denoiser.commands.bench as bench_module
+
+    peaks = iter([100.0, 250.0])
+    monkeypatch.setattr(bench_module, "matmul_peak", lambda *a, **k: next(peaks))
+    root, ckpt = setup
+    out = tmp_path / "bench"
+    rows = bench_module.run(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
+                                              "sizes=[[16,16]]", "repeats=1", "warmup=1", "use_backends=[eager]",
+                                              "quality=false", "baselines={}", f"out_dir={out}"]))
+    row = next(r for r in rows if r["method"] == "student")
+    assert row["peak_fraction"] == pytest.approx(row["gflops_per_s"] / 250.0)
+    assert "fp32 matmul peak 250.0 GFLOP/s" in (out / "report.md").read_text()

@@ -123,7 +123,6 @@ WARMUP = {"channels_last_bf16_weights_compiled": 3, "openvino_f32": 2, "openvino
 #: the network that runs eager only, 1 warm-up + 1 timed step
 SLOW_NET = "teacher"
 #: matmul peak: matrix size, warm-up products, timed products (the best counts)
-MATMUL = {"size": 2048, "warmup": 2, "repeats": 5}
 
 
 # ----------------------------------------------------------------------------- workers (one per process)
@@ -300,11 +299,11 @@ def run(cfg: DictConfig) -> list[dict]:
         del net
 
     started = time.time()
-    peak = matmul_peak(**MATMUL)
-    peak_bf16 = matmul_peak(**MATMUL, dtype=torch.bfloat16)
+    peak = matmul_peak()
+    peak_bf16 = matmul_peak(dtype=torch.bfloat16)
     print(f"# bench_networks: torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}, load average {os.getloadavg()[0]:.1f}")
-    print(f"# matmul peak ({MATMUL['size']}x{MATMUL['size']} torch.mm, best of {MATMUL['repeats']}): "
+    print("# matmul peak (2048x2048 torch.mm, best of 5): "
           f"fp32 {peak:.1f} GFLOP/s, bf16 {peak_bf16:.1f} GFLOP/s\n")
 
     results = []

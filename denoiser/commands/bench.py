@@ -182,8 +182,9 @@ def bench_row(method: str, backend: str, device: str, size, times: list[float] |
     return row
 
 
-def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops: float) -> list[dict]:
-    """Time every method, backend and size; returns the table rows."""
+def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int) -> list[dict]:
+    """Time every method, backend and size; returns the table rows (the share of the matmul
+    peak is set by :func:`run`, which measures the peak around them)."""
     from denoiser.baselines import build_baselines
     from denoiser.configs import instantiate_config
 
@@ -246,8 +247,6 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, peak_gflops
                 if stepper.profile is not None:
                     row["profile"] = stepper.profile()  # {op type: ms} of the last timed step
                 row["gflops_per_s"] = gflop / (row["ms_median"] / 1000)
-                if backend.device == "cpu":
-                    row["peak_fraction"] = row["gflops_per_s"] / peak_gflops
                 rows.append(row)
     for m in baselines.values():
         close = getattr(m, "close", None)
@@ -431,10 +430,10 @@ def run(cfg: DictConfig) -> list[dict]:
     # the peak before and after the methods, the larger one counts (a share of the peak must
     # not look better because the machine was briefly slower when the peak was taken)
     peak_before = matmul_peak()
-    rows = run_benchmark(cfg, frames, threads, peak_before)
+    rows = run_benchmark(cfg, frames, threads)
     peak = max(peak_before, matmul_peak())
     for r in rows:
-        if "gflops_per_s" in r and "peak_fraction" in r:
+        if r.get("device") == "cpu" and "gflops_per_s" in r:
             r["peak_fraction"] = r["gflops_per_s"] / peak
     for r in rows:
         q = quality.get(r["method"])

@@ -161,7 +161,8 @@ class Denoiser(nn.Module):
         # the transforms run in float32; a network converted to bfloat16/float16 weights (fast
         # CPU/GPU inference without autocast) gets its inputs in its own dtype
         net_dtype = self.embed.layers[0].weight.dtype
-        if (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()) and frame.get("samples") is None:
+        graph = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()  # traced or exported
+        if graph and frame.get("samples") is None:
             # exported: the EmbedNet's first layer runs per input part (no concatenation)
             net_in = self.embed([color_feature(color, scale).to(net_dtype), guide.to(net_dtype)])
         else:
@@ -173,7 +174,7 @@ class Denoiser(nn.Module):
                 motion = torch.zeros_like(color[:, :2])
             history = self.temporal.warp(state, motion, reset, like=color, guide=guide)
             # traced or exported: the U-Net's first convolution runs per part (no concatenation)
-            if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+            if graph:
                 parts = [net_in] + [p.to(net_in.dtype) for p in self.temporal.input_parts(history, scale)]
                 net_in = [pad_to_multiple(p, self.multiple) for p in parts]
             else:

@@ -55,7 +55,8 @@ lint: setup
 
 # Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
 # rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/, then
-# denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/.
+# denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/,
+# and the ceiling a demodulating network meets on their noisy albedo (scripts/albedo_bound.py).
 #   make blender BLENDER_CKPT='{student: reports/demo/runs/.../last.ckpt}'
 #   make blender BLENDER_EVAL_ARGS='max_frames=4 ~baselines.oidn_balanced'   (more eval overrides)
 # Sequences already rendered with the same settings are skipped. Needs Python 3.11 for bpy 5.0.
@@ -76,3 +77,4 @@ blender: setup $(BLENDER_VENV)/.installed
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) $(BLENDER_ARGS)
 	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) out_dir=$(BLENDER_OUT) \
 		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)
+	$(VENV)/bin/python scripts/albedo_bound.py $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md

@@ -1,0 +1,96 @@
+"""How far can a demodulating denoiser get on renders whose albedo pass is noisy?
+
+A network with ``net.demodulate: true`` filters ``color / albedo`` and multiplies its output by
+the *input's* albedo again. Renderers that average the albedo over the pixel's samples (Cycles'
+``Denoising Albedo``, at 4 spp) give an albedo with the same sub-pixel texture noise as the
+colour, and the remodulation puts that noise back. This script measures the ceiling it sets:
+the reference irradiance (reference colour / reference albedo, both from the high-spp render)
+remodulated with the noisy render's albedo, against the reference colour, with the metrics of
+``denoiser-eval`` (PSNR on ACES+sRGB tonemapped frames, ``denoiser.metrics``).
+
+    python scripts/albedo_bound.py data/blender/test [--out reports/blender/albedo_bound.md]
+
+Reads the Blender layout (``<sequence>/noisy/*.exr`` and ``<sequence>/reference/*.exr``, each with
+``Combined`` and ``Denoising Albedo``); the first ``--warmup`` frames are skipped, as in
+``denoiser-eval``. Writes a Markdown table (noisy input, the bound) per sequence and the mean.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from denoiser.atomic import atomic_write_text
+from denoiser.data import exr
+from denoiser.data.layouts.blender import exr_files
+from denoiser.errors import UserError
+from denoiser.metrics import psnr
+from denoiser.nn.inputs import demodulation_albedo
+
+
+def read_rgb(path: Path, layer: str) -> torch.Tensor:
+    """``[1, 3, H, W]`` float32 of the RGB channels of ``layer`` (``ViewLayer.`` prefix optional)."""
+    names = exr.list_channels(path)
+    for prefix in ("ViewLayer.", ""):
+        want = [f"{prefix}{layer}.{c}" for c in "RGB"]
+        if all(n in names for n in want):
+            ch = exr.read_channels(path, want)
+            return torch.from_numpy(np.stack([ch[n] for n in want]))[None]
+    raise UserError(f"{path}: no {layer}.R/G/B channels; present: {', '.join(sorted(names))}")
+
+
+def sequence_bound(seq: Path, warmup: int) -> tuple[float, float, int]:
+    """Mean PSNR (noisy input, remodulation bound) over the frames of one sequence, and the frame count."""
+    noisy = exr_files(seq / "noisy")
+    rows = []
+    for path in noisy[warmup:]:
+        ref = seq / "reference" / path.name
+        if not ref.exists():
+            raise UserError(f"{ref}: missing reference frame for {path}")
+        color, albedo = read_rgb(path, "Combined"), read_rgb(path, "Denoising Albedo")
+        ref_color, ref_albedo = read_rgb(ref, "Combined"), read_rgb(ref, "Denoising Albedo")
+        irradiance = ref_color / demodulation_albedo(ref_albedo)
+        bound = irradiance * demodulation_albedo(albedo)
+        rows.append((psnr(color, ref_color).item(), psnr(bound, ref_color).item()))
+    if not rows:
+        raise UserError(f"{seq}: no frames after the {warmup} warm-up frame(s)")
+    a = np.array(rows).mean(axis=0)
+    return float(a[0]), float(a[1]), len(rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("split_dir", type=Path, help="a Blender-layout split, e.g. data/blender/test")
+    p.add_argument("--warmup", type=int, default=2, help="frames skipped at the start (default 2, as denoiser-eval)")
+    p.add_argument("--out", type=Path, default=None, help="also write the table to this Markdown file")
+    args = p.parse_args(argv)
+    try:
+        seqs = sorted(d for d in args.split_dir.iterdir() if (d / "noisy").is_dir()) if args.split_dir.is_dir() else []
+        if not seqs:
+            raise UserError(f"{args.split_dir}: no sequences (directories with noisy/ and reference/)")
+        lines = ["| sequence | frames | noisy PSNR dB | bound PSNR dB (reference irradiance x noisy albedo) |",
+                 "|---|---:|---:|---:|"]
+        results = []
+        for seq in seqs:
+            n, b, frames = sequence_bound(seq, args.warmup)
+            results.append((n, b))
+            lines.append(f"| {seq.name} | {frames} | {n:.2f} | {b:.2f} |")
+        mean = np.array(results).mean(axis=0)
+        lines.append(f"| mean |  | {mean[0]:.2f} | {mean[1]:.2f} |")
+    except UserError as e:  # ExrError included
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.out, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

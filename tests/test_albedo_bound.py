@@ -1,0 +1,79 @@
+"""scripts/albedo_bound.py: the ceiling that remodulating with a noisy albedo sets (issue 12)."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from denoiser.data import exr
+from denoiser.metrics import psnr
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "albedo_bound.py"
+H = W = 16
+
+
+def load():
+    spec = importlib.util.spec_from_file_location("albedo_bound", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def write(path: Path, color: np.ndarray, albedo: np.ndarray) -> None:
+    """One Blender-5-style multi-part frame: ``color, albedo: [H, W, 3]``."""
+    parts = [{f"ViewLayer.Combined.{c}": color[..., i] for i, c in enumerate("RGB")},
+             {f"ViewLayer.Denoising Albedo.{c}": albedo[..., i] for i, c in enumerate("RGB")}]
+    exr.write_multipart(path, parts, names=["ViewLayer.Combined", "ViewLayer.Denoising Albedo"])
+
+
+def chw(x: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(x).permute(2, 0, 1)[None]
+
+
+def test_bound_is_reference_irradiance_times_noisy_albedo(tmp_path):
+    rng = np.random.default_rng(0)
+    seq = tmp_path / "split" / "wall"
+    expected_noisy, expected_bound = [], []
+    for t in range(4):
+        albedo = rng.uniform(0.2, 0.9, (H, W, 3)).astype(np.float32)       # reference (area-average) albedo
+        irradiance = np.full((H, W, 3), 0.5 + 0.1 * t, np.float32)          # smooth lighting
+        noisy_albedo = (albedo * rng.uniform(0.5, 1.5, (H, W, 3))).astype(np.float32)
+        noisy = (irradiance * noisy_albedo * rng.uniform(0.7, 1.3, (H, W, 3))).astype(np.float32)
+        write(seq / "noisy" / f"{t + 1:04d}.exr", noisy, noisy_albedo)
+        write(seq / "reference" / f"{t + 1:04d}.exr", irradiance * albedo, albedo)
+        if t >= 2:  # the two warm-up frames are skipped
+            ref = chw(irradiance * albedo)
+            expected_noisy.append(psnr(chw(noisy), ref).item())
+            expected_bound.append(psnr(chw(irradiance * noisy_albedo), ref).item())
+    n, b, frames = load().sequence_bound(seq, warmup=2)
+    assert frames == 2
+    assert n == pytest.approx(np.mean(expected_noisy), abs=1e-4)
+    assert b == pytest.approx(np.mean(expected_bound), abs=1e-4)
+    assert n < b < 60.0  # the noisy albedo costs the bound; the input is below it
+
+
+def test_clean_albedo_gives_no_ceiling_and_the_table_is_written(tmp_path):
+    """An albedo equal to the reference's: the remodulated reference irradiance is the reference."""
+    seq = tmp_path / "split" / "flat"
+    albedo = np.full((H, W, 3), 0.5, np.float32)
+    for t in range(3):
+        write(seq / "noisy" / f"{t + 1:04d}.exr", albedo * 1.1, albedo)
+        write(seq / "reference" / f"{t + 1:04d}.exr", albedo, albedo)
+    out = tmp_path / "report" / "bound.md"
+    assert load().main([str(tmp_path / "split"), "--out", str(out), "--warmup", "0"]) == 0
+    row = [line for line in out.read_text().splitlines() if line.startswith("| flat |")][0]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "3" and float(cells[3]) > 80.0 > float(cells[2])
+
+
+def test_missing_reference_is_one_line_and_exit_2(tmp_path, capsys):
+    seq = tmp_path / "split" / "s"
+    albedo = np.full((H, W, 3), 0.5, np.float32)
+    for t in range(3):
+        write(seq / "noisy" / f"{t + 1:04d}.exr", albedo, albedo)
+    (seq / "reference").mkdir()
+    assert load().main([str(tmp_path / "split")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "0003.exr" in err[0] and "missing reference" in err[0]

@@ -127,3 +127,15 @@ def test_traced_graph_is_slices_and_multiply_adds(scale):
     assert_close_rel(traced(x, logits), reference_apply(x, kernel_weights(logits, scale).log()), tol=1e-5)
     x2, logits2 = torch.rand(2, 4, 13, 7, generator=g) * 100, torch.randn(2, 25, 13, 7, generator=g) * 5
     assert_close_rel(traced(x2, logits2), reference_apply(x2, kernel_weights(logits2, scale).log()), tol=1e-5)
+
+
+@pytest.mark.parametrize("k,h,w", [(3, 5, 7), (5, 4, 9), (5, 1, 1), (7, 3, 2)])
+def test_border_bias_masks_exactly_the_taps_that_read_outside(k, h, w):
+    """The separable row + column bias of the exported graph equals the in-place border mask."""
+    from denoiser.nn.kernels import border_bias, mask_border_taps_
+
+    logits = torch.zeros(2, k * k, h, w)
+    rows, cols = border_bias(logits, k)
+    assert rows.shape == (2, k * k, h, 1) and cols.shape == (2, k * k, 1, w)
+    expected = mask_border_taps_(torch.zeros(2, k * k, h, w))
+    assert torch.equal(logits + rows + cols, expected)

@@ -19,8 +19,9 @@ Traced or exported (``torch.jit.is_tracing()`` / ``torch.onnx.is_in_onnx_export(
 of ``denoiser-export``, ONNX Runtime and OpenVINO), the same sum is recorded as a few large ops
 instead of k*k Python-level taps and the border masking's 2k slice assignments
 (:func:`apply_kernels_graph`): the k*k shifted views are slices of one zero-padded copy, the
-border mask is the same slices of a padded ones image (1 inside, 0 for taps outside), and the
-sum is k*k multiply-adds that an inference engine fuses into elementwise kernels. In OpenVINO
+border mask is two small separable biases added to the logits (:func:`border_bias`: a row term
+and a column term, 0 inside and -inf for taps outside), and the sum is k*k multiply-adds that an
+inference engine fuses into elementwise kernels. In OpenVINO
 at 1080p that is faster than gathering the views with a one-hot grouped convolution (im2col as
 a convolution, which OpenVINO runs as a real k x k convolution, with reorders around it). Same numbers within float32 rounding (``tests/test_export.py``); the training path
 keeps the in-place loop with its hand-written backward.
@@ -96,20 +97,45 @@ def shifted_views(xp: torch.Tensor, k: int) -> list[torch.Tensor]:
     return [xp[:, :, i: end(i), j: end(j)] for i in range(k) for j in range(k)]
 
 
+def _end(i: int, k: int) -> int | None:
+    """End of the slice of tap offset ``i`` in a dimension padded by ``k - 1`` (None = to the end)."""
+    return i - (k - 1) if i < k - 1 else None
+
+
+def border_bias(logits: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Additive border masks of the taps, separable: ``(rows [B, k*k, H, 1], cols [B, k*k, 1, W])``,
+    0 where tap ``t = i*k + j`` reads inside the image along that axis and ``-inf`` where it reads
+    outside; ``logits + rows + cols`` masks exactly the taps :func:`mask_border_taps_` masks.
+
+    Built from slices of a padded column and row of ones (O(k*k*(H + W)) values, not
+    O(k*k*H*W)); logits: ``[B, k*k, H, W]`` (only its shape is used).
+    """
+    r = k // 2
+    col = F.pad(torch.ones_like(logits[:, :1, :, :1]), (0, 0, r, r))  # [B, 1, H + 2r, 1]
+    row = F.pad(torch.ones_like(logits[:, :1, :1, :]), (r, r, 0, 0))  # [B, 1, 1, W + 2r]
+    ys = [col[:, :, i: _end(i, k), :] for i in range(k)]
+    xs = [row[:, :, :, j: _end(j, k)] for j in range(k)]
+    rows = torch.cat([ys[t // k] for t in range(k * k)], dim=1)
+    cols = torch.cat([xs[t % k] for t in range(k * k)], dim=1)
+    inf = torch.tensor(float("-inf"), dtype=logits.dtype)
+    zero = torch.tensor(0.0, dtype=logits.dtype)
+    return torch.where(rows > 0.5, zero, inf), torch.where(cols > 0.5, zero, inf)
+
+
 def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | None = None) -> torch.Tensor:
     """:func:`apply_kernels` as plain slices, one softmax and multiply-adds (for tracing and
     export; no custom autograd).
 
-    x: ``[B, C, H, W]``; logits: ``[B, k*k, H, W]`` -> ``[B, C, H, W]`` float32.
+    x: ``[B, C, H, W]``; logits: ``[B, k*k, H, W]`` -> ``[B, C, H, W]`` float32. The border
+    taps are masked by two broadcast additions of :func:`border_bias` (no full-resolution mask).
     """
     k = kernel_size_of(logits)
     r = k // 2
     with torch.autocast(device_type=x.device.type, enabled=False):
         x = x.float()
         logits = scale_logits(logits, scale)
-        ones = F.pad(torch.ones_like(logits[:, :1]), (r, r, r, r))
-        inside = torch.cat(shifted_views(ones, k), dim=1)  # [B, k*k, H, W]: 1 in the image, 0 outside
-        weights = torch.softmax(torch.where(inside > 0.5, logits, float("-inf")), dim=1)
+        rows, cols = border_bias(logits, k)
+        weights = torch.softmax(logits + rows + cols, dim=1)
         views = shifted_views(F.pad(x, (r, r, r, r)), k)
         out = weights[:, :1] * views[0]
         for t in range(1, k * k):

@@ -15,6 +15,7 @@ from denoiser.data.sequence import load_sequence_json
 from denoiser.render import job as job_module
 from denoiser.render.job import RenderSettings, frame_path, render_sequence
 from denoiser.render.passes import NO_HIT_DEPTH
+from denoiser.errors import UserError
 from denoiser.render.spec import build_scene
 
 NATIVE = {"color": ("color.R", "color.G", "color.B"), "albedo": ("albedo.R", "albedo.G", "albedo.B"),
@@ -208,3 +209,80 @@ def test_motion_blur_smears_a_moving_object_only_when_declared(mi):
 
     sharp, blurred = partial_pixels(False), partial_pixels(True)
     assert blurred >= sharp + 4  # the ball sweeps ~0.8 units (several pixels) during the open shutter
+
+
+def textured_scene() -> dict:
+    """A checkered plane seen at a grazing angle (sub-pixel texture detail) and a sphere over a sky."""
+    return {
+        "name": "aux_probe", "effects": ["env_light", "area_light", "textures"],
+        "camera": {"origin": [0, 1.0, 4], "target": [0, 0, 0], "fov": 50},
+        "objects": [
+            {"name": "floor", "shape": "rectangle", "position": [0, -0.5, 0], "rotation": [-90, 0, 0], "scale": 6,
+             "material": {"type": "diffuse", "color": {"texture": "checker", "tiles": 64,
+                                                       "color0": [0.05, 0.05, 0.05], "color1": [0.9, 0.9, 0.9]}}},
+            {"name": "ball", "shape": "sphere", "position": [0, 0.2, 0], "scale": 0.5},
+        ],
+        "lights": [{"type": "constant", "radiance": 0.5},
+                   {"type": "area", "position": [0, 2, 2], "target": [0, 0, 0], "size": [1, 1], "radiance": 5}],
+    }
+
+
+def test_aux_samples_are_means_of_the_colour_samples(mi, tmp_path):
+    """aux=samples: the colour is unchanged (same seeds), albedo and normal are sample means like
+    Cycles' denoising passes: noisier than the pixel-centre ones on sub-pixel texture, equal to
+    them where the albedo is flat, normals still unit length where something was hit."""
+    spec = build_scene(textured_scene(), 0)
+    settings = RenderSettings(frames=1, spp=4, ref_spp=4, width=32, height=32, labeled=False)
+    center = render_sequence(mi, spec, tmp_path / "center", settings, seq_seed=7)
+    samples = render_sequence(mi, spec, tmp_path / "samples",
+                              RenderSettings(**{**settings.identity(), "aux": "samples"}), seq_seed=7)
+    inputs = {k: v for k, v in NATIVE.items() if k != "reference"}
+    a, _ = read_frame(frame_path(tmp_path / "center", 0), inputs)
+    b, _ = read_frame(frame_path(tmp_path / "samples", 0), inputs)
+    np.testing.assert_array_equal(a["color"], b["color"])
+    np.testing.assert_array_equal(a["depth"], b["depth"])
+    assert "aux" not in center["render_settings"] and samples["render_settings"]["aux"] == "samples"
+    assert "noisy colour's own samples" in samples["conventions"]["albedo"]
+    # the floor (rows 20+, below the sphere): a pixel covers several checker cells, so the
+    # sample means take in-between values where the pixel-centre albedo is one of the two colours
+    floor_a, floor_b = a["albedo"][20:], b["albedo"][20:]
+    grey = lambda x: ((x > 0.1) & (x < 0.85)).mean()  # noqa: E731
+    assert grey(floor_a) < 0.05 and grey(floor_b) > 0.5
+    assert np.abs(floor_a - floor_b).mean() > 0.05
+    length = np.linalg.norm(b["normal"], axis=-1)
+    hit = a["depth"][..., 0] < NO_HIT_DEPTH
+    assert np.allclose(length[hit], 1.0, atol=1e-4)  # silhouettes: some samples hit where the centre misses
+    assert np.all(np.isclose(length, 1.0, atol=1e-4) | (length == 0)) and (length == 0).mean() > 0.2
+
+
+def test_aux_samples_with_saved_samples_and_resume_identity(mi, tmp_path):
+    """With save_samples the aux means come from the saved samples' own passes; a sequence
+    rendered before the option existed (no aux key) resumes as aux=center; a changed aux refuses."""
+    spec = build_scene(textured_scene(), 0)
+    settings = RenderSettings(frames=1, spp=2, ref_spp=2, width=16, height=16, labeled=False,
+                              save_samples=True, aux="samples")
+    render_sequence(mi, spec, tmp_path / "s", settings, seq_seed=3)
+    buf, _ = read_frame(frame_path(tmp_path / "s", 0), {k: v for k, v in NATIVE.items() if k != "reference"})
+    assert 0.0 <= buf["albedo"].min() and buf["albedo"].max() <= 1.0
+    with pytest.raises(UserError, match="aux"):
+        render_sequence(mi, spec, tmp_path / "s", RenderSettings(**{**settings.identity(), "aux": "center"}),
+                        seq_seed=3)
+    with pytest.raises(UserError, match="render aux"):
+        RenderSettings(frames=1, spp=1, ref_spp=1, width=8, height=8, aux="pixel")
+
+
+def test_aux_samples_under_motion_blur_follow_the_colour_samples(mi):
+    """With an open shutter radiance_aux spreads its samples over the same sub-frame instants as
+    radiance (same colour); the albedo smears along the motion like the colour does."""
+    from denoiser.render.passes import FrameRenderer
+
+    cfg = {"name": "smear_aux", "effects": ["env_light", "object_motion", "motion_blur"],
+           "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "shutter": 1.0},
+           "objects": [{"name": "ball", "shape": "sphere", "scale": 0.3, "velocity": [0.8, 0, 0],
+                        "material": {"type": "diffuse", "color": [0.9, 0.9, 0.9]}}],
+           "lights": [{"type": "constant", "radiance": 1.0}]}
+    fr = FrameRenderer(mi, build_scene(cfg, 0), 24, 24)
+    color, albedo, _ = fr.radiance_aux(1, 16, 11)
+    np.testing.assert_allclose(color, fr.radiance(1, 16, 11), rtol=1e-6, atol=1e-7)  # float64 vs float32 sums
+    row = albedo[12, :, 0]  # sky 0, ball 0.9; the swept band has fractions in between
+    assert ((row > 0.05) & (row < 0.85)).sum() >= 4

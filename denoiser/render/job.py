@@ -24,7 +24,7 @@ from denoiser.data.sequence import SEQUENCE_JSON, load_sequence_json, write_sequ
 from denoiser.errors import ExrError, UserError
 from denoiser.render import seeds as sd
 from denoiser.render.motion import backward_motion
-from denoiser.render.passes import NO_HIT_DEPTH, FrameRenderer
+from denoiser.render.passes import AUX_MODES, NO_HIT_DEPTH, FrameRenderer
 from denoiser.render.spec import SceneSpec
 from denoiser.render.variant import active_variant
 
@@ -39,6 +39,9 @@ CONVENTIONS = {
     "camera": "to_world: Mitsuba camera-to-world matrix (row-major; columns left, up, forward, position; "
               "the camera looks along local +z); fov: horizontal, degrees",
     "time": "frame t is the instant tau = t; with motion blur the shutter spans tau in [t - s/2, t + s/2]",
+    "aux": "center: albedo and normal through the pixel centre (at tau = t; averaged over lens and shutter "
+           "samples with dof or motion blur); samples: the means over the noisy colour's own samples, as "
+           "Cycles' denoising passes",
     "seeds": "noisy/reference: Mitsuba sampler seed per frame; samples: seed of each single-sample pass, "
              "frame-major (frame * sample_count + k)",
 }
@@ -56,6 +59,19 @@ class RenderSettings:
     labeled: bool = True
     save_samples: bool = False
     half: bool = False
+    aux: str = "center"      # center | samples (denoiser.render.passes, module docstring)
+
+    def __post_init__(self):
+        if self.aux not in AUX_MODES:
+            raise UserError(f"render aux: unknown {self.aux!r}; use {' or '.join(AUX_MODES)}")
+
+    def identity(self) -> dict:
+        """The settings a resumed render must match (``aux`` only when not the default, so
+        sequences rendered before the option existed resume)."""
+        out = asdict(self)
+        if self.aux == "center":
+            del out["aux"]
+        return out
 
     def buffers(self) -> list[str]:
         return [b for b in SEQUENCE_BUFFERS
@@ -93,15 +109,23 @@ def render_frame(renderer: FrameRenderer, spec: SceneSpec, t: int, settings: Ren
     seconds: dict[str, float] = {}
     out: dict[str, np.ndarray] = {}
     tic = time.perf_counter()
-    if settings.save_samples:
+    sample_aux = None
+    if settings.save_samples and settings.aux == "samples":
+        out["samples"], *sample_aux = renderer.samples_aux(t, seeds["samples"])
+        out["color"] = out["samples"].mean(axis=0)
+    elif settings.save_samples:
         out["samples"] = renderer.samples(t, seeds["samples"])
         out["color"] = out["samples"].mean(axis=0)
+    elif settings.aux == "samples":
+        out["color"], *sample_aux = renderer.radiance_aux(t, settings.spp, seeds["noisy"])
     else:
         out["color"] = renderer.radiance(t, settings.spp, seeds["noisy"])
     seconds["color"] = time.perf_counter() - tic
     tic = time.perf_counter()
-    aux = renderer.aux(t)
+    aux = renderer.aux(t)  # depth, position and objects (motion) stay pixel-centre values
     out.update(albedo=aux.albedo, normal=aux.normal, depth=aux.depth)
+    if sample_aux is not None:
+        out["albedo"], out["normal"] = sample_aux
     seconds["aux"] = time.perf_counter() - tic
     tic = time.perf_counter()
     out["motion"] = backward_motion(spec, aux, t, settings.width, settings.height)
@@ -145,7 +169,7 @@ def render_sequence(mi, spec: SceneSpec, out_dir: str | Path, settings: RenderSe
     ``on_frame(t, skipped)`` is called after each frame (progress bars).
     """
     out_dir = Path(out_dir)
-    identity = {**asdict(settings), "scene": spec.name, "sequence_seed": seq_seed}
+    identity = {**settings.identity(), "scene": spec.name, "sequence_seed": seq_seed}
     previous = _previous(out_dir, settings, identity, overwrite) or []
     renderer = FrameRenderer(mi, spec, settings.width, settings.height)
     channels = settings.channels()
@@ -196,8 +220,18 @@ def _metadata(mi, spec: SceneSpec, settings: RenderSettings, seq_seed: int, seed
         "frame_seconds": frame_seconds,
         "frames_done": len(frame_seconds),
         "render_settings": identity,
-        "conventions": CONVENTIONS,
+        "conventions": _conventions(settings),
     }
+
+
+def _conventions(settings: RenderSettings) -> dict[str, str]:
+    """:data:`CONVENTIONS`, with albedo and normal as ``settings.aux`` renders them."""
+    conv = dict(CONVENTIONS)
+    if settings.aux == "samples":
+        conv["albedo"] = "mean first-hit albedo of the noisy colour's own samples, clamped to [0, 1]; misses count 0"
+        conv["normal"] = ("mean first-hit shading normal of the noisy colour's own samples, camera space (x right, "
+                          "y up, z into the scene), renormalised; 0 = no sample hit")
+    return conv
 
 
 def _depth(spec: SceneSpec) -> int:

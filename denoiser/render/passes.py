@@ -14,7 +14,11 @@ All arrays are numpy float32, ``[H, W, C]`` (samples ``[S, H, W, 3]``).
   an open shutter, albedo and normal are instead averaged over ``BLURRED_AUX_SPP`` samples
   through the lens and over the shutter, like the colour (as Cycles' denoising passes are), so
   they blur where the image blurs; depth, position and motion stay pixel-centre values;
-* reference: ``ref_spp`` samples with its own seed, same sensor as the noisy colour.
+* reference: ``ref_spp`` samples with its own seed, same sensor as the noisy colour;
+* ``aux: samples`` (:meth:`FrameRenderer.radiance_aux`): albedo and normal are instead the means
+  over the noisy colour's own samples (Mitsuba's ``aov`` integrator nesting the path tracer, so
+  the colour is unchanged), as Cycles' ``Denoising Albedo`` and ``Denoising Normal`` are: at a
+  few spp they carry the colour's sub-pixel texture noise, and they blur with dof and motion blur.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from denoiser.render import transforms as tf
-from denoiser.render.build import AUX_SENSOR, MAIN_SENSOR, scene_dict
+from denoiser.render.build import AUX_SENSOR, MAIN_SENSOR, integrator, scene_dict
 from denoiser.render.shapes import object_of
 from denoiser.render.spec import SceneSpec
 
@@ -33,6 +37,8 @@ MAX_TIME_SAMPLES = 16  # sub-frame instants for a motion-blurred reference
 BLURRED_AUX_SPP = 16   # lens/shutter samples of albedo and normal with dof or motion blur
 AOVS = "albedo:albedo,nn:sh_normal,pos:position,dd:depth,sid:shape_index"
 BLURRED_AOVS = "albedo:albedo,nn:sh_normal"
+SAMPLE_AOVS = "albedo:albedo,nn:sh_normal"  # nested around the path tracer: [RGB, albedo, normal]
+AUX_MODES = ("center", "samples")
 
 
 @dataclass
@@ -62,6 +68,7 @@ class FrameRenderer:
         self.height = height
         self._cached: tuple[float, object] | None = None
         self._aov = None
+        self._with_aux = None
         self.scene_loads = 0
 
     # -- scenes
@@ -110,6 +117,48 @@ class FrameRenderer:
         taus = self._instants(t, len(seeds), seeds[0])
         return np.stack([self._render(tau, 1, s) for tau, s in zip(taus, seeds)])
 
+    def samples_aux(self, t: int, seeds: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`samples` with the albedo and normal of the same samples (``aux: samples``):
+        ``(samples [S,H,W,3], albedo [H,W,3], normal [H,W,3])``, as :meth:`radiance_aux`."""
+        taus = self._instants(t, len(seeds), seeds[0])
+        passes = np.stack([self._render_with_aux(tau, 1, s) for tau, s in zip(taus, seeds)])
+        mean = passes.astype(np.float64).mean(axis=0)
+        normal = camera_normals(mean[..., 6:9], self.spec.camera.to_world(float(t)))
+        return (passes[..., 0:3], np.clip(mean[..., 3:6], 0.0, 1.0).astype(np.float32),
+                normal.astype(np.float32))
+
+    def _render_with_aux(self, tau: float, spp: int, seed: int) -> np.ndarray:
+        """``[H, W, 9]``: mean radiance, albedo and world shading normal of the same ``spp`` samples
+        (the radiance equals :meth:`_render`'s for the same seed)."""
+        if self._with_aux is None:
+            self._with_aux = self.mi.load_dict({"type": "aov", "aovs": SAMPLE_AOVS,
+                                                "integrator": integrator(self.spec)})
+        scene = self.scene(tau)
+        img = self.mi.render(scene, sensor=self._sensor(scene, MAIN_SENSOR), integrator=self._with_aux,
+                             spp=int(spp), seed=int(seed) & 0xFFFFFFFF)
+        return np.array(img, dtype=np.float32)[..., :9]
+
+    def radiance_aux(self, t: int, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`radiance` with the albedo and normal of the same samples (``aux: samples``).
+
+        Returns ``(color [H,W,3], albedo [H,W,3] in [0, 1], normal [H,W,3])``: the colour is
+        :meth:`radiance`'s for the same seed (with an open shutter up to the rounding of its sum); albedo is the mean of the samples' first-hit albedo
+        (0 for misses), clamped; normal the camera-space mean of the samples' shading normals,
+        renormalised (0 where no sample hit).
+        """
+        if not self.shutter_open:
+            acc = self._render_with_aux(float(t), spp, seed).astype(np.float64)
+        else:
+            n = spp
+            counts = [spp // n + (1 if k < spp % n else 0) for k in range(n)]
+            acc = np.zeros((self.height, self.width, 9), np.float64)
+            for k, (tau, c) in enumerate(zip(self._instants(t, n, seed), counts)):
+                acc += c * self._render_with_aux(tau, c, seed + 7919 * (k + 1))
+            acc /= spp
+        normal = camera_normals(acc[..., 6:9], self.spec.camera.to_world(float(t)))
+        return (acc[..., 0:3].astype(np.float32), np.clip(acc[..., 3:6], 0.0, 1.0).astype(np.float32),
+                normal.astype(np.float32))
+
     def reference(self, t: int, spp: int, seed: int) -> np.ndarray:
         return self.radiance(t, spp, seed, time_samples=MAX_TIME_SAMPLES)
 
@@ -156,10 +205,7 @@ class FrameRenderer:
                             spp=BLURRED_AUX_SPP // n, seed=104729 + k)
             acc += np.array(img, dtype=np.float64)[..., :6]
         acc /= n
-        normal = tf.apply_vector(np.linalg.inv(cam), acc[..., 3:6]) * np.array([-1.0, 1.0, 1.0])
-        length = np.linalg.norm(normal, axis=-1, keepdims=True)
-        normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-12), 0.0)
-        return acc[..., 0:3], normal
+        return acc[..., 0:3], camera_normals(acc[..., 3:6], cam)
 
     def _object_ids(self, scene, sid: np.ndarray, hit: np.ndarray) -> np.ndarray:
         """Map Mitsuba's per-pixel shape index to object indices: one probe ray per distinct shape."""
@@ -183,3 +229,11 @@ class FrameRenderer:
             return shape.id() if shape is not None else None
         entry = shape[0]
         return entry.id() if entry is not None else None
+
+
+def camera_normals(world: np.ndarray, cam: np.ndarray) -> np.ndarray:
+    """Mean world-space normals ``[H,W,3]`` -> unit camera-space normals (x right, y up, z into
+    the scene; 0 where the mean is about 0, i.e. nothing was hit). cam: camera-to-world ``[4, 4]``."""
+    normal = tf.apply_vector(np.linalg.inv(cam), world.astype(np.float64)) * np.array([-1.0, 1.0, 1.0])
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
+    return np.where(length > 1e-6, normal / np.maximum(length, 1e-12), 0.0)

@@ -63,6 +63,7 @@ the teacher convolution of the same name, otherwise a ConfigError (another archi
 from __future__ import annotations
 
 import difflib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -157,7 +158,8 @@ def head_meanings(net: nn.Module) -> list[list[Meaning]] | None:
     Read off ``net.filter`` (pyramid: ``levels`` partition logits, then the level-0 taps; level
     ``i``: ``kernel_sizes[i]**2`` taps; single kernel: ``kernel_size**2`` level-0 taps; another
     filter: ``head_channels`` by position, tagged with its class) and ``net.temporal``
-    (``head_layout`` appended to level 0). None for a network without ``filter`` and ``unet``.
+    (``head_layout`` appended to level 0), then the remodulation kernel's taps
+    (``remodulate: filtered``). None for a network without ``filter`` and ``unet``.
     """
     filt, unet = getattr(net, "filter", None), getattr(net, "unet", None)
     if filt is None or unet is None or not hasattr(unet, "head_channels"):
@@ -175,6 +177,9 @@ def head_meanings(net: nn.Module) -> list[list[Meaning]] | None:
     temporal = getattr(net, "temporal", None)
     if temporal is not None:
         levels[0] += [(part, c) for part, n in temporal.head_layout for c in range(n)]
+    remodulation = getattr(net, "remodulation_channels", 0)
+    if remodulation:
+        levels[0] += [("remodulation",) + tap[1:] for tap in _taps(0, math.isqrt(remodulation))]
     if [len(m) for m in levels] != list(unet.head_channels):
         raise ConfigError(f"model.param_transfer: cannot read the head channels of {type(filt).__name__} "
                           f"({[len(m) for m in levels]} meanings for {list(unet.head_channels)} channels); "

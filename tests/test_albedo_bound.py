@@ -63,7 +63,7 @@ def test_clean_albedo_gives_no_ceiling_and_the_table_is_written(tmp_path):
         write(seq / "reference" / f"{t + 1:04d}.exr", albedo, albedo)
     out = tmp_path / "report" / "bound.md"
     assert load().main([str(tmp_path / "split"), "--out", str(out), "--warmup", "0"]) == 0
-    row = [line for line in out.read_text().splitlines() if line.startswith("| flat |")][0]
+    row = next(line for line in out.read_text().splitlines() if line.startswith("| flat |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1] == "3" and float(cells[3]) > 80.0 > float(cells[2])
 

@@ -313,3 +313,85 @@ def test_levers_on_hard_inputs_stay_finite_with_finite_gradients(dtype):
     (out0.mean() + out1.mean()).backward()
     assert torch.isfinite(f1["color"].grad).all()
     assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+
+
+# ----------------------------------------------------------------------------- filtered remodulation
+
+
+def filtered(seed=0):
+    """The tiny net, demodulating, with ``remodulate: filtered``, and the same net with plain
+    remodulation sharing every weight (the extra level-0 head channels are the only difference)."""
+    cfg = compose_net_config("tiny", ablation="filtered_remodulation")
+    cfg["demodulate"] = True
+    torch.manual_seed(seed)
+    net = build_net(cfg).eval()
+    plain = build_net({**cfg, "remodulate": "input"}).eval()
+    state = {k: (v[: plain.state_dict()[k].shape[0]] if k.startswith("unet.heads.0.") else v)
+             for k, v in net.state_dict().items()}
+    plain.load_state_dict(state)
+    return net, plain
+
+
+def test_filtered_remodulation_config_rules():
+    assert compose_net_config("demo_student", ablation="filtered_remodulation")["remodulate"] == "filtered"
+    assert build_net(compose_net_config("tiny")).remodulate == "input"  # old configs: plain remodulation
+    with pytest.raises(ConfigError, match="needs net.demodulate"):
+        build_net({**compose_net_config("tiny"), "demodulate": False, "remodulate": "filtered"})
+    with pytest.raises(ConfigError, match="net.remodulate"):
+        build_net({**compose_net_config("tiny"), "demodulate": True, "remodulate": "blurred"})
+
+
+def test_filtered_remodulation_is_the_kernel_filtered_albedo():
+    """output = (irradiance output of the same weights) * (a' through the 3x3 kernels of the
+    last 9 level-0 head channels), checked against a plain loop over pixels and taps."""
+    from test_nn_kernels import reference_apply
+
+    from denoiser.nn.kernels import scale_logits
+
+    net, plain = filtered(seed=6)
+    frames = frames_with_albedo(mixed_albedo)
+    captured = []
+    hook = net.unet.heads[0].register_forward_hook(lambda m, i, o: captured.append(o))
+    got, _ = run(net, frames)
+    hook.remove()
+    ref, _ = run(plain, frames)
+    for f, g, r, head in zip(frames, got, ref, captured):
+        a = demodulation_albedo(f["albedo"])
+        h, w = a.shape[-2:]
+        logits = scale_logits(head[:, -9:, :h, :w], net.filter.logit_scale)
+        want = (r / a) * reference_apply(a, logits).float()
+        torch.testing.assert_close(g, want, rtol=1e-5, atol=1e-6)
+
+
+def test_filtered_remodulation_keeps_a_flat_albedo_and_starts_near_the_identity():
+    """A constant albedo stays constant through any convex kernel, so the output equals plain
+    remodulation's; an untrained kernel keeps about 99% on the centre tap."""
+    net, plain = filtered(seed=7)
+    frames = frames_with_albedo(lambda f: torch.full_like(f["albedo"], 0.4))
+    for a, b in zip(run(net, frames)[0], run(plain, frames)[0]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    frames = frames_with_albedo(mixed_albedo)
+    for a, b in zip(run(net, frames)[0], run(plain, frames)[0]):
+        assert ((a - b).abs() / b.abs().clamp_min(1e-3)).median() < 0.05
+
+
+def test_filtered_remodulation_exports_with_the_same_numbers(tmp_path):
+    from denoiser.step_graph import check_export, export_onnx
+
+    net, _ = filtered(seed=8)
+    path = export_onnx(net, tmp_path / "f.onnx")
+    for name, (err, scale) in check_export(net, path or tmp_path / "f.onnx", size=(20, 28), threads=1).items():
+        assert err <= 1e-4 * max(scale, 1.0), (name, err, scale)
+
+
+def test_parameter_transfer_reads_the_remodulation_taps():
+    """The remodulation logits are the last 9 level-0 head channels, row-major taps; a teacher
+    without them transfers nothing into them (the student keeps its near-identity start)."""
+    from denoiser.transfer import head_meanings, transfer_parameters
+
+    net, plain = filtered(seed=9)
+    meanings = head_meanings(net)[0]
+    assert meanings[-9:] == [("remodulation", 0, i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)]
+    before = net.unet.heads[0].bias[-9:].clone()
+    transfer_parameters(plain, net)
+    assert torch.equal(net.unet.heads[0].bias[-9:], before) and before[4] == 10.0

@@ -12,10 +12,10 @@ import pytest
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.data.exr import list_channels, read_frame, read_samples
 from denoiser.data.sequence import load_sequence_json
+from denoiser.errors import UserError
 from denoiser.render import job as job_module
 from denoiser.render.job import RenderSettings, frame_path, render_sequence
 from denoiser.render.passes import NO_HIT_DEPTH
-from denoiser.errors import UserError
 from denoiser.render.spec import build_scene
 
 NATIVE = {"color": ("color.R", "color.G", "color.B"), "albedo": ("albedo.R", "albedo.G", "albedo.B"),
@@ -246,7 +246,7 @@ def test_aux_samples_are_means_of_the_colour_samples(mi, tmp_path):
     # the floor (rows 20+, below the sphere): a pixel covers several checker cells, so the
     # sample means take in-between values where the pixel-centre albedo is one of the two colours
     floor_a, floor_b = a["albedo"][20:], b["albedo"][20:]
-    grey = lambda x: ((x > 0.1) & (x < 0.85)).mean()  # noqa: E731
+    grey = lambda x: ((x > 0.1) & (x < 0.85)).mean()
     assert grey(floor_a) < 0.05 and grey(floor_b) > 0.5
     assert np.abs(floor_a - floor_b).mean() > 0.05
     length = np.linalg.norm(b["normal"], axis=-1)

@@ -29,6 +29,16 @@ returned output is remodulated, ``output = a' * irradiance output``: a convex co
 input and history irradiance, times the pixel's own albedo (so texture detail is not blurred by
 the filter or dragged along by the history). With albedo 1 everywhere the result equals the
 network without demodulation bit for bit.
+
+Filtered remodulation (``remodulate: filtered``, with ``demodulate: true``): the returned output
+is ``output = A(a') * irradiance output`` instead, where ``A`` applies per-pixel 3x3 kernels
+(softmax over the in-image taps, :func:`~denoiser.nn.kernels.apply_kernels`) whose 9 logits are
+extra channels at the end of the level-0 head. Renderers that average the albedo over the
+pixel's samples (Cycles at a few spp; the simulator's ``aux=samples``) give an albedo with the
+colour's sub-pixel texture noise, which plain remodulation multiplies back into the output
+(docs/training.md, "Demodulation on renders with a noisy albedo"); the learned kernel can
+smooth it where the guide buffers say it is noise. Its centre-tap bias starts at
+``REMODULATION_CENTRE_BIAS``, so an untrained kernel is about the identity (plain remodulation).
 """
 
 from __future__ import annotations
@@ -40,6 +50,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.buffers import NETWORK_INPUTS
+from denoiser.errors import ConfigError
 from denoiser.nn.inputs import (
     GUIDE_CHANNELS,
     color_feature,
@@ -48,7 +59,14 @@ from denoiser.nn.inputs import (
     guide_features,
     sanitize,
 )
+from denoiser.nn.kernels import apply_kernels
 from denoiser.runner import unroll
+
+#: remodulation modes: the input's albedo, or the albedo through learned 3x3 kernels
+REMODULATE = ("input", "filtered")
+REMODULATION_KERNEL = 3
+#: initial bias of the centre tap's logit: the softmax gives it about 0.99 of the weight
+REMODULATION_CENTRE_BIAS = 10.0
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
@@ -94,6 +112,8 @@ class Denoiser(nn.Module):
         temporal: :class:`~denoiser.nn.temporal.TemporalRecurrence` or None (no recurrence).
         demodulate: filter the irradiance ``color / a'`` and remodulate (module docstring);
             False (the default, and what a stored config without the key means) filters color.
+        remodulate: ``input`` (the default: multiply by ``a'``) or ``filtered`` (multiply by
+            ``a'`` through learned 3x3 kernels; needs ``demodulate``; module docstring).
 
     Attributes:
         feature_channels: widths of ``extras["features"]`` (one map per U-Net level, finest
@@ -101,9 +121,17 @@ class Denoiser(nn.Module):
     """
 
     def __init__(self, embed: Callable[..., nn.Module], unet: Callable[..., nn.Module],
-                 filter: nn.Module, temporal: nn.Module | None = None, demodulate: bool = False):
+                 filter: nn.Module, temporal: nn.Module | None = None, demodulate: bool = False,
+                 remodulate: str = "input"):
         super().__init__()
         self.demodulate = bool(demodulate)
+        if remodulate not in REMODULATE:
+            raise ConfigError(f"net.remodulate: unknown {remodulate!r}; use {' or '.join(REMODULATE)}")
+        if remodulate == "filtered" and not self.demodulate:
+            raise ConfigError("net.remodulate=filtered needs net.demodulate=true (it filters the remodulation albedo)")
+        self.remodulate = remodulate
+        #: level-0 head channels of the remodulation kernel's logits (at the end of the head)
+        self.remodulation_channels = REMODULATION_KERNEL ** 2 if remodulate == "filtered" else 0
         self.embed = embed(in_channels=3 + GUIDE_CHANNELS)
         self.temporal = temporal
         self.filter = filter
@@ -112,7 +140,12 @@ class Denoiser(nn.Module):
         self.filter_head0 = heads[0]
         if temporal is not None:
             heads[0] += temporal.head_channels
+        heads[0] += self.remodulation_channels
         self.unet = unet(in_channels=unet_in, head_channels=heads)
+        if self.remodulation_channels:
+            with torch.no_grad():  # start at about the identity kernel (plain remodulation)
+                centre = -self.remodulation_channels + REMODULATION_KERNEL ** 2 // 2
+                self.unet.heads[0].bias[centre] = REMODULATION_CENTRE_BIAS
         self.multiple = max(self.unet.multiple, filter.multiple)
         self.feature_channels = list(self.unet.feature_channels)
 
@@ -197,6 +230,10 @@ class Denoiser(nn.Module):
             weights["valid"] = history["valid"]
             new_state = self.temporal.next_state(output, filter_in, temporal_head, guide)
         if albedo is not None:
+            if self.remodulation_channels:
+                logits = heads[0][:, -self.remodulation_channels:, :h, :w]
+                albedo = apply_kernels(albedo, logits, getattr(self.filter, "logit_scale", None))
+                weights["remodulation"] = albedo
             output = output * albedo
         extras = {"features": features, "weights": weights}
         if self.training:

@@ -28,7 +28,6 @@ from denoiser.errors import ConfigError
 from denoiser.render.build import scene_dict
 from denoiser.render.catalog import load_scene_config
 from denoiser.render.job import RenderSettings, render_sequence
-from denoiser.render.passes import AUX_MODES
 from denoiser.render.seeds import sequence_seed
 from denoiser.render.spec import build_scene
 
@@ -63,11 +62,8 @@ def _settings(cfg: DictConfig, job: dict, split: str) -> RenderSettings:
     for k, v in values.items():
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ConfigError(f"render: key '{k}' must be a positive integer, got {v!r}")
-    aux = get("aux") if "aux" in job or cfg.get("aux") is not None else "center"
-    if aux not in AUX_MODES:
-        raise ConfigError(f"render: key 'aux' must be {' or '.join(AUX_MODES)}, got {aux!r}")
     return RenderSettings(**values, labeled=split != "unlabeled", save_samples=bool(get("save_samples")),
-                          half=bool(cfg.half), aux=str(aux))
+                          half=bool(cfg.half), aux=str(get("aux")))  # RenderSettings checks aux
 
 
 def plan(cfg: DictConfig) -> list[SequenceJob]:

@@ -122,7 +122,8 @@ def render_frame(renderer: FrameRenderer, spec: SceneSpec, t: int, settings: Ren
         out["color"] = renderer.radiance(t, settings.spp, seeds["noisy"])
     seconds["color"] = time.perf_counter() - tic
     tic = time.perf_counter()
-    aux = renderer.aux(t)  # depth, position and objects (motion) stay pixel-centre values
+    # depth, position and objects (motion) stay pixel-centre values
+    aux = renderer.aux(t, blur=sample_aux is None)
     out.update(albedo=aux.albedo, normal=aux.normal, depth=aux.depth)
     if sample_aux is not None:
         out["albedo"], out["normal"] = sample_aux

@@ -36,8 +36,7 @@ NO_HIT_DEPTH = 1e10
 MAX_TIME_SAMPLES = 16  # sub-frame instants for a motion-blurred reference
 BLURRED_AUX_SPP = 16   # lens/shutter samples of albedo and normal with dof or motion blur
 AOVS = "albedo:albedo,nn:sh_normal,pos:position,dd:depth,sid:shape_index"
-BLURRED_AOVS = "albedo:albedo,nn:sh_normal"
-SAMPLE_AOVS = "albedo:albedo,nn:sh_normal"  # nested around the path tracer: [RGB, albedo, normal]
+ALBEDO_NORMAL_AOVS = "albedo:albedo,nn:sh_normal"  # blurred aux; aux=samples nests the path tracer in it
 AUX_MODES = ("center", "samples")
 
 
@@ -101,16 +100,23 @@ class FrameRenderer:
         return [float(t + shutter * ((k + u[k]) / count - 0.5)) for k in range(count)]
 
     # -- passes
-    def radiance(self, t: int, spp: int, seed: int, time_samples: int | None = None) -> np.ndarray:
-        """Mean radiance ``[H,W,3]`` of ``spp`` samples (spread over sub-frame instants if blurred)."""
+    def _mean_over_shutter(self, render, t: int, spp: int, seed: int, time_samples: int | None = None
+                           ) -> np.ndarray:
+        """Mean of ``render(tau, spp, seed) -> [H,W,C]`` over ``spp`` samples, spread over
+        sub-frame instants when the shutter is open (one seed per instant)."""
         if not self.shutter_open:
-            return self._render(float(t), spp, seed)
+            return render(float(t), spp, seed)
         n = min(spp, time_samples or spp)
         counts = [spp // n + (1 if k < spp % n else 0) for k in range(n)]
-        acc = np.zeros((self.height, self.width, 3), np.float32)
+        acc = None
         for k, (tau, c) in enumerate(zip(self._instants(t, n, seed), counts)):
-            acc += c * self._render(tau, c, seed + 7919 * (k + 1))
+            part = c * render(tau, c, seed + 7919 * (k + 1))
+            acc = part if acc is None else acc + part
         return acc / spp
+
+    def radiance(self, t: int, spp: int, seed: int, time_samples: int | None = None) -> np.ndarray:
+        """Mean radiance ``[H,W,3]`` of ``spp`` samples (spread over sub-frame instants if blurred)."""
+        return self._mean_over_shutter(self._render, t, spp, seed, time_samples)
 
     def samples(self, t: int, seeds: list[int]) -> np.ndarray:
         """Per-sample radiance ``[S,H,W,3]``: one 1-spp pass per seed (and per instant if blurred)."""
@@ -131,7 +137,7 @@ class FrameRenderer:
         """``[H, W, 9]``: mean radiance, albedo and world shading normal of the same ``spp`` samples
         (the radiance equals :meth:`_render`'s for the same seed)."""
         if self._with_aux is None:
-            self._with_aux = self.mi.load_dict({"type": "aov", "aovs": SAMPLE_AOVS,
+            self._with_aux = self.mi.load_dict({"type": "aov", "aovs": ALBEDO_NORMAL_AOVS,
                                                 "integrator": integrator(self.spec)})
         scene = self.scene(tau)
         img = self.mi.render(scene, sensor=self._sensor(scene, MAIN_SENSOR), integrator=self._with_aux,
@@ -142,19 +148,11 @@ class FrameRenderer:
         """:meth:`radiance` with the albedo and normal of the same samples (``aux: samples``).
 
         Returns ``(color [H,W,3], albedo [H,W,3] in [0, 1], normal [H,W,3])``: the colour is
-        :meth:`radiance`'s for the same seed (with an open shutter up to the rounding of its sum); albedo is the mean of the samples' first-hit albedo
+        :meth:`radiance`'s for the same seed; albedo is the mean of the samples' first-hit albedo
         (0 for misses), clamped; normal the camera-space mean of the samples' shading normals,
         renormalised (0 where no sample hit).
         """
-        if not self.shutter_open:
-            acc = self._render_with_aux(float(t), spp, seed).astype(np.float64)
-        else:
-            n = spp
-            counts = [spp // n + (1 if k < spp % n else 0) for k in range(n)]
-            acc = np.zeros((self.height, self.width, 9), np.float64)
-            for k, (tau, c) in enumerate(zip(self._instants(t, n, seed), counts)):
-                acc += c * self._render_with_aux(tau, c, seed + 7919 * (k + 1))
-            acc /= spp
+        acc = self._mean_over_shutter(self._render_with_aux, t, spp, seed)
         normal = camera_normals(acc[..., 6:9], self.spec.camera.to_world(float(t)))
         return (acc[..., 0:3].astype(np.float32), np.clip(acc[..., 3:6], 0.0, 1.0).astype(np.float32),
                 normal.astype(np.float32))
@@ -162,8 +160,12 @@ class FrameRenderer:
     def reference(self, t: int, spp: int, seed: int) -> np.ndarray:
         return self.radiance(t, spp, seed, time_samples=MAX_TIME_SAMPLES)
 
-    def aux(self, t: int) -> AuxBuffers:
-        """Albedo, normal, depth, position and object id through the pixel centres at ``tau = t``."""
+    def aux(self, t: int, blur: bool = True) -> AuxBuffers:
+        """Albedo, normal, depth, position and object id through the pixel centres at ``tau = t``.
+
+        blur: with dof or an open shutter, average albedo and normal over lens and shutter
+        samples (False: keep the pixel-centre ones, for a caller that replaces them).
+        """
         mi = self.mi
         scene = self.scene(float(t))
         if self._aov is None:
@@ -179,7 +181,7 @@ class FrameRenderer:
         depth = tf.camera_space(cam, pos.astype(np.float64))[..., 2]
         depth = np.where(hit, depth, NO_HIT_DEPTH)
         albedo = np.where(hit[..., None], albedo, 0.0)
-        if self.blurred:
+        if blur and self.blurred:
             albedo, normal = self._blurred_albedo_normal(t, cam)
         return AuxBuffers(
             albedo=np.clip(albedo, 0.0, 1.0).astype(np.float32),
@@ -196,7 +198,7 @@ class FrameRenderer:
         """Albedo ``[H,W,3]`` and unit camera-space normal ``[H,W,3]`` averaged over lens and shutter
         samples (misses count as 0; the mean normal is renormalized, 0 where nothing was hit)."""
         mi = self.mi
-        integrator = mi.load_dict({"type": "aov", "aovs": BLURRED_AOVS})
+        integrator = mi.load_dict({"type": "aov", "aovs": ALBEDO_NORMAL_AOVS})
         n = BLURRED_AUX_SPP // 2 if self.shutter_open else 1
         acc = np.zeros((self.height, self.width, 6), np.float64)
         for k, tau in enumerate(self._instants(t, n, seed=t)):

@@ -45,6 +45,7 @@ from torch import nn
 
 from denoiser.atomic import atomic_path
 from denoiser.buffers import CHANNELS, FRAME_INPUTS
+from denoiser.errors import UserError
 from denoiser.frames import random_frame
 from denoiser.runner import RecurrentRunner
 
@@ -104,6 +105,11 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     """Trace ``net.step`` at ``trace_size`` ``(H, W)`` and write an ONNX model to ``path`` (atomic)."""
     import onnx
 
+    bad = [name for name, p in net.named_parameters() if not bool(torch.isfinite(p).all())]
+    if bad:  # the graph relies on finite weights (denoiser.nn.kernels.scale_logits)
+        source = (metadata or {}).get("checkpoint", "network")
+        raise UserError(f"{source}: cannot export non-finite (NaN or Inf) weights in {', '.join(bad[:3])}"
+                        + (f" and {len(bad) - 3} more" if len(bad) > 3 else "") + ": a diverged checkpoint?")
     graph = StepGraph(net.eval()).eval()
     h, w = (int(v) for v in trace_size)
     frame = random_frame(batch, h, w, kind="hard")

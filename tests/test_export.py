@@ -105,3 +105,17 @@ def test_export_config_errors(tiny, tmp_path):
         run(OmegaConf.create({**base, "out": str(tmp_path / "x.txt")}))
     with pytest.raises(UserError, match="none.ckpt: checkpoint file does not exist"):
         run(OmegaConf.create({**base, "ckpt": str(tmp_path / "none.ckpt")}))
+
+
+def test_export_refuses_non_finite_weights(tmp_path):
+    """The graph leaves out the logits' non-finite replacement (denoiser.nn.kernels.scale_logits),
+    so it relies on finite weights: a diverged network is refused with one line, nothing written."""
+    from denoiser.step_graph import export_onnx
+
+    net = build_net(compose_net_config("tiny", "student")).eval()
+    with torch.no_grad():
+        net.unet.heads[0].weight[0, 0, 0, 0] = float("nan")
+    out = tmp_path / "bad.onnx"
+    with pytest.raises(UserError, match=r"^run/last.ckpt: cannot export non-finite .* weights in unet.heads.0.weight"):
+        export_onnx(net, out, metadata={"checkpoint": "run/last.ckpt"})
+    assert list(tmp_path.iterdir()) == []

@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from denoiser.nn.warp import warp_to_current
+from denoiser.nn.warp import warp_all
 
 #: Epsilon of the SMAPE denominator (docs/design.md §3.3).
 SMAPE_EPS = 0.01
@@ -101,10 +101,9 @@ def warp_previous(prev: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tenso
     ``out(p) = prev(p + motion(p))``, bilinear, zeros outside (the network's own
     :func:`denoiser.nn.warp.warp_to_current`). Returns ``(warped [N, C, H, W], valid [N, 1, H, W])``
     with ``valid`` 1.0 where the bilinear footprint lies entirely inside the image (a warped
-    constant image of ones is >= 0.999 there), else 0.0.
+    constant image of ones, :func:`~denoiser.nn.warp.coverage`, is >= 0.999 there), else 0.0.
     """
-    warped = warp_to_current(prev.float(), motion)
-    coverage = warp_to_current(torch.ones_like(prev[:, :1], dtype=torch.float32), motion)
+    (warped,), coverage = warp_all([prev], motion)
     return warped, (coverage >= 0.999).float()
 
 

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from denoiser.errors import ConfigError
 from denoiser.nn.kernels import apply_kernels
 from denoiser.nn.unet import UNet
-from denoiser.nn.warp import warp_to_current
+from denoiser.nn.warp import warp_all
 from denoiser.nonfinite import replace_tensor
 
 EPS = 1e-4
@@ -237,8 +237,8 @@ class OnlineCrossRegression:
             ok = torch.zeros_like(var)
         else:
             motion = replace_tensor(frame["motion"].to(dev)).clamp(-4.0 * max(h, w), 4.0 * max(h, w))
-            warped = warp_to_current(torch.cat([self._prev, torch.ones_like(var)], dim=1), motion)
-            prev, ok = warped[:, :3], (warped[:, 3:] > 0.999).float()
+            (prev,), cover = warp_all([self._prev], motion)
+            ok = (cover > 0.999).float()
 
         x = torch.cat([pilot_a, pilot_b, prev, albedo, normal], dim=1)
         m = self.net.multiple

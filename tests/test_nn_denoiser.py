@@ -141,6 +141,11 @@ def test_reset_forgets_previous_sequence(net):
     other = {k: v * 1e6 for k, v in other.items()}
     out2, _, _ = net.step(x, other, reset=torch.tensor([True, True]))
     assert torch.equal(out2, fresh)
+    # discarded history is never read: not even NaN or Inf in it reaches the output
+    broken = {k: torch.full_like(v, float("nan")) for k, v in other.items()}
+    broken["output"][:, :, ::2] = float("inf")
+    out3, _, _ = net.step(x, broken, reset=torch.tensor([True, True]))
+    assert torch.equal(out3, fresh)
 
 
 def test_reset_from_batch_in_forward(net):

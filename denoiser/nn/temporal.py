@@ -8,9 +8,9 @@ State (all ``[B, C, H, W]`` float32 at the frame's size, linear where radiance):
 * ``"guide"``    ``[B, 7, H, W]`` previous guide features (albedo, normal, depth feature), so
   the network can compare warped and current geometry and reject stale history.
 
-Per step: the state is warped to the current frame (:func:`~denoiser.nn.warp.warp_all`, together
-with a constant-1 image giving the coverage ``c`` in [0, 1]: the fraction of the bilinear footprint
-inside the image). Warped values are divided by ``c`` (where ``c > COVER_MIN``, else 0) so they
+Per step: the state is warped to the current frame (:func:`~denoiser.nn.warp.warp_all`, which
+also gives the coverage ``c`` in [0, 1]: the fraction of the bilinear footprint inside the image,
+0 for an item whose history is discarded). Warped values are divided by ``c`` (where ``c > COVER_MIN``, else 0) so they
 are convex combinations of previous pixels, and ``valid = c`` (0 where the history was reset).
 The network sees, next to the current frame, ``log1p(history output / s)``,
 ``log1p(history color / s)`` (``s`` the current color scale), the warped guide and features and
@@ -171,9 +171,9 @@ class TemporalRecurrence(nn.Module):
         else:
             keep = ~reset.to(device=like.device, dtype=torch.bool).reshape(b)
         keep = keep.view(b, 1, 1, 1)
-        # discarded history must not leak, not even as NaN through 0 * x; its coverage is 0
-        buffers = [state[k].float() for k in STATE_KEYS] + [torch.ones_like(like[:, :1])]
-        *warped, cover = warp_all([torch.where(keep, x, 0.0) for x in buffers], motion)
+        # discarded history is never read (its sample positions lie off the image), so it
+        # cannot leak, not even as NaN through 0 * x; its coverage is 0
+        warped, cover = warp_all([state[k] for k in STATE_KEYS], motion, keep)
         ok = cover > COVER_MIN
         cover_safe = cover.clamp_min(COVER_MIN)
         history = {k: torch.where(ok, v / cover_safe, 0.0) for k, v in zip(STATE_KEYS, warped)}

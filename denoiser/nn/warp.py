@@ -18,6 +18,38 @@ from denoiser.nn.inputs import sanitize
 #: anyway, and the clamp keeps grid coordinates small and finite.
 MOTION_LIMIT = 4.0
 
+#: sample position (pixels) of a discarded history item: off the image by more than the
+#: bilinear footprint, so nothing is read there
+OUTSIDE = -2.0
+
+
+def sample_positions(motion: torch.Tensor, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each pixel samples the previous frame, in pixels: ``(x [B, 1, H, W], y [B, 1, H, W])``
+    float32, ``p + motion(p)`` (motion: ``[B, 2, H, W]``; NaN, -Inf -> 0, +Inf -> 65504; clamped
+    to ``MOTION_LIMIT`` frame sizes). keep: bool ``[B, 1, 1, 1]`` or None; where False, every
+    position is moved to ``OUTSIDE`` (off the image, so that item samples nothing: zeros and
+    coverage 0, whatever the previous buffers hold, NaN included)."""
+    h, w = motion.shape[-2:]
+    limit = MOTION_LIMIT * max(h, w)
+    m = sanitize(motion).clamp(-limit, limit)
+    ys = torch.arange(h, device=motion.device, dtype=torch.float32).view(1, 1, h, 1)
+    xs = torch.arange(w, device=motion.device, dtype=torch.float32).view(1, 1, 1, w)
+    sx, sy = xs + m[:, 0:1], ys + m[:, 1:2]
+    if keep is not None:
+        sx = torch.where(keep, sx, OUTSIDE)
+    return sx, sy
+
+
+def grid_from_positions(sx: torch.Tensor, sy: torch.Tensor) -> torch.Tensor:
+    """``grid_sample`` grid ``[B, H, W, 2]`` (``align_corners=False``) of pixel positions
+    ``[B, 1, H, W]`` (:func:`sample_positions`): ``g = (s + 0.5) * 2 / size - 1``."""
+    h, w = sx.shape[-2:]
+    gx = (sx + 0.5) * (2.0 / w) - 1.0
+    gy = (sy + 0.5) * (2.0 / h) - 1.0
+    # [B, 2, H, W] then one transpose to [B, H, W, 2]: stacking x and y along a new last axis
+    # is an interleaving copy that inference engines run slowly (OpenVINO: a reference Concat)
+    return torch.cat([gx, gy], dim=1).permute(0, 2, 3, 1)
+
 
 def sampling_grid(motion: torch.Tensor) -> torch.Tensor:
     """Normalised ``grid_sample`` grid for backward motion.
@@ -25,16 +57,24 @@ def sampling_grid(motion: torch.Tensor) -> torch.Tensor:
     motion: ``[B, 2, H, W]`` pixels (x right, y down; NaN, -Inf -> 0, +Inf -> 65504) -> ``[B, H, W, 2]`` float32 in
     ``align_corners=False`` convention: ``g = (p + motion + 0.5) * 2 / size - 1``.
     """
-    h, w = motion.shape[-2:]
-    limit = MOTION_LIMIT * max(h, w)
-    m = sanitize(motion).clamp(-limit, limit)
-    ys = torch.arange(h, device=motion.device, dtype=torch.float32).view(1, 1, h, 1)
-    xs = torch.arange(w, device=motion.device, dtype=torch.float32).view(1, 1, 1, w)
-    gx = (xs + m[:, 0:1] + 0.5) * (2.0 / w) - 1.0
-    gy = (ys + m[:, 1:2] + 0.5) * (2.0 / h) - 1.0
-    # [B, 2, H, W] then one transpose to [B, H, W, 2]: stacking x and y along a new last axis
-    # is an interleaving copy that inference engines run slowly (OpenVINO: a reference Concat)
-    return torch.cat([gx, gy], dim=1).permute(0, 2, 3, 1)
+    return grid_from_positions(*sample_positions(motion))
+
+
+def _axis_coverage(s: torch.Tensor, size: int) -> torch.Tensor:
+    """Weight of the in-image taps of 1-D linear interpolation at position ``s`` (any shape)
+    on ``size`` samples: ``(1 - f) [0 <= i < size] + f [0 <= i + 1 < size]``, ``i = floor(s)``."""
+    i = torch.floor(s)
+    f = s - i
+    return (torch.where((i >= 0) & (i <= size - 1), 1.0 - f, 0.0)
+            + torch.where((i >= -1) & (i <= size - 2), f, 0.0))
+
+
+def coverage(sx: torch.Tensor, sy: torch.Tensor) -> torch.Tensor:
+    """Fraction of the bilinear footprint at positions ``[B, 1, H, W]`` (:func:`sample_positions`)
+    that lies inside the image: ``[B, 1, H, W]`` in [0, 1], what warping a constant image of ones
+    gives (bilinear weights are separable), computed per pixel without sampling anything."""
+    h, w = sx.shape[-2:]
+    return _axis_coverage(sx, w) * _axis_coverage(sy, h)
 
 
 def warp_to_current(x: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
@@ -43,17 +83,23 @@ def warp_to_current(x: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     x: ``[B, C, H, W]`` buffer of frame t-1; motion: ``[B, 2, H, W]`` backward motion of frame t.
     Returns ``[B, C, H, W]`` float32: ``x`` sampled bilinearly at ``p + motion(p)``, zeros outside.
     """
-    return warp_all([x], motion)[0]
+    return warp_all([x], motion)[0][0]
 
 
-def warp_all(buffers: Sequence[torch.Tensor], motion: torch.Tensor) -> list[torch.Tensor]:
-    """:func:`warp_to_current` of several buffers ``[B, C_i, H, W]`` with one sampling grid.
+def warp_all(buffers: Sequence[torch.Tensor], motion: torch.Tensor, keep: torch.Tensor | None = None
+             ) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """:func:`warp_to_current` of several buffers ``[B, C_i, H, W]`` with one sampling grid, and
+    the :func:`coverage` of that grid.
 
     One ``grid_sample`` per buffer, no concatenation: the same numbers as warping their
     concatenation (bilinear sampling is per channel), without the full-resolution copies in
-    and out of one stacked tensor. Returns a list of ``[B, C_i, H, W]`` float32.
+    and out of one stacked tensor. keep: bool ``[B, 1, 1, 1]`` or None; an item with False
+    gets zeros and coverage 0 (its buffers are never read, :func:`sample_positions`).
+    Returns ``(list of [B, C_i, H, W] float32, coverage [B, 1, H, W])``.
     """
     with torch.autocast(device_type=motion.device.type, enabled=False):
-        grid = sampling_grid(motion)
-        return [F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-                for x in buffers]
+        sx, sy = sample_positions(motion, keep)
+        grid = grid_from_positions(sx, sy)
+        warped = [F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+                  for x in buffers]
+        return warped, coverage(sx, sy)

@@ -67,6 +67,11 @@ def test_state_carries_history(tiny):
     fresh, _ = runner.step(f1, None, reset=True)
     assert not np.allclose(with_history, after_reset)
     assert np.allclose(after_reset, fresh, atol=1e-6)
+    # a reset never reads the old state: NaN and Inf there do not reach the output
+    broken = {k: np.full_like(v, np.nan) for k, v in state.items()}
+    broken["output"][..., ::2] = np.inf
+    after_broken, _ = runner.step(f1, broken, reset=True)
+    assert np.isfinite(after_broken).all() and np.allclose(after_broken, fresh, atol=1e-6)
 
 
 def test_graph_is_lean(tiny):

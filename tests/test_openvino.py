@@ -88,6 +88,14 @@ def test_compiles_once_per_size_and_resets(tiny):
     # state None is a reset: the first frame again gives the first output
     again = RecurrentRunner(step.step)
     assert np.array_equal(again(frames[0], True), RecurrentRunner(step.step)(frames[0], False))
+    # a reset never reads the old state (its sample positions lie off the image): NaN and Inf
+    # there do not reach the output
+    _, state = step.step(frames[0], None, reset=True)
+    broken = {k: np.where(np.arange(v.shape[-1]) % 2 == 0, np.nan, np.inf).astype(v.dtype) * np.ones_like(v)
+              for k, v in state.items()}
+    fresh, _ = step.step(frames[1], None, reset=True)
+    after, _ = step.step(frames[1], broken, reset=True)
+    assert np.isfinite(after).all() and np.array_equal(after, fresh)
 
 
 def test_backend_steps_like_the_eager_backend(tiny):

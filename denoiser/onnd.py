@@ -236,8 +236,8 @@ class OnlineCrossRegression:
             prev = torch.zeros_like(y_a)
             ok = torch.zeros_like(var)
         else:
-            motion = replace_tensor(frame["motion"].to(dev)).clamp(-4.0 * max(h, w), 4.0 * max(h, w))
-            (prev,), cover = warp_all([self._prev], motion)
+            # warp_all sanitises and clamps the motion itself (denoiser.nn.warp.sample_positions)
+            (prev,), cover = warp_all([self._prev], frame["motion"].to(dev))
             ok = (cover > 0.999).float()
 
         x = torch.cat([pilot_a, pilot_b, prev, albedo, normal], dim=1)

@@ -128,9 +128,14 @@ class FrameRenderer:
         ``(samples [S,H,W,3], albedo [H,W,3], normal [H,W,3])``, as :meth:`radiance_aux`."""
         taus = self._instants(t, len(seeds), seeds[0])
         passes = np.stack([self._render_with_aux(tau, 1, s) for tau, s in zip(taus, seeds)])
-        mean = passes.astype(np.float64).mean(axis=0)
+        _, albedo, normal = self._split_aux(passes.astype(np.float64).mean(axis=0), t)
+        return passes[..., 0:3], albedo, normal
+
+    def _split_aux(self, mean: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``[H, W, 9]`` sample means of :meth:`_render_with_aux` -> ``(color, albedo clamped to
+        [0, 1], unit camera-space normal)``, each ``[H, W, 3]`` float32."""
         normal = camera_normals(mean[..., 6:9], self.spec.camera.to_world(float(t)))
-        return (passes[..., 0:3], np.clip(mean[..., 3:6], 0.0, 1.0).astype(np.float32),
+        return (mean[..., 0:3].astype(np.float32), np.clip(mean[..., 3:6], 0.0, 1.0).astype(np.float32),
                 normal.astype(np.float32))
 
     def _render_with_aux(self, tau: float, spp: int, seed: int) -> np.ndarray:
@@ -152,10 +157,7 @@ class FrameRenderer:
         (0 for misses), clamped; normal the camera-space mean of the samples' shading normals,
         renormalised (0 where no sample hit).
         """
-        acc = self._mean_over_shutter(self._render_with_aux, t, spp, seed)
-        normal = camera_normals(acc[..., 6:9], self.spec.camera.to_world(float(t)))
-        return (acc[..., 0:3].astype(np.float32), np.clip(acc[..., 3:6], 0.0, 1.0).astype(np.float32),
-                normal.astype(np.float32))
+        return self._split_aux(self._mean_over_shutter(self._render_with_aux, t, spp, seed), t)
 
     def reference(self, t: int, spp: int, seed: int) -> np.ndarray:
         return self.radiance(t, spp, seed, time_samples=MAX_TIME_SAMPLES)

@@ -57,6 +57,8 @@ lint: setup
 # rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/, then
 # denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/,
 # and the ceiling a demodulating network meets on their noisy albedo (scripts/albedo_bound.py).
+# Once they exist, `make demo` also evaluates its teacher and students on them (reports/demo/blender/,
+# a table in reports/demo/summary.md).
 #   make blender BLENDER_CKPT='{student: reports/demo/runs/.../last.ckpt}'
 #   make blender BLENDER_EVAL_ARGS='max_frames=4 ~baselines.oidn_balanced'   (more eval overrides)
 # Sequences already rendered with the same settings are skipped. Needs Python 3.11 for bpy 5.0.

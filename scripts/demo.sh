@@ -8,7 +8,9 @@
 #   4. train the same student without KD, on references alone (experiment=demo seed=k), same
 #      seeds and the same number of steps
 #   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
-#      (denoiser-eval) and time them (denoiser-bench)
+#      (denoiser-eval) and time them (denoiser-bench); the same networks on the Blender Cycles
+#      sequences when they exist (DEMO_BLENDER, default data/blender: `make blender` renders
+#      them; bpy is an optional extra) into reports/demo/blender/
 #   6. write reports/demo/: summary.md (run id, commit, seeds, steps, test-split hash, results
 #      with mean +- std over seeds), metrics table, accuracy-vs-time plot, PNG crops, TensorBoard logs
 #
@@ -18,7 +20,8 @@
 # an interrupted one resumes from its last.ckpt). DEMO_FRESH=1 retrains everything.
 # Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
 # each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
-# teacher, default: all cores).
+# teacher, default: all cores), DEMO_BLENDER (Blender sequences to evaluate on when
+# <dir>/test exists; default data/blender, empty: off).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -30,6 +33,7 @@ RUNS=$REPORT/runs
 THREADS=${DEMO_THREADS:-null}
 SEEDS=${DEMO_SEEDS:-0 1 2}
 JOBS=${DEMO_JOBS:-2}
+BLENDER=${DEMO_BLENDER-data/blender}
 CORES=$(nproc)
 JOB_THREADS=$(( CORES / JOBS > 0 ? CORES / JOBS : 1 ))
 mkdir -p "$RUNS"
@@ -100,6 +104,12 @@ CKPTS="teacher: $TEACHER"
 for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(ckpt_of "$name")"; done
 FIRST=${SEEDS%% *}
 stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
+if [ -n "$BLENDER" ] && [ -d "$BLENDER/test" ]; then  # a real renderer's sequences (make blender)
+    stage blender "$BIN/denoiser-eval" layout=blender "data.root=$BLENDER" "ckpt={$CKPTS}" \
+        "out_dir=$REPORT/blender" '~baselines.oidn_balanced'
+else
+    rm -rf "$REPORT/blender"  # no stale table in the summary
+fi
 # the benchmark times one seed per student (the seeds are the same network size); the teacher
 # at 256x256 only (seconds per 1080p frame on 2 cores)
 BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(ckpt_of "student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(ckpt_of "student_no_kd_s$FIRST")}"

@@ -89,6 +89,29 @@ def test_summary_and_readme_copy(tmp_path):
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "metrics.csv" in bad.stderr
 
 
+def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tmp_path):
+    report = tmp_path / "report"
+    for sub, rows in (("eval", eval_rows()), ("blender", eval_rows()[:2] + eval_rows()[4:])):
+        (report / sub).mkdir(parents=True)
+        with open(report / sub / "metrics.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, FIELDS)
+            writer.writeheader()
+            writer.writerows(rows)
+    cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", f"report={report}", f"data_root={tmp_path}"]
+    assert subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False).returncode == 0
+    summary = (report / "summary.md").read_text()
+    section = summary.split("## Blender Cycles sequences")[1].split("\n## ")[0]
+    rows = {line.split("|")[1].strip(): line for line in section.splitlines() if line.startswith("| ")}
+    assert "noisy input" in rows and "OIDN-fast" not in rows  # only the methods of its own metrics.csv
+    assert "29.00 ± 0.50" in rows["student"] and rows["student"].rstrip(" |").endswith("+8.00")  # 29.0 - 21.0
+    assert "PSNR gain dB" in section
+    # the test table is unchanged, and no blender evaluation means no section
+    assert "| OIDN-fast |" in summary.split("## Blender")[0]
+    (report / "blender" / "metrics.csv").unlink()
+    assert subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False).returncode == 0
+    assert "Blender" not in (report / "summary.md").read_text()
+
+
 def test_demo_dataset_splits():
     """Every effect appears in train; val has a family train never sees; test families are new."""
     jobs = {job.split: list(job.scenes) for job in OmegaConf.load(Path(CONF_DIR) / "dataset" / "demo.yaml").dataset.jobs}
@@ -102,3 +125,51 @@ def test_demo_dataset_splits():
     assert not test & (train | val)
     assert all(load_scene_config(s).test_only for s in test)
     assert set(jobs["unlabeled"]) <= train
+
+
+# --- scripts/demo.sh with stub commands: the Blender stage ----------------------------------------
+
+DEMO_STUB = """#!/usr/bin/env bash
+printf '%s\\0' "$(basename "$0")" "$@" >> "$STUB_LOG"; printf '\\n' >> "$STUB_LOG"
+for arg in "$@"; do case "$arg" in
+  hydra.run.dir=*) mkdir -p "${arg#hydra.run.dir=}/checkpoints"; touch "${arg#hydra.run.dir=}/checkpoints/last.ckpt";;
+  out_dir=*) d="${arg#out_dir=}"; mkdir -p "$d/images"; touch "$d/metrics.md" "$d/report.md";;
+  report=*) touch "${arg#report=}/summary.md";;
+esac; done
+"""
+
+
+def _demo_sh(root: Path, **env: str) -> list[list[str]]:
+    import os
+
+    log = root / "calls.log"
+    log.unlink(missing_ok=True)
+    proc = subprocess.run(["bash", str(root / "scripts" / "demo.sh")], capture_output=True, text=True, check=False,
+                          env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), "DEMO_SEEDS": "0", **env})
+    assert proc.returncode == 0, proc.stderr
+    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
+
+
+def test_demo_sh_evaluates_its_networks_on_the_blender_sequences_when_they_exist(tmp_path):
+    import shutil
+
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(ROOT / "scripts" / "demo.sh", tmp_path / "scripts")
+    (tmp_path / "venv" / "bin").mkdir(parents=True)
+    for name in ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"):
+        (tmp_path / "venv" / "bin" / name).write_text(DEMO_STUB)
+        (tmp_path / "venv" / "bin" / name).chmod(0o755)
+
+    def evals(calls):
+        return {next(a for a in c if a.startswith("out_dir=")): c for c in calls if c[0] == "denoiser-eval"}
+
+    assert list(evals(_demo_sh(tmp_path))) == ["out_dir=reports/demo/eval"]  # no sequences: no stage
+    (tmp_path / "data" / "blender" / "test").mkdir(parents=True)
+    (tmp_path / "reports" / "demo" / "blender").mkdir(parents=True)
+    calls = evals(_demo_sh(tmp_path))
+    test, blender = calls["out_dir=reports/demo/eval"], calls["out_dir=reports/demo/blender"]
+    assert "layout=blender" in blender and "data.root=data/blender" in blender
+    ckpt = [a for a in blender if a.startswith("ckpt=")]
+    assert ckpt == [a for a in test if a.startswith("ckpt=")] and "student_distilled_s0" in ckpt[0]
+    assert list(evals(_demo_sh(tmp_path, DEMO_BLENDER=""))) == ["out_dir=reports/demo/eval"]
+    assert not (tmp_path / "reports" / "demo" / "blender").exists()  # no stale table once it is off

@@ -12,6 +12,9 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its e
   fastest backend, and the speed-up over OIDN-fast;
 * every run directory under ``<report>/runs``: steps trained (``last.ckpt``), best val PSNR
   (``best.ckpt``) and its seed;
+* each ``<report>/<dir>/metrics.csv`` named under ``extra_evals`` (``{dir: title}``, e.g. the
+  demo networks on the Blender Cycles sequences), when it exists: one more table per
+  evaluation, with every method's PSNR gain over the noisy input;
 
 and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of the test split's
 files, and the tables. ``scripts/readme_results.py`` copies its results table into the README.
@@ -101,6 +104,31 @@ def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, i
     return markdown_table(rows, columns, headers=headers)
 
 
+def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
+    """Seed groups' metrics (mean ± std) and their PSNR gain over ``noisy``'s, one row per group."""
+    base = next((g["psnr"] for g in groups if g["method"] == noisy and "psnr" in g), None)
+    rows = []
+    for g in groups:
+        row = {"method": g["method"], "seeds": len(g["seeds"]) or ""}
+        row.update({m: format_mean_std(g, m, DIGITS[m]) for m in METRICS})
+        if base is not None and "psnr" in g and g["method"] != noisy:
+            row["gain"] = f"{g['psnr'] - base:+.2f}"
+        rows.append(row)
+    return markdown_table(rows, ["method", "seeds", *METRICS, "gain"], headers={**METRICS, "gain": "PSNR gain dB"})
+
+
+def extra_sections(report: Path, extra: dict) -> list[str]:
+    """Markdown lines of one table per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists."""
+    lines: list[str] = []
+    for name, title in (extra or {}).items():
+        csv_path = report / str(name) / "metrics.csv"
+        if csv_path.exists():
+            groups = seed_groups(method_means(read_csv(csv_path)))
+            lines += [f"## {title}", "", f"From `{csv_path}`; students: mean ± std over seeds.", "",
+                      gain_table(groups).rstrip(), ""]
+    return lines
+
+
 def run(cfg: DictConfig) -> Path:
     """Write ``<report>/summary.md``; returns its path."""
     report = Path(cfg.report)
@@ -136,6 +164,7 @@ def run(cfg: DictConfig) -> Path:
         results_table(groups, bench, size, cfg.speed_reference).rstrip(),
         END,
         "",
+        *extra_sections(report, cfg.get("extra_evals") or {}),
         "## Training runs (steps and best validation PSNR)",
         "",
         markdown_table(runs, ["run", "seed", "steps", "val_psnr", "collapsed"], formats={"val_psnr": ".2f"},

@@ -30,6 +30,9 @@ demo: setup
 # Copy the results table of reports/demo/summary.md into README.md (never typed by hand).
 readme-results:
 	python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md
+	if grep -q '<!-- blender:begin -->' reports/demo/summary.md; then \
+		python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md --marker blender; \
+	else echo "reports/demo/summary.md: no Blender table (make blender, then make demo): README's left as it is"; fi
 
 # Copy the Pareto table of reports/pareto/pareto.md and its plot (docs/images/pareto.png) into README.md.
 readme-pareto:

@@ -105,6 +105,13 @@ def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tm
     assert "noisy input" in rows and "OIDN-fast" not in rows  # only the methods of its own metrics.csv
     assert "29.00 ± 0.50" in rows["student"] and rows["student"].rstrip(" |").endswith("+8.00")  # 29.0 - 21.0
     assert "PSNR gain dB" in section
+    readme = tmp_path / "README.md"
+    readme.write_text("x\n<!-- blender:begin -->\nold\n<!-- blender:end -->\n")
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--summary",
+                           str(report / "summary.md"), "--readme", str(readme), "--marker", "blender"],
+                          capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert rows["student"] in readme.read_text() and "old" not in readme.read_text()
     # the test table is unchanged, and no blender evaluation means no section
     assert "| OIDN-fast |" in summary.split("## Blender")[0]
     (report / "blender" / "metrics.csv").unlink()

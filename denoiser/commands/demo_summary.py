@@ -118,14 +118,15 @@ def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
 
 
 def extra_sections(report: Path, extra: dict) -> list[str]:
-    """Markdown lines of one table per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists."""
+    """Markdown lines of one table per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists,
+    between ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
     lines: list[str] = []
     for name, title in (extra or {}).items():
         csv_path = report / str(name) / "metrics.csv"
         if csv_path.exists():
             groups = seed_groups(method_means(read_csv(csv_path)))
             lines += [f"## {title}", "", f"From `{csv_path}`; students: mean ± std over seeds.", "",
-                      gain_table(groups).rstrip(), ""]
+                      f"<!-- {name}:begin -->", gain_table(groups).rstrip(), f"<!-- {name}:end -->", ""]
     return lines
 
 

@@ -83,12 +83,17 @@ def bench_rows(path: Path, size: tuple[int, int]) -> dict[str, dict]:
     return best
 
 
+def metric_row(group: dict) -> dict:
+    """A seed group's table row: method, number of seeds, and every metric as mean ± std."""
+    return {"method": group["method"], "seeds": len(group["seeds"]) or "",
+            **{m: format_mean_std(group, m, DIGITS[m]) for m in METRICS}}
+
+
 def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, int], reference: str) -> str:
     ref_ms = float(bench[reference]["ms_median"]) if reference in bench else None
     rows = []
     for g in groups:
-        row = {"method": g["method"], "seeds": len(g["seeds"]) or ""}
-        row.update({m: format_mean_std(g, m, DIGITS[m]) for m in METRICS})
+        row = metric_row(g)
         timed = group_timing(g, bench)
         if timed:
             row["ms"] = f"{float(timed['ms_median']):.0f}"
@@ -109,8 +114,7 @@ def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
     base = next((g["psnr"] for g in groups if g["method"] == noisy and "psnr" in g), None)
     rows = []
     for g in groups:
-        row = {"method": g["method"], "seeds": len(g["seeds"]) or ""}
-        row.update({m: format_mean_std(g, m, DIGITS[m]) for m in METRICS})
+        row = metric_row(g)
         if base is not None and "psnr" in g and g["method"] != noisy:
             row["gain"] = f"{g['psnr'] - base:+.2f}"
         rows.append(row)
@@ -121,7 +125,7 @@ def extra_sections(report: Path, extra: dict) -> list[str]:
     """Markdown lines of one table per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists,
     between ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
     lines: list[str] = []
-    for name, title in (extra or {}).items():
+    for name, title in extra.items():
         csv_path = report / str(name) / "metrics.csv"
         if csv_path.exists():
             groups = seed_groups(method_means(read_csv(csv_path)))

@@ -396,3 +396,80 @@ def test_parameter_transfer_reads_the_remodulation_taps():
     before = net.unet.heads[0].bias[-9:].clone()
     transfer_parameters(plain, net)
     assert torch.equal(net.unet.heads[0].bias[-9:], before) and before[4] == 10.0
+
+
+# ----------------------------------------------------------------------------- filter domain
+
+
+def in_domain(domain, seed=0):
+    """The tiny net config with ``filter_domain`` set: ``Denoiser``."""
+    cfg = {**compose_net_config("tiny"), "filter_domain": domain}
+    torch.manual_seed(seed)
+    return build_net(cfg).eval()
+
+
+def test_filter_domain_rules():
+    assert build_net(compose_net_config("tiny")).filter_domain == "linear"  # old configs: linear
+    with pytest.raises(ConfigError, match="net.filter_domain"):
+        in_domain("gamma")
+    from denoiser.nn.denoiser import compress, expand
+
+    x = torch.tensor([-3.0, 0.0, 1e-6, 0.5, 250.0, 65504.0]).view(1, 1, 2, 3)
+    s = torch.full((1, 1, 1, 1), 0.1)
+    y = compress(x, s)
+    assert (y.flatten().diff() > 0).all()  # monotone, sign kept
+    torch.testing.assert_close(expand(y, s), x, rtol=1e-6, atol=1e-7)
+
+
+def zero_heads(net):
+    """Every U-Net head output 0: uniform kernels and partition, history blends at 1/2."""
+    with torch.no_grad():
+        for head in net.unet.heads:
+            head.weight.zero_()
+            head.bias.zero_()
+    return net
+
+
+def test_log_domain_keeps_a_small_bright_lamp_from_glowing():
+    """A 2x2 lamp 3000 times brighter than a flat 0.1 room (64x64), the same uniform kernels:
+    filtered in linear radiance the lamp spreads over its surroundings (the glow the demo
+    networks showed on lamp_room); compressed, the pixels three rows off the lamp stay within
+    twice the room's value."""
+    frame = random_frame(1, 64, 64, seed=3)
+    frame["color"] = torch.full_like(frame["color"], 0.1)
+    frame["color"][..., 32:34, 32:34] = 300.0
+    near = (slice(None), slice(None), 36, slice(32, 34))  # three rows below the lamp
+    outs = {d: run(zero_heads(in_domain(d, seed=4)), [frame])[0][0] for d in ("linear", "log")}
+    assert outs["linear"][near].min() > 2.0  # 20x the room
+    assert outs["log"][near].max() < 0.2
+    lamp = (slice(None), slice(None), 33, 33)
+    assert (outs["log"][lamp] > outs["log"][near].max()).all()  # the lamp itself stays the brightest
+
+
+def test_log_domain_output_is_convex_and_finite_on_hard_inputs():
+    """First frame: output within the per-channel range of the input (both maps are monotone);
+    fireflies up to 65504, negative values and non-finite inputs stay finite, gradients too."""
+    net = in_domain("log", seed=5)
+    f = random_frame(2, 13, 11, seed=1, kind="hard")
+    out = run(net, [f])[0][0]
+    x = sanitize(f["color"])
+    lo, hi = x.amin(dim=(2, 3), keepdim=True), x.amax(dim=(2, 3), keepdim=True)
+    assert (out >= lo - 1e-5 * hi.abs()).all() and (out <= hi * (1 + 1e-5)).all()
+    net.train()
+    f["color"][:, 0, 0, 0] = float("nan")
+    f["color"].requires_grad_(True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out, _, _ = net.step(f, None)
+    assert torch.isfinite(out).all()
+    out.mean().backward()
+    assert torch.isfinite(f["color"].grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+
+
+def test_log_domain_exports_with_the_same_numbers(tmp_path):
+    from denoiser.step_graph import check_export, export_onnx
+
+    net = in_domain("log", seed=6)
+    path = export_onnx(net, tmp_path / "log.onnx")
+    for name, (err, scale) in check_export(net, path or tmp_path / "log.onnx", size=(20, 28), threads=1).items():
+        assert err <= 1e-4 * max(scale, 1.0), (name, err, scale)

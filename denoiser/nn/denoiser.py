@@ -30,6 +30,17 @@ input and history irradiance, times the pixel's own albedo (so texture detail is
 the filter or dragged along by the history). With albedo 1 everywhere the result equals the
 network without demodulation bit for bit.
 
+Filter domain (``filter_domain``): ``linear`` (the default, and what a stored config without the
+key means) averages linear radiance. ``log`` averages ``y = sign(x) log1p(|x| / s)`` (``s`` the
+per-image color scale, :func:`~denoiser.nn.inputs.color_scale`) and maps the filtered ``y`` back
+with ``sign(y) s expm1(|y|)`` (:func:`compress` and :func:`expand`). The filter's weights are bounded below
+(:func:`~denoiser.nn.kernels.scale_logits`), so in linear radiance a small emitter thousands of
+times brighter than its surroundings leaks into every kernel that covers it, a glow around the
+lamp (docs/training.md, "Small bright emitters"); compressed, it weighs as a value a few times
+larger. The price is a bias: a mean of logarithms is below the logarithm of the mean. Both maps
+are monotone, so the output stays within [min, max] of the filter's inputs; the history blends
+stay linear.
+
 Filtered remodulation (``remodulate: filtered``, with ``demodulate: true``): the returned output
 is ``output = A(a') * irradiance output`` instead, where ``A`` applies per-pixel 3x3 kernels
 (softmax over the in-image taps, :func:`~denoiser.nn.kernels.apply_kernels`) whose 9 logits are
@@ -62,6 +73,8 @@ from denoiser.nn.inputs import (
 from denoiser.nn.kernels import apply_kernels
 from denoiser.runner import unroll
 
+#: where the filter averages radiance: linear (unbiased), or log-compressed (module docstring)
+FILTER_DOMAINS = ("linear", "log")
 #: remodulation modes: the input's albedo, or the albedo through learned 3x3 kernels
 REMODULATE = ("input", "filtered")
 REMODULATION_KERNEL = 3
@@ -95,6 +108,18 @@ def logit_energy(heads) -> torch.Tensor:
     return torch.stack(values).mean(dim=0)
 
 
+def compress(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``sign(x) log1p(|x| / scale)``: x ``[B, C, H, W]`` linear, scale ``[B, 1, 1, 1]`` -> float32."""
+    x = x.float()
+    return torch.sign(x) * torch.log1p(x.abs() / scale)
+
+
+def expand(y: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`compress`: ``sign(y) scale (exp(|y|) - 1)`` -> float32 linear."""
+    y = y.float()
+    return torch.sign(y) * scale * (torch.exp(y.abs()) - 1.0)
+
+
 def detach_state(state: dict | None) -> dict | None:
     """Detach every tensor of a state dict (truncated backpropagation through time)."""
     return None if state is None else {k: v.detach() for k, v in state.items()}
@@ -114,6 +139,7 @@ class Denoiser(nn.Module):
             False (the default, and what a stored config without the key means) filters color.
         remodulate: ``input`` (the default: multiply by ``a'``) or ``filtered`` (multiply by
             ``a'`` through learned 3x3 kernels; needs ``demodulate``; module docstring).
+        filter_domain: ``linear`` (the default) or ``log``: what the filter averages (module docstring).
 
     Attributes:
         feature_channels: widths of ``extras["features"]`` (one map per U-Net level, finest
@@ -122,8 +148,11 @@ class Denoiser(nn.Module):
 
     def __init__(self, embed: Callable[..., nn.Module], unet: Callable[..., nn.Module],
                  filter: nn.Module, temporal: nn.Module | None = None, demodulate: bool = False,
-                 remodulate: str = "input"):
+                 remodulate: str = "input", filter_domain: str = "linear"):
         super().__init__()
+        if filter_domain not in FILTER_DOMAINS:
+            raise ConfigError(f"net.filter_domain: unknown {filter_domain!r}; use {' or '.join(FILTER_DOMAINS)}")
+        self.filter_domain = filter_domain
         self.demodulate = bool(demodulate)
         if remodulate not in REMODULATE:
             raise ConfigError(f"net.remodulate: unknown {remodulate!r}; use {' or '.join(REMODULATE)}")
@@ -221,7 +250,12 @@ class Denoiser(nn.Module):
         if history is not None:
             temporal_head = heads[0][:, self.filter_head0:, :h, :w]
             filter_in, weights["history_in"] = self.temporal.blend_in(color, history, temporal_head)
-        filtered, filter_weights = self.filter(pad_to_multiple(filter_in, self.multiple), filter_heads, scale)
+        padded = pad_to_multiple(filter_in, self.multiple)
+        if self.filter_domain == "log":
+            filtered, filter_weights = self.filter(compress(padded, scale), filter_heads, scale)
+            filtered = expand(filtered, scale)
+        else:
+            filtered, filter_weights = self.filter(padded, filter_heads, scale)
         weights.update({k: v[..., :h, :w] for k, v in filter_weights.items()})
         output = filtered[..., :h, :w]
         new_state: dict[str, torch.Tensor] = {}

@@ -75,6 +75,13 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
     grows, the logits of ``n`` entries stay within ``scale * sqrt(2 n)`` of each other, so every
     weight stays above ``exp(-scale * sqrt(2 n)) / n`` and a gradient always flows (the same
     remedy as normalised attention logits against attention-entropy collapse).
+    The bound also limits how well a kernel can leave pixels out: to give ``m`` of ``n`` taps
+    less weight than the others, the largest reachable gap between the two groups' logits is
+    ``scale * n / sqrt(m (n - m))`` (two-valued logits; the spread is then set by ``m``). For
+    the 3-level partition (``m = 1``) that is ``2.12 scale``, for 6 taps of a 5x5 kernel
+    ``2.34 scale``: at ``scale = 2.5`` a lamp 2500 times brighter than its surroundings kept
+    0.4% of its partition weight on the coarse levels and spread into a glow (docs/training.md,
+    "Small bright emitters"), which ``scale = 5`` removed.
     ``scale=None`` leaves the logits as they are (networks configured before this existed).
     Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4; float16 autocast can
     overflow a head). Traced or exported, that replacement is left out: a graph's inputs are

@@ -78,7 +78,7 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
     The bound also limits how well a kernel can leave pixels out: to give ``m`` of ``n`` taps
     less weight than the others, the largest reachable gap between the two groups' logits is
     ``scale * n / sqrt(m (n - m))`` (two-valued logits; the spread is then set by ``m``). For
-    the 3-level partition (``m = 1``) that is ``2.12 scale``, for 6 taps of a 5x5 kernel
+    the 3-level partition (two levels left out, ``m = 2``) that is ``2.12 scale``, for 6 taps of a 5x5 kernel
     ``2.34 scale``: at ``scale = 2.5`` a lamp 2500 times brighter than its surroundings kept
     0.4% of its partition weight on the coarse levels and spread into a glow (docs/training.md,
     "Small bright emitters"), which ``scale = 5`` removed.

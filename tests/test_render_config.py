@@ -186,3 +186,23 @@ def test_bench_prints_one_row_per_effect(mi, capsys):
     rows = [line for line in out.splitlines() if line.startswith("| +")]
     assert [r.split("|")[1].strip() for r in rows] == ["+area_light", "+indirect", "+glossy"]
     assert [int(r.split("|")[2]) for r in rows] == [2, 5, 7]
+
+
+def test_preset_refuses_sequences_it_does_not_describe(tmp_path, monkeypatch):
+    """After a preset changed (a retired test seed, a removed scene), the old sequence directories
+    would still be read by training and evaluation: the render names one and stops before
+    rendering anything; sequences of other splits and non-sequence files are left alone."""
+    from denoiser.commands import render
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered although a stale sequence lies in the split")
+
+    monkeypatch.setattr(render, "render_sequence", no_render)
+    monkeypatch.setattr("denoiser.render.variant.activate", lambda variant: pytest.fail("activated the renderer"))
+    cfg = _compose(["dataset=demo", f"root={tmp_path}"])
+    stale = tmp_path / "test" / "gallery_006"
+    stale.mkdir(parents=True)
+    (stale / "sequence.json").write_text("{}")
+    (tmp_path / "test" / "notes.txt").write_text("not a sequence")
+    with pytest.raises(UserError, match=r"test/gallery_006: a sequence that dataset=demo does not describe"):
+        render.run(cfg)

@@ -10,7 +10,9 @@ A dataset preset (``conf/dataset/*.yaml``) renders several scenes and splits in 
 
 Output root: ``root`` (default ``data/<name>``, ``name`` = the preset's name or ``default``).
 Resumable: finished frames are skipped. Scenes marked ``test_only`` are refused for the
-train/val/unlabeled splits unless ``allow_test_only=true``.
+train/val/unlabeled splits unless ``allow_test_only=true``. A preset describes its splits whole:
+a sequence in one of them that the preset does not list (e.g. a test seed retired by a new
+``first_sequence``) stops the render with one line naming it.
 """
 
 from __future__ import annotations
@@ -92,17 +94,34 @@ def plan(cfg: DictConfig) -> list[SequenceJob]:
     return out
 
 
+def check_no_stale_sequences(root: Path, jobs: list[SequenceJob], preset: str) -> None:
+    """A preset describes its splits whole: a sequence directory (one with a ``sequence.json``)
+    in a split the preset renders, but not among its ``jobs``, is left from an older version of
+    the preset (a retired test seed, a removed scene) or was added by hand, and training and
+    evaluation would read it as part of the split. Raises :class:`ConfigError` naming the first."""
+    planned = {j.directory for j in jobs}
+    for split in sorted({j.split for j in jobs}):
+        for meta in sorted((root / split).glob("*/sequence.json")):
+            directory = f"{split}/{meta.parent.name}"
+            if directory not in planned:
+                raise ConfigError(f"{root / directory}: a sequence that dataset={preset} does not describe (retired by "
+                                  f"a change of the preset, or added by hand); move it out of {root / split}, or "
+                                  "training and evaluation read it as part of the split")
+
+
 def run(cfg: DictConfig) -> None:
     """Render everything ``cfg`` asks for, with one progress bar over all frames."""
     from denoiser.render.variant import activate
 
     jobs = plan(cfg)
+    root = Path(cfg.root)
+    if cfg.get("dataset"):
+        check_no_stale_sequences(root, jobs, cfg.name)
     # Build every scene first: configuration mistakes surface before any rendering.
     specs = [build_scene(j.scene_config, sequence_seed(cfg.seed, j.scene_name, j.split, j.index)) for j in jobs]
     mi = activate(cfg.variant)
     for spec in specs:  # materials, textures, lights and shapes are checked by building them once
         scene_dict(mi, spec, 0.0, 8, 8)
-    root = Path(cfg.root)
     total = sum(j.settings.frames for j in jobs)
     skipped = 0
     with tqdm(total=total, unit="frame", desc="render", dynamic_ncols=True) as bar:

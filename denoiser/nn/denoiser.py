@@ -250,12 +250,11 @@ class Denoiser(nn.Module):
         if history is not None:
             temporal_head = heads[0][:, self.filter_head0:, :h, :w]
             filter_in, weights["history_in"] = self.temporal.blend_in(color, history, temporal_head)
+        log = self.filter_domain == "log"
         padded = pad_to_multiple(filter_in, self.multiple)
-        if self.filter_domain == "log":
-            filtered, filter_weights = self.filter(compress(padded, scale), filter_heads, scale)
+        filtered, filter_weights = self.filter(compress(padded, scale) if log else padded, filter_heads, scale)
+        if log:
             filtered = expand(filtered, scale)
-        else:
-            filtered, filter_weights = self.filter(padded, filter_heads, scale)
         weights.update({k: v[..., :h, :w] for k, v in filter_weights.items()})
         output = filtered[..., :h, :w]
         new_state: dict[str, torch.Tensor] = {}

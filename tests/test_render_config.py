@@ -206,3 +206,30 @@ def test_preset_refuses_sequences_it_does_not_describe(tmp_path, monkeypatch):
     (tmp_path / "test" / "notes.txt").write_text("not a sequence")
     with pytest.raises(UserError, match=r"test/gallery_006: a sequence that dataset=demo does not describe"):
         render.run(cfg)
+
+
+def test_shared_definitions_are_dropped_before_the_draw():
+    """``x-...`` keys only hold YAML anchors; any other unknown key is still an error."""
+    cfg = _scene(**{"x-shared": {"choice": [1, 2]}})
+    assert build_scene(cfg, 0).params == build_scene(_scene(), 0).params
+    with pytest.raises(ConfigError, match="unknown key"):
+        build_scene(_scene(shared={"a": 1}), 0)
+
+
+def test_medley_draws_a_new_composition_per_sequence(mi):
+    """The random-composition family: each seed draws its set, objects, lights and camera."""
+    cfg = load_scene_config("medley")
+    specs = [build_scene(cfg, seed) for seed in range(40)]
+    sets = {s.objects[0].shape for s in specs}
+    lights = {tuple(sorted(light.type for light in s.lights)) for s in specs}
+    counts = {len(s.objects) - 1 for s in specs}
+    materials = {(o.material or {}).get("type") for s in specs for o in s.objects[1:]}
+    assert sets == {"room", "rectangle"}
+    assert lights == {("area",), ("sky",), ("area", "sky")}
+    assert counts == {2, 3, 4, 5}
+    assert materials == {"diffuse", "plastic", "conductor", "glass", "rough_glass"}
+    assert {s.camera.shutter > 0 for s in specs} == {True, False}
+    assert {bool(s.moving_objects) for s in specs} == {True, False}
+    for seed in range(8):  # every draw builds and loads with only the effects the family declares
+        spec, scene = _load(mi, cfg, seed)
+        assert len(scene.shapes()) >= 3

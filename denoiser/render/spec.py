@@ -1,7 +1,9 @@
 """Scene configs -> plain scene descriptions (dataclasses), randomized per sequence.
 
 A scene config (``conf/scene/<name>.yaml``) holds ``name``, ``test_only``, ``effects``,
-``camera``, ``objects`` and ``lights`` (format in ``docs/simulator.md``). Random specs in it
+``camera``, ``objects`` and ``lights`` (format in ``docs/simulator.md``), and may hold keys
+named ``x-...``: definitions that the others share through YAML anchors, dropped before the
+draw (``conf/scene/medley.yaml``). Random specs in it
 (:mod:`denoiser.render.randomize`) are drawn with ``numpy.random.default_rng(seed)``, so one
 config yields many sequences. Time ``tau`` is measured in frames (frame ``t`` is at
 ``tau = t``; motion blur integrates over ``tau`` in ``[t - shutter/2, t + shutter/2]``).
@@ -26,6 +28,7 @@ CAMERA_KEYS = {"origin", "target", "up", "fov", "orbit", "dolly", "aperture", "f
 OBJECT_KEYS = {"name", "shape", "params", "position", "rotation", "scale", "material", "velocity", "spin",
                "enabled"}
 SCENE_KEYS = {"name", "test_only", "effects", "camera", "objects", "lights", "description"}
+SHARED_PREFIX = "x-"  # top-level keys that only hold YAML anchors' definitions
 DEFAULT_SHUTTER = 0.5
 
 
@@ -194,6 +197,7 @@ def build_scene(config: Mapping[str, Any], seed: int) -> SceneSpec:
 
     if isinstance(config, (DictConfig, ListConfig)):
         config = OmegaConf.to_container(config, resolve=True)
+    config = {k: v for k, v in config.items() if not str(k).startswith(SHARED_PREFIX)}
     name = str(config.get("name", "")) or "unnamed"
     where = f"scene '{name}'"
     _check_keys(config, SCENE_KEYS, where)

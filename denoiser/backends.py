@@ -104,6 +104,7 @@ class _ExportedGraphBackend:
     label = "exported graph"
     dtype = "fp32"
     device = "cpu"
+    matmul_heads = False  # export_onnx's choice of head operators (see there)
 
     def _export(self, net) -> str:
         from denoiser.step_graph import export_onnx
@@ -114,7 +115,7 @@ class _ExportedGraphBackend:
         key = id(net)
         if key not in self._exported:
             path = Path(self._tmp.name) / f"net{len(self._exported)}.onnx"
-            export_onnx(net, path)
+            export_onnx(net, path, matmul_heads=self.matmul_heads)
             self._exported[key] = (net, str(path))  # the net is kept: its id stays unique
         return self._exported[key][1]
 
@@ -160,7 +161,10 @@ class OpenVinoBackend(_ExportedGraphBackend):
             the last step). The counters cost a little time: profile runs are not headline timings.
 
     The export happens once per network and the compilation once per frame size (in the
-    warm-up step, untimed); the recurrent state is carried as graph inputs and outputs.
+    warm-up step, untimed); the recurrent state is carried as graph inputs and outputs. In f32
+    the U-Net's heads are exported as matrix products (``export_onnx(matmul_heads=True)``: a
+    1x1 convolution's float32 output reaches a softmax over channels through a slow reference
+    reorder in OpenVINO), in bf16 as 1x1 convolutions (docs/export.md).
     """
 
     def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU",
@@ -175,6 +179,7 @@ class OpenVinoBackend(_ExportedGraphBackend):
         self.ov_device = device
         self.device = device.lower()
         self.profile = bool(profile)
+        self.matmul_heads = precision == "f32"
 
     def available(self) -> str | None:
         try:

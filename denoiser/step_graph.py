@@ -48,6 +48,7 @@ from denoiser.buffers import CHANNELS, FRAME_INPUTS
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
 from denoiser.runner import RecurrentRunner
+from denoiser.nn.parts import heads_as_matmul
 
 
 def state_keys(net: nn.Module) -> list[str]:
@@ -101,8 +102,13 @@ def graph_inputs(graph: StepGraph, frame: dict, state: dict | None, reset: bool)
 
 
 def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_size=(37, 61), batch: int = 1,
-                metadata: dict | None = None) -> Path:
-    """Trace ``net.step`` at ``trace_size`` ``(H, W)`` and write an ONNX model to ``path`` (atomic)."""
+                metadata: dict | None = None, matmul_heads: bool = False) -> Path:
+    """Trace ``net.step`` at ``trace_size`` ``(H, W)`` and write an ONNX model to ``path`` (atomic).
+
+    ``matmul_heads``: the U-Net's 1x1 heads as matrix products
+    (:func:`denoiser.nn.parts.pointwise_of_parts`; same numbers): the graph OpenVINO runs fastest
+    in f32, while 1x1 convolutions (the default) are what it runs fastest in bf16.
+    """
     import onnx
 
     bad = [name for name, p in net.named_parameters() if not bool(torch.isfinite(p).all())]
@@ -120,9 +126,10 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
         # no_grad: the inference path of every op (no custom autograd.Function in the graph);
         # tracer warnings about Python ints are expected (see the module docstring)
         warnings.simplefilter("ignore")
-        torch.onnx.export(graph, args, str(tmp), opset_version=int(opset), input_names=graph.input_names(),
-                          output_names=graph.output_names(), dynamic_axes=dynamic, dynamo=False,
-                          do_constant_folding=True)
+        with heads_as_matmul(matmul_heads):
+            torch.onnx.export(graph, args, str(tmp), opset_version=int(opset), input_names=graph.input_names(),
+                              output_names=graph.output_names(), dynamic_axes=dynamic, dynamo=False,
+                              do_constant_folding=True)
         model = onnx.load(str(tmp))
         onnx.checker.check_model(model)
         meta = {"state_keys": ",".join(graph.keys), "multiple": str(getattr(net, "multiple", 1)),

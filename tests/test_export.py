@@ -89,6 +89,24 @@ def test_graph_is_lean(tiny):
     assert sum(n.op_type != "Constant" for n in nodes) < 1200
 
 
+def test_matmul_heads_export(tiny, tmp_path):
+    """``heads=matmul``: every U-Net head becomes matrix products (the level-0 head one per
+    part, no 1x1 convolution left for a head), with the same numbers as PyTorch."""
+    _, net, ckpt, conv_path, _ = tiny
+    out = tmp_path / "mm.onnx"
+    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", "heads=matmul",
+                           "check_size=[20,28]", "threads=1", f"hydra.run.dir={tmp_path / 'h'}"],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    conv_nodes, mm_nodes = onnx.load(str(conv_path)).graph.node, onnx.load(str(out)).graph.node
+    heads = sum(n > 0 for n in net.unet.head_channels)
+    count = lambda nodes, op: sum(n.op_type == op for n in nodes)  # noqa: E731
+    assert count(mm_nodes, "Conv") == count(conv_nodes, "Conv") - heads
+    assert count(mm_nodes, "MatMul") == count(conv_nodes, "MatMul") + heads + 1  # level 0: two parts
+    errors = check_export(net, out, size=(33, 17), steps=3)
+    assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
+
+
 def test_export_command(tiny):
     *_, out, proc = tiny
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -110,6 +128,9 @@ def test_export_config_errors(tiny, tmp_path):
         run(OmegaConf.create({**base, "out": str(tmp_path / "x.txt")}))
     with pytest.raises(UserError, match="none.ckpt: checkpoint file does not exist"):
         run(OmegaConf.create({**base, "ckpt": str(tmp_path / "none.ckpt")}))
+    with pytest.raises(UserError, match="heads: 'dense' is not conv or matmul"):
+        run(OmegaConf.create({**base, "check_size": [20, 28], "heads": "dense"}))
+    assert not (tmp_path / "x.onnx").exists()
 
 
 def test_export_refuses_non_finite_weights(tmp_path):

@@ -220,6 +220,55 @@ def test_unet_input_parts_equal_their_concatenation():
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 
 
+def test_pointwise_of_parts_is_the_1x1_conv_of_the_concatenation():
+    """pointwise_of_parts (the exported heads with heads=matmul) against a plain loop over
+    pixels of the 1x1 convolution of the concatenated parts."""
+    from denoiser.nn.parts import pointwise_of_parts
+
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(7, 4, 1)
+    parts = [torch.randn(2, 5, 3, 6), torch.randn(2, 2, 3, 6)]
+    x = torch.cat(parts, 1)
+    expected = torch.empty(2, 4, 3, 6)
+    for b in range(2):
+        for y in range(3):
+            for xx in range(6):
+                expected[b, :, y, xx] = conv.weight[:, :, 0, 0] @ x[b, :, y, xx] + conv.bias
+    with torch.no_grad():
+        got = pointwise_of_parts(conv, parts)
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(pointwise_of_parts(conv, [x]), expected, rtol=1e-5, atol=1e-5)
+
+
+class _Heads(torch.nn.Module):
+    def __init__(self, unet):
+        super().__init__()
+        self.unet = unet
+
+    def forward(self, x):
+        return tuple(self.unet(x)[0])
+
+
+def test_unet_matmul_heads_equal_conv_heads():
+    """Traced with heads_as_matmul, the U-Net's heads are the same maps as its 1x1 convolutions."""
+    from denoiser.nn.parts import heads_as_matmul, matmul_heads
+    from denoiser.nn.unet import UNet
+
+    torch.manual_seed(0)
+    unet = UNet(in_channels=7, encoder=[4, 8], bottleneck=8, decoder=[4], head_channels=[3, 2]).eval()
+    x = torch.randn(2, 7, 8, 12)
+    with torch.no_grad():
+        heads, _ = unet(x)
+        with heads_as_matmul():
+            assert matmul_heads()
+            traced = torch.jit.trace(_Heads(unet), x, check_trace=False)
+        assert not matmul_heads()
+        graph_ops = {n.kind() for n in traced.inlined_graph.nodes()}
+        assert "aten::matmul" in graph_ops
+        for a, b in zip(heads, traced(x)):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
 def test_embed_input_parts_equal_their_concatenation():
     """EmbedNet(parts) (the exported graph's form: first layer per part) equals EmbedNet(cat(parts))."""
     from denoiser.nn.embed import EmbedNet

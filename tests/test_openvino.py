@@ -33,7 +33,9 @@ RESETS = (True, False, True, False)  # first frame and a cut in the middle
 def tiny(tmp_path_factory):
     torch.manual_seed(0)
     net = build_net(compose_net_config("tiny", "student")).eval()
-    path = export_onnx(net, tmp_path_factory.mktemp("ov") / "tiny.onnx")
+    root = tmp_path_factory.mktemp("ov")
+    path = export_onnx(net, root / "tiny.onnx")
+    export_onnx(net, root / "tiny-mm.onnx", matmul_heads=True)
     frames = [random_frame(1, 20, 28, seed=10 + t, kind="hard") for t in range(len(RESETS))]
     eager = RecurrentRunner(net.step)
     expected = []
@@ -56,8 +58,11 @@ def relative_errors(path, frames, expected, precision):
     return worst
 
 
-def test_f32_matches_eager(tiny):
+@pytest.mark.parametrize("heads", ["conv", "matmul"])
+def test_f32_matches_eager(tiny, heads):
     _, path, frames, expected = tiny
+    if heads == "matmul":  # the graph the f32 backend runs (export_onnx(matmul_heads=True))
+        path = path.with_name("tiny-mm.onnx")
     errors = relative_errors(path, frames, expected, "f32")
     print("openvino f32 max relative error", errors)
     assert set(errors) >= {"output", "features", "color"}
@@ -109,3 +114,19 @@ def test_backend_steps_like_the_eager_backend(tiny):
         assert np.all(np.abs(a - b) <= F32_RTOL * np.maximum(1.0, np.abs(a)))
     with pytest.raises(ValueError, match="precision"):
         OpenVinoBackend(precision="fp8")
+
+
+def test_backend_exports_heads_per_precision(tiny):
+    """f32 runs the heads as matrix products, bf16 as 1x1 convolutions (each is the faster
+    graph in OpenVINO at that precision, docs/export.md)."""
+    import onnx
+
+    net = tiny[0]
+    heads = sum(n > 0 for n in net.unet.head_channels)
+    convs = {}
+    for precision in ("f32", "bf16"):
+        backend = OpenVinoBackend(precision=precision)
+        assert backend.matmul_heads == (precision == "f32")
+        nodes = onnx.load(backend._export(net)).graph.node
+        convs[precision] = sum(n.op_type == "Conv" for n in nodes)
+    assert convs["bf16"] - convs["f32"] == heads

@@ -41,8 +41,12 @@ def run(cfg: DictConfig) -> dict:
     trace, check = tuple(cfg.trace_size), tuple(cfg.check_size)
     if trace == check:
         raise ConfigError("check_size must differ from trace_size (the check is about dynamic sizes)")
+    heads = str(cfg.get("heads", "conv"))
+    if heads not in ("conv", "matmul"):
+        raise ConfigError(f"heads: {heads!r} is not conv or matmul")
     start = time.perf_counter()
-    export_onnx(net, out, int(cfg.opset), trace, int(cfg.batch), metadata={"checkpoint": str(cfg.ckpt)})
+    export_onnx(net, out, int(cfg.opset), trace, int(cfg.batch), metadata={"checkpoint": str(cfg.ckpt)},
+                matmul_heads=heads == "matmul")
     print(f"exported {cfg.ckpt} -> {out} (opset {cfg.opset}, traced at {trace[1]}x{trace[0]}, "
           f"{time.perf_counter() - start:.1f} s, {out.stat().st_size / 1e6:.2f} MB)")
     errors = check_export(net, out, check, int(cfg.batch), threads=cfg.get("threads"))

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.parts import conv_of_parts
+from denoiser.nn.parts import conv_of_parts, matmul_heads, pointwise_of_parts
 
 
 def conv_block(cin: int, cout: int, negative_slope: float) -> nn.Sequential:
@@ -130,6 +130,13 @@ class UNet(nn.Module):
             features[scale] = x
             x = self._up(x)
         features[0] = torch.cat([skips[0], x], dim=1)
-        heads = [head(features[i]) if n > 0 else None
-                 for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
+        if matmul_heads() and (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
+            # exported for OpenVINO f32: each head as matrix products (pointwise_of_parts; level 0
+            # per part: skip 0 and the upsampled features, no concatenation)
+            parts = [[skips[0], x]] + [[f] for f in features[1:]]
+            heads = [pointwise_of_parts(head, parts[i]) if n > 0 else None
+                     for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
+        else:
+            heads = [head(features[i]) if n > 0 else None
+                     for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
         return heads, features

@@ -131,9 +131,6 @@ class OnnxRuntimeBackend(_ExportedGraphBackend):
         self.label = label
         self.provider = provider
         self.device = "cuda" if provider.startswith("CUDA") else "cpu"
-        # on the CPU the heads as matrix products are faster (demo student at 1080p on 2
-        # threads, interleaved medians of 5: 3883 -> 3500 ms; docs/export.md)
-        self.matmul_heads = provider == "CPUExecutionProvider"
 
     def available(self) -> str | None:
         try:

@@ -107,24 +107,6 @@ def test_matmul_heads_export(tiny, tmp_path):
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
 
 
-def test_onnxruntime_backend_runs_matmul_heads(tiny):
-    """The ONNX Runtime CPU backend exports the heads as matrix products and steps like eager."""
-    from denoiser.backends import OnnxRuntimeBackend, TorchBackend
-    from denoiser.runner import RecurrentRunner
-
-    _, net, *_ = tiny
-    backend = OnnxRuntimeBackend()
-    assert backend.matmul_heads and not OnnxRuntimeBackend(provider="CUDAExecutionProvider").matmul_heads
-    frames = [random_frame(1, 20, 28, seed=30 + t, kind="hard") for t in range(3)]
-    graph = RecurrentRunner(backend.prepare(net, frames[0], threads=1).step)
-    nodes = onnx.load(backend._export(net)).graph.node
-    assert sum(n.op_type == "MatMul" for n in nodes) > sum(n > 0 for n in net.unet.head_channels)
-    eager = RecurrentRunner(TorchBackend().prepare(net, frames[0], threads=1).step)
-    for frame, reset in zip(frames, (True, False, False)):
-        a, b = eager(frame, reset).numpy(), graph(frame, reset)
-        assert np.all(np.abs(a - b) <= 1e-4 * np.maximum(1.0, np.abs(a)))
-
-
 def test_export_command(tiny):
     *_, out, proc = tiny
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -47,8 +47,8 @@ from denoiser.atomic import atomic_path
 from denoiser.buffers import CHANNELS, FRAME_INPUTS
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
-from denoiser.runner import RecurrentRunner
 from denoiser.nn.parts import heads_as_matmul
+from denoiser.runner import RecurrentRunner
 
 
 def state_keys(net: nn.Module) -> list[str]:

@@ -100,7 +100,10 @@ def test_matmul_heads_export(tiny, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     conv_nodes, mm_nodes = onnx.load(str(conv_path)).graph.node, onnx.load(str(out)).graph.node
     heads = sum(n > 0 for n in net.unet.head_channels)
-    count = lambda nodes, op: sum(n.op_type == op for n in nodes)  # noqa: E731
+
+    def count(nodes, op):
+        return sum(n.op_type == op for n in nodes)
+
     assert count(mm_nodes, "Conv") == count(conv_nodes, "Conv") - heads
     assert count(mm_nodes, "MatMul") == count(conv_nodes, "MatMul") + heads + 1  # level 0: two parts
     errors = check_export(net, out, size=(33, 17), steps=3)

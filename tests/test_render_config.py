@@ -231,5 +231,5 @@ def test_medley_draws_a_new_composition_per_sequence(mi):
     assert {s.camera.shutter > 0 for s in specs} == {True, False}
     assert {bool(s.moving_objects) for s in specs} == {True, False}
     for seed in range(8):  # every draw builds and loads with only the effects the family declares
-        spec, scene = _load(mi, cfg, seed)
+        _, scene = _load(mi, cfg, seed)
         assert len(scene.shapes()) >= 3

@@ -130,13 +130,10 @@ class UNet(nn.Module):
             features[scale] = x
             x = self._up(x)
         features[0] = torch.cat([skips[0], x], dim=1)
-        if matmul_heads() and (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
-            # exported for OpenVINO f32: each head as matrix products (pointwise_of_parts; level 0
-            # per part: skip 0 and the upsampled features, no concatenation)
-            parts = [[skips[0], x]] + [[f] for f in features[1:]]
-            heads = [pointwise_of_parts(head, parts[i]) if n > 0 else None
-                     for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
-        else:
-            heads = [head(features[i]) if n > 0 else None
-                     for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
+        # exported for OpenVINO f32 (matmul_heads): each head as matrix products, the level-0 head
+        # per part (skip 0 and the upsampled features, no concatenation); see pointwise_of_parts
+        as_matmul = matmul_heads() and (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+        parts = [[skips[0], x]] + [[f] for f in features[1:]]
+        heads = [(pointwise_of_parts(head, parts[i]) if as_matmul else head(features[i])) if n > 0 else None
+                 for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
         return heads, features

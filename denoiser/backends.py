@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import sys
 import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -105,6 +106,7 @@ class _ExportedGraphBackend:
     dtype = "fp32"
     device = "cpu"
     matmul_heads = False  # export_onnx's choice of head operators (see there)
+    fused_kernels = False  # export_onnx's denoiser::KernelApply nodes (see there)
 
     def _export(self, net) -> str:
         from denoiser.step_graph import export_onnx
@@ -115,7 +117,7 @@ class _ExportedGraphBackend:
         key = id(net)
         if key not in self._exported:
             path = Path(self._tmp.name) / f"net{len(self._exported)}.onnx"
-            export_onnx(net, path, matmul_heads=self.matmul_heads)
+            export_onnx(net, path, matmul_heads=self.matmul_heads, fused_kernels=self.fused_kernels)
             self._exported[key] = (net, str(path))  # the net is kept: its id stays unique
         return self._exported[key][1]
 
@@ -164,7 +166,10 @@ class OpenVinoBackend(_ExportedGraphBackend):
     warm-up step, untimed); the recurrent state is carried as graph inputs and outputs. In f32
     the U-Net's heads are exported as matrix products (``export_onnx(matmul_heads=True)``: a
     1x1 convolution's float32 output reaches a softmax over channels through a slow reference
-    reorder in OpenVINO), in bf16 as 1x1 convolutions (docs/export.md).
+    reorder in OpenVINO), in bf16 as 1x1 convolutions (docs/export.md). In both, the kernel
+    filter of each pyramid level is one ``denoiser::KernelApply`` node
+    (``export_onnx(fused_kernels=True)``) when the project's OpenVINO extension builds
+    (:mod:`denoiser.ovext`), else the plain graph (one line on stderr says why).
     """
 
     def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU",
@@ -180,6 +185,7 @@ class OpenVinoBackend(_ExportedGraphBackend):
         self.device = device.lower()
         self.profile = bool(profile)
         self.matmul_heads = precision == "f32"
+        self.fused_kernels = None  # decided on first use: the extension builds (denoiser.ovext)
 
     def available(self) -> str | None:
         try:
@@ -195,8 +201,13 @@ class OpenVinoBackend(_ExportedGraphBackend):
         return None
 
     def prepare(self, net, example, threads: int) -> Stepper:
+        from denoiser import ovext
         from denoiser.step_graph import OpenVinoStep
 
+        if self.fused_kernels is None:
+            self.fused_kernels = ovext.kernel_extension() is not None
+            if not self.fused_kernels:
+                print(f"{self.label}: plain kernel filter graph ({ovext.unavailable_reason()})", file=sys.stderr)
         runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device,
                               profile=self.profile)
         return Stepper(runner.step, profile=runner.last_profile if self.profile else None)

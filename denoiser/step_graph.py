@@ -47,6 +47,7 @@ from denoiser.atomic import atomic_path
 from denoiser.buffers import CHANNELS, FRAME_INPUTS
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
+from denoiser.nn.kernels import kernels_as_op
 from denoiser.nn.parts import heads_as_matmul
 from denoiser.runner import RecurrentRunner
 
@@ -102,12 +103,15 @@ def graph_inputs(graph: StepGraph, frame: dict, state: dict | None, reset: bool)
 
 
 def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_size=(37, 61), batch: int = 1,
-                metadata: dict | None = None, matmul_heads: bool = False) -> Path:
+                metadata: dict | None = None, matmul_heads: bool = False, fused_kernels: bool = False) -> Path:
     """Trace ``net.step`` at ``trace_size`` ``(H, W)`` and write an ONNX model to ``path`` (atomic).
 
     ``matmul_heads``: the U-Net's 1x1 heads as matrix products
     (:func:`denoiser.nn.parts.pointwise_of_parts`; same numbers): the graph OpenVINO runs fastest
     in f32, while 1x1 convolutions (the default) are what it runs fastest in bf16.
+    ``fused_kernels``: each pyramid level's kernel filter as one ``denoiser::KernelApply`` node
+    (:func:`denoiser.nn.kernels.kernels_as_op`; same numbers): faster in OpenVINO, and only
+    OpenVINO with the project's extension (:mod:`denoiser.ovext`) can run it.
     """
     import onnx
 
@@ -126,10 +130,11 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
         # no_grad: the inference path of every op (no custom autograd.Function in the graph);
         # tracer warnings about Python ints are expected (see the module docstring)
         warnings.simplefilter("ignore")
-        with heads_as_matmul(matmul_heads):
+        with heads_as_matmul(matmul_heads), kernels_as_op(fused_kernels):
             torch.onnx.export(graph, args, str(tmp), opset_version=int(opset), input_names=graph.input_names(),
                               output_names=graph.output_names(), dynamic_axes=dynamic, dynamo=False,
-                              do_constant_folding=True)
+                              do_constant_folding=True,
+                              custom_opsets={"denoiser": 1} if fused_kernels else None)
         model = onnx.load(str(tmp))
         onnx.checker.check_model(model)
         meta = {"state_keys": ",".join(graph.keys), "multiple": str(getattr(net, "multiple", 1)),
@@ -139,6 +144,15 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
             entry.key, entry.value = k, v
         onnx.save(model, str(tmp))
     return path
+
+
+def uses_extension(path: str | os.PathLike) -> bool:
+    """Whether the ONNX graph at ``path`` imports the ``denoiser`` domain (its
+    ``denoiser::KernelApply`` nodes need the OpenVINO extension :mod:`denoiser.ovext`)."""
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    return any(entry.domain == "denoiser" for entry in model.opset_import)
 
 
 class OnnxStep:
@@ -194,6 +208,10 @@ class OpenVinoStep:
         if precision not in OPENVINO_PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
         self.core = ov.Core()
+        if uses_extension(path):  # denoiser::KernelApply (export_onnx(fused_kernels=True))
+            from denoiser import ovext
+
+            ovext.load_into(self.core, path)
         self.model = self.core.read_model(str(path))
         self.device = device
         self.config = {"INFERENCE_PRECISION_HINT": OPENVINO_PRECISIONS[precision], "PERFORMANCE_HINT": "LATENCY"}
@@ -280,7 +298,8 @@ def _numpy(x) -> np.ndarray:
 @torch.no_grad()
 def check_export(net: nn.Module, path: str | os.PathLike, size=(72, 104), batch: int = 1, steps: int = 2,
                  threads: int | None = None) -> OrderedDict[str, tuple[float, float]]:
-    """Largest absolute error of ONNX Runtime vs PyTorch per output over ``steps`` recurrent steps.
+    """Largest absolute error of ONNX Runtime vs PyTorch per output over ``steps`` recurrent steps
+    (OpenVINO f32 instead of ONNX Runtime for a graph that needs the extension, :func:`uses_extension`).
 
     Frames are random (:func:`~denoiser.frames.random_frame`, ``kind="hard"``: fireflies, sky, large
     motion) at ``size`` ``(H, W)``; the first step resets.
@@ -288,7 +307,8 @@ def check_export(net: nn.Module, path: str | os.PathLike, size=(72, 104), batch:
     absolute error and the largest magnitude of the PyTorch value (max over steps).
     """
     torch_runner = RecurrentRunner(net.step)
-    onnx_runner = RecurrentRunner(OnnxStep(path, threads).step)
+    engine = OpenVinoStep(path, threads) if uses_extension(path) else OnnxStep(path, threads)
+    onnx_runner = RecurrentRunner(engine.step)
     h, w = (int(v) for v in size)
     errors: OrderedDict[str, tuple[float, float]] = OrderedDict()
     for t in range(steps):

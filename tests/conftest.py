@@ -1,6 +1,11 @@
 """Test-session set-up shared by every test module."""
 
+import os
 import sys
+import tempfile
+
+# built artefacts (the OpenVINO extension, denoiser.ovext) go to a per-session folder, not ~/.cache
+os.environ.setdefault("DENOISER_CACHE", tempfile.mkdtemp(prefix="denoiser-test-cache-"))
 
 
 def _absl_handler_on_the_real_stderr() -> None:

@@ -13,7 +13,7 @@ from denoiser.checkpoint import save_checkpoint
 from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
-from denoiser.step_graph import OnnxStep, StepGraph, check_export
+from denoiser.step_graph import OnnxStep, StepGraph, check_export, uses_extension
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -110,6 +110,32 @@ def test_matmul_heads_export(tiny, tmp_path):
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
 
 
+def test_fused_kernels_export(tiny, tmp_path):
+    """``kernels=fused``: one ``denoiser::KernelApply`` node per pyramid level instead of the
+    kernel softmaxes and k*k multiply-adds; checked by the command with OpenVINO (ONNX Runtime
+    cannot run it), and equal to PyTorch at another size over three recurrent steps."""
+    from denoiser import ovext
+
+    pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
+    if ovext.kernel_extension() is None:
+        pytest.skip(ovext.unavailable_reason())
+    _, net, ckpt, conv_path, _ = tiny
+    out = tmp_path / "fused.onnx"
+    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", "kernels=fused",
+                           "check_size=[20,28]", "threads=1", f"hydra.run.dir={tmp_path / 'h'}"],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "OpenVINO vs PyTorch at 28x20" in proc.stdout and "trtexec" not in proc.stdout
+    plain, fused = onnx.load(str(conv_path)), onnx.load(str(out))
+    levels = len(net.filter.kernel_sizes)
+    assert sum(n.op_type == "KernelApply" and n.domain == "denoiser" for n in fused.graph.node) == levels
+    assert sum(n.op_type == "Softmax" for n in fused.graph.node) == sum(
+        n.op_type == "Softmax" for n in plain.graph.node) - levels  # the partition's softmax stays
+    assert uses_extension(out) and not uses_extension(conv_path)
+    errors = check_export(net, out, size=(33, 17), steps=3)
+    assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
+
+
 def test_export_command(tiny):
     *_, out, proc = tiny
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -133,6 +159,8 @@ def test_export_config_errors(tiny, tmp_path):
         run(OmegaConf.create({**base, "ckpt": str(tmp_path / "none.ckpt")}))
     with pytest.raises(UserError, match="heads: 'dense' is not conv or matmul"):
         run(OmegaConf.create({**base, "check_size": [20, 28], "heads": "dense"}))
+    with pytest.raises(UserError, match="kernels: 'unfold' is not graph or fused"):
+        run(OmegaConf.create({**base, "check_size": [20, 28], "kernels": "unfold"}))
     assert not (tmp_path / "x.onnx").exists()
 
 

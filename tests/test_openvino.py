@@ -18,6 +18,7 @@ import torch
 pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
 pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
 
+from denoiser import ovext
 from denoiser.backends import OpenVinoBackend, TorchBackend
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import random_frame
@@ -36,6 +37,9 @@ def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("ov")
     path = export_onnx(net, root / "tiny.onnx")
     export_onnx(net, root / "tiny-mm.onnx", matmul_heads=True)
+    if ovext.kernel_extension() is not None:
+        export_onnx(net, root / "tiny-mm-fused.onnx", matmul_heads=True, fused_kernels=True)
+        export_onnx(net, root / "tiny-fused.onnx", fused_kernels=True)
     frames = [random_frame(1, 20, 28, seed=10 + t, kind="hard") for t in range(len(RESETS))]
     eager = RecurrentRunner(net.step)
     expected = []
@@ -58,21 +62,31 @@ def relative_errors(path, frames, expected, precision):
     return worst
 
 
-@pytest.mark.parametrize("heads", ["conv", "matmul"])
+def graph(path, name):
+    """One of the fixture's exported graphs: ``conv``, ``matmul`` (heads), ``matmul-fused`` (the
+    graph the f32 backend runs: matmul heads and denoiser::KernelApply) or ``fused`` (bf16's)."""
+    if "fused" in name and ovext.kernel_extension() is None:
+        pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
+    return path.with_name({"conv": "tiny.onnx", "matmul": "tiny-mm.onnx", "matmul-fused": "tiny-mm-fused.onnx",
+                           "fused": "tiny-fused.onnx"}[name])
+
+
+@pytest.mark.parametrize("heads", ["conv", "matmul", "matmul-fused", "fused"])
 def test_f32_matches_eager(tiny, heads):
     _, path, frames, expected = tiny
-    if heads == "matmul":  # the graph the f32 backend runs (export_onnx(matmul_heads=True))
-        path = path.with_name("tiny-mm.onnx")
+    path = graph(path, heads)
     errors = relative_errors(path, frames, expected, "f32")
     print("openvino f32 max relative error", errors)
     assert set(errors) >= {"output", "features", "color"}
     assert all(e <= F32_RTOL for e in errors.values()), errors
 
 
-def test_bf16_within_its_tolerance(tiny):
+@pytest.mark.parametrize("kernels", ["graph", "fused"])
+def test_bf16_within_its_tolerance(tiny, kernels):
     if OpenVinoBackend(precision="bf16").available():
         pytest.skip(OpenVinoBackend(precision="bf16").available())
     _, path, frames, expected = tiny
+    path = graph(path, "conv" if kernels == "graph" else "fused")
     step = OpenVinoStep(path, threads=1, precision="bf16")
     assert step.precision(1, 20, 28) == "bf16"
     errors = relative_errors(path, frames, expected, "bf16")
@@ -130,3 +144,25 @@ def test_backend_exports_heads_per_precision(tiny):
         nodes = onnx.load(backend._export(net)).graph.node
         convs[precision] = sum(n.op_type == "Conv" for n in nodes)
     assert convs["bf16"] - convs["f32"] == heads
+
+
+@pytest.mark.parametrize("extension", [True, False])
+def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, capsys, extension):
+    """Both precisions export denoiser::KernelApply when the extension is available; without it
+    (no compiler) the backend says why on stderr and runs the plain graph, with the same numbers."""
+    import onnx
+
+    if extension and ovext.kernel_extension() is None:
+        pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
+    if not extension:
+        monkeypatch.setattr(ovext, "_status", lambda: (None, "no C++ compiler ($CXX, g++ or c++)"))
+    net, _, frames, expected = tiny
+    backend = OpenVinoBackend("openvino f32", precision="f32")
+    runner = RecurrentRunner(backend.prepare(net, frames[0], threads=1).step)
+    assert backend.fused_kernels is extension
+    nodes = onnx.load(backend._export(net)).graph.node
+    assert sum(n.op_type == "KernelApply" for n in nodes) == (len(net.filter.kernel_sizes) if extension else 0)
+    assert ("plain kernel filter graph (no C++ compiler" in capsys.readouterr().err) is not extension
+    for frame, reset, (out, _) in zip(frames, RESETS, expected):
+        got = runner(frame, reset)
+        assert np.all(np.abs(out - got) <= F32_RTOL * np.maximum(1.0, np.abs(out)))

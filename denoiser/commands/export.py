@@ -9,7 +9,9 @@ The graph and its inputs and outputs are described in :mod:`denoiser.step_graph`
 ``docs/export.md``. The result is checked by ONNX Runtime against PyTorch at ``check_size``, a
 different resolution from ``trace_size``, over two recurrent steps (reset, then with the
 returned state); the largest absolute error of every output is printed and must stay below
-``tolerance * max(1, max |value|)``.
+``tolerance * max(1, max |value|)``. ``kernels=fused`` writes each pyramid level's kernel filter
+as one ``denoiser::KernelApply`` node, which only OpenVINO with the project's extension runs
+(:mod:`denoiser.ovext`); that graph is checked with OpenVINO f32 instead.
 """
 
 from __future__ import annotations
@@ -44,21 +46,31 @@ def run(cfg: DictConfig) -> dict:
     heads = str(cfg.get("heads", "conv"))
     if heads not in ("conv", "matmul"):
         raise ConfigError(f"heads: {heads!r} is not conv or matmul")
+    kernels = str(cfg.get("kernels", "graph"))
+    if kernels not in ("graph", "fused"):
+        raise ConfigError(f"kernels: {kernels!r} is not graph or fused")
+    if kernels == "fused":
+        from denoiser import ovext
+
+        if ovext.kernel_extension() is None:
+            raise UserError(f"kernels=fused needs the OpenVINO extension: {ovext.unavailable_reason()}")
     start = time.perf_counter()
     export_onnx(net, out, int(cfg.opset), trace, int(cfg.batch), metadata={"checkpoint": str(cfg.ckpt)},
-                matmul_heads=heads == "matmul")
+                matmul_heads=heads == "matmul", fused_kernels=kernels == "fused")
     print(f"exported {cfg.ckpt} -> {out} (opset {cfg.opset}, traced at {trace[1]}x{trace[0]}, "
           f"{time.perf_counter() - start:.1f} s, {out.stat().st_size / 1e6:.2f} MB)")
     errors = check_export(net, out, check, int(cfg.batch), threads=cfg.get("threads"))
-    print(f"ONNX Runtime vs PyTorch at {check[1]}x{check[0]}, 2 recurrent steps, max abs error (max |value|): "
+    engine = "OpenVINO" if kernels == "fused" else "ONNX Runtime"
+    print(f"{engine} vs PyTorch at {check[1]}x{check[0]}, 2 recurrent steps, max abs error (max |value|): "
           + ", ".join(f"{k} {e:.3g} ({s:.3g})" for k, (e, s) in errors.items()))
     tol = float(cfg.tolerance)
     bad = {k: (e, s) for k, (e, s) in errors.items() if e > tol * max(1.0, s)}
     if bad:
         k, (e, s) = next(iter(bad.items()))
-        raise UserError(f"{out}: ONNX Runtime differs from PyTorch in {k} by {e:.3g} > tolerance {tol} x max(1, {s:.3g})")
+        raise UserError(f"{out}: {engine} differs from PyTorch in {k} by {e:.3g} > tolerance {tol} x max(1, {s:.3g})")
     print(f"max abs error {max(e for e, _ in errors.values()):.3g}: within tolerance {tol} x max(1, max |value|): ok")
-    print("TensorRT FP16 engine (see docs/export.md):\n" + trtexec_command(out, net, int(cfg.batch)))
+    if kernels == "graph":  # TensorRT has no denoiser::KernelApply
+        print("TensorRT FP16 engine (see docs/export.md):\n" + trtexec_command(out, net, int(cfg.batch)))
     return dict(errors)
 
 

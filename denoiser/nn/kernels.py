@@ -29,7 +29,10 @@ keeps the in-place loop with its hand-written backward.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -144,6 +147,9 @@ def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | No
     x: ``[B, C, H, W]``; logits: ``[B, k*k, H, W]`` -> ``[B, C, H, W]`` float32. The border
     taps are masked by two broadcast additions of :func:`border_bias` (no full-resolution mask).
     """
+    if _KERNEL_OP.get():
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            return _KernelApplyOp.apply(x.float(), logits.float(), scale)
     k = kernel_size_of(logits)
     r = k // 2
     with torch.autocast(device_type=x.device.type, enabled=False):
@@ -155,6 +161,45 @@ def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | No
         out = weights[:, :1] * views[0]
         for t in range(1, k * k):
             out = out + weights[:, t: t + 1] * views[t]
+        return out
+
+
+_KERNEL_OP = contextvars.ContextVar("kernel_op", default=False)
+
+
+@contextlib.contextmanager
+def kernels_as_op(enabled: bool = True) -> Iterator[None]:
+    """Within the block, an exported :func:`apply_kernels_graph` is one ``denoiser::KernelApply``
+    node (attributes ``scale`` float, ``has_scale`` int) instead of slices, a softmax and k*k
+    multiply-adds: the fused operation of the OpenVINO extension :mod:`denoiser.ovext`. Only an
+    engine with that extension loaded can run such a graph."""
+    token = _KERNEL_OP.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _KERNEL_OP.reset(token)
+
+
+class _KernelApplyOp(torch.autograd.Function):
+    """:func:`apply_kernels_graph` recorded as one ``denoiser::KernelApply`` ONNX node.
+
+    forward(x ``[B, C, H, W]`` float32, logits ``[B, k*k, H, W]`` float32, scale float or None)
+    -> ``[B, C, H, W]`` float32, computed by the plain graph (the tracer records the node only).
+    """
+
+    @staticmethod
+    def forward(ctx, x, logits, scale):
+        token = _KERNEL_OP.set(False)
+        try:
+            return apply_kernels_graph(x, logits, scale)
+        finally:
+            _KERNEL_OP.reset(token)
+
+    @staticmethod
+    def symbolic(g, x, logits, scale):
+        out = g.op("denoiser::KernelApply", x, logits, scale_f=1.0 if scale is None else float(scale),
+                   has_scale_i=int(scale is not None))
+        out.setType(x.type())
         return out
 
 

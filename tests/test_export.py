@@ -111,9 +111,10 @@ def test_matmul_heads_export(tiny, tmp_path):
 
 
 def test_fused_kernels_export(tiny, tmp_path):
-    """``kernels=fused``: one ``denoiser::KernelApply`` node per pyramid level instead of the
-    kernel softmaxes and k*k multiply-adds; checked by the command with OpenVINO (ONNX Runtime
-    cannot run it), and equal to PyTorch at another size over three recurrent steps."""
+    """``kernels=fused``: one ``denoiser::PyramidFilter`` node instead of the partition, the
+    kernel softmaxes, the k*k multiply-adds per level and the upsampling; checked by the command
+    with OpenVINO (ONNX Runtime cannot run it), and equal to PyTorch at another size over three
+    recurrent steps."""
     from denoiser import ovext
 
     pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
@@ -128,9 +129,10 @@ def test_fused_kernels_export(tiny, tmp_path):
     assert "OpenVINO vs PyTorch at 28x20" in proc.stdout and "trtexec" not in proc.stdout
     plain, fused = onnx.load(str(conv_path)), onnx.load(str(out))
     levels = len(net.filter.kernel_sizes)
-    assert sum(n.op_type == "KernelApply" and n.domain == "denoiser" for n in fused.graph.node) == levels
+    ours = [n.op_type for n in fused.graph.node if n.domain == "denoiser"]
+    assert ours == ["PyramidFilter"]  # the whole filter, one node
     assert sum(n.op_type == "Softmax" for n in fused.graph.node) == sum(
-        n.op_type == "Softmax" for n in plain.graph.node) - levels  # the partition's softmax stays
+        n.op_type == "Softmax" for n in plain.graph.node) - levels - 1  # the kernels' and the partition's
     assert uses_extension(out) and not uses_extension(conv_path)
     errors = check_export(net, out, size=(33, 17), steps=3)
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors

@@ -148,7 +148,7 @@ def test_backend_exports_heads_per_precision(tiny):
 
 @pytest.mark.parametrize("extension", [True, False])
 def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, capsys, extension):
-    """Both precisions export denoiser::KernelApply when the extension is available; without it
+    """Both precisions export denoiser::PyramidFilter when the extension is available; without it
     (no compiler) the backend says why on stderr and runs the plain graph, with the same numbers."""
     import onnx
 
@@ -161,7 +161,7 @@ def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, caps
     runner = RecurrentRunner(backend.prepare(net, frames[0], threads=1).step)
     assert backend.fused_kernels is extension
     nodes = onnx.load(backend._export(net)).graph.node
-    assert sum(n.op_type == "KernelApply" for n in nodes) == (len(net.filter.kernel_sizes) if extension else 0)
+    assert sum(n.op_type == "PyramidFilter" for n in nodes) == int(extension)
     assert ("plain kernel filter graph (no C++ compiler" in capsys.readouterr().err) is not extension
     for frame, reset, (out, _) in zip(frames, RESETS, expected):
         got = runner(frame, reset)

@@ -19,6 +19,7 @@ pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)"
 from denoiser import ovext
 from denoiser.errors import UserError
 from denoiser.nn.kernels import apply_kernels, kernels_as_op
+from denoiser.nn.pyramid import PyramidFilter
 
 if ovext.kernel_extension() is None:
     pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}", allow_module_level=True)
@@ -43,6 +44,7 @@ def export_filter(path, scale, x, logits):
 
 
 def run_openvino(path, x, logits, threads=1, precision="f32"):
+    """The graph at ``path`` on inputs ``x`` and ``logits`` (a tensor, or a list named h0, h1, ...)."""
     import openvino as ov
 
     core = ov.Core()
@@ -50,7 +52,38 @@ def run_openvino(path, x, logits, threads=1, precision="f32"):
     hint = {"f32": "f32", "bf16": "bf16"}[precision]
     compiled = core.compile_model(core.read_model(str(path)), "CPU",
                                   {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": hint})
-    return compiled({"x": x.numpy(), "logits": logits.numpy()})[compiled.output(0)]
+    feed = {"x": x.numpy()}
+    if isinstance(logits, torch.Tensor):
+        feed["logits"] = logits.numpy()
+    else:
+        feed.update({f"h{i}": h.numpy() for i, h in enumerate(logits)})
+    return compiled(feed)[compiled.output(0)]
+
+
+class Pyramid(torch.nn.Module):
+    def __init__(self, sizes, scale):
+        super().__init__()
+        self.filter = PyramidFilter(sizes, scale)
+
+    def forward(self, x, *heads):
+        return self.filter(x, list(heads), None)[0]
+
+
+def export_pyramid(path, module, x, heads):
+    """A graph of one ``denoiser::PyramidFilter`` (x, then heads h0 .. h{L-1})."""
+    names = [f"h{i}" for i in range(len(heads))]
+    with kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(module, (x, *heads), str(path), input_names=["x", *names], output_names=["y"],
+                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    return path
+
+
+def pyramid_inputs(sizes, b, h, w, seed, spread=3.0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(b, 3, h, w, generator=g) * 10
+    heads = [torch.randn(b, len(sizes) + sizes[0] ** 2, h, w, generator=g) * spread]
+    heads += [torch.randn(b, k * k, h >> i, w >> i, generator=g) * spread for i, k in enumerate(sizes) if i > 0]
+    return x, heads
 
 
 def loop_reference(x, logits, scale):
@@ -123,6 +156,62 @@ def test_kernel_apply_in_bf16_inference(tmp_path):
     path = export_filter(tmp_path / "b.onnx", 2.5, x, logits)
     np.testing.assert_allclose(run_openvino(path, x, logits, precision="bf16"), run_openvino(path, x, logits),
                                rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize(("sizes", "scale", "hw"), [
+    ([5, 5, 5], 2.5, (20, 28)),  # the student's pyramid
+    ([5, 5, 5], None, (21, 30)),  # sizes that are not multiples of 4: floored pools, upsampling to size
+    ([3, 1], 5.0, (9, 14)),
+    ([7], 2.5, (6, 5)),  # one level, a kernel larger than the image
+])
+def test_pyramid_filter_matches_the_module(tmp_path, sizes, scale, hw):
+    """``denoiser::PyramidFilter`` against :class:`~denoiser.nn.pyramid.PyramidFilter` (eager:
+    partition softmax, pooled parts, per-level kernels, bilinear upsampling, normalisation)."""
+    module = Pyramid(sizes, scale).eval()
+    x, heads = pyramid_inputs(sizes, 2, *hw, seed=len(sizes))
+    path = export_pyramid(tmp_path / "p.onnx", module, x, heads)
+    want = module(x, *heads).detach().numpy()
+    got = run_openvino(path, x, heads)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert np.array_equal(run_openvino(path, x, heads, threads=2), got)
+
+
+def one_hot(taps, k: int = 5) -> torch.Tensor:
+    """Logits ``[1, k*k, H, W]``: +1e4 at tap ``taps[y]`` of row y, -1e4 elsewhere (saturated)."""
+    logits = torch.full((1, k * k, len(taps), 1), -1e4)
+    for y, t in enumerate(taps):
+        logits[0, t, y] = 1e4
+    return logits
+
+
+def test_pyramid_filter_hard_values(tmp_path):
+    """Saturated softmaxes (logits at +-1e4: one-hot weights) built so that every level's kernel
+    reads only pixels whose partition weight is 0: the normaliser is exactly 0 below the first
+    two rows and the input pixel is passed through there, as in eager. With fireflies and a
+    black band; finite, and equal to eager."""
+    h, w = 24, 36
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(1, 3, h, w, generator=g)
+    x[:, :, ::5, ::7] = 6e4
+    x[:, :, 8:12] = 0.0
+    top = [y % 4 < 2 for y in range(h)]  # rows 0, 1 mod 4 belong to level 0, rows 2, 3 to level 1
+    partition = torch.full((1, 3, h, 1), -1e4)
+    for y, level0 in enumerate(top):
+        partition[0, 0 if level0 else 1, y] = 1e4
+    # level 0 reads two rows up from its own rows (level 1's rows), its own pixel elsewhere;
+    # level 1 (coarse rows 2y' hold nothing of it) reads its own pixel on even coarse rows and
+    # the row above on odd ones; level 2 holds nothing
+    k0 = one_hot([2 if level0 else 12 for level0 in top])
+    k1 = one_hot([12 if y % 2 == 0 else 7 for y in range(h // 2)])
+    heads = [torch.cat([partition, k0], 1).expand(1, 28, h, w).contiguous(), k1.expand(1, 25, h // 2, w // 2).contiguous(),
+             torch.zeros(1, 25, h // 4, w // 4)]
+    module = Pyramid([5, 5, 5], None).eval()
+    want = module(x, *heads).detach().numpy()
+    assert np.array_equal(want[:, :, 2:], x[:, :, 2:].numpy())  # the fallback, below the top rows
+    path = export_pyramid(tmp_path / "h.onnx", module, x, heads)
+    got = run_openvino(path, x, heads)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
 
 
 def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):

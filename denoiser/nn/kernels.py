@@ -147,7 +147,7 @@ def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | No
     x: ``[B, C, H, W]``; logits: ``[B, k*k, H, W]`` -> ``[B, C, H, W]`` float32. The border
     taps are masked by two broadcast additions of :func:`border_bias` (no full-resolution mask).
     """
-    if _KERNEL_OP.get():
+    if fused_kernels():
         with torch.autocast(device_type=x.device.type, enabled=False):
             return _KernelApplyOp.apply(x.float(), logits.float(), scale)
     k = kernel_size_of(logits)
@@ -171,11 +171,28 @@ _KERNEL_OP = contextvars.ContextVar("kernel_op", default=False)
 def kernels_as_op(enabled: bool = True) -> Iterator[None]:
     """Within the block, an exported :func:`apply_kernels_graph` is one ``denoiser::KernelApply``
     node (attributes ``scale`` float, ``has_scale`` int) instead of slices, a softmax and k*k
-    multiply-adds: the fused operation of the OpenVINO extension :mod:`denoiser.ovext`. Only an
-    engine with that extension loaded can run such a graph."""
+    multiply-adds, and a :class:`~denoiser.nn.pyramid.PyramidFilter` one ``denoiser::PyramidFilter``
+    node: the fused operations of the OpenVINO extension :mod:`denoiser.ovext`. Only an engine
+    with that extension loaded can run such a graph."""
     token = _KERNEL_OP.set(bool(enabled))
     try:
         yield
+    finally:
+        _KERNEL_OP.reset(token)
+
+
+def fused_kernels() -> bool:
+    """Whether a graph being exported records the kernel filters as single operations
+    (:func:`kernels_as_op`; :class:`~denoiser.nn.pyramid.PyramidFilter` as one
+    ``denoiser::PyramidFilter`` node too)."""
+    return _KERNEL_OP.get() and (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+
+
+def unfused(fn, *args):
+    """``fn(*args)`` with :func:`kernels_as_op` off (the plain computation of a fused node)."""
+    token = _KERNEL_OP.set(False)
+    try:
+        return fn(*args)
     finally:
         _KERNEL_OP.reset(token)
 
@@ -189,11 +206,7 @@ class _KernelApplyOp(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, logits, scale):
-        token = _KERNEL_OP.set(False)
-        try:
-            return apply_kernels_graph(x, logits, scale)
-        finally:
-            _KERNEL_OP.reset(token)
+        return unfused(apply_kernels_graph, x, logits, scale)
 
     @staticmethod
     def symbolic(g, x, logits, scale):

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.kernels import apply_kernels, scale_logits
+from denoiser.nn.kernels import apply_kernels, fused_kernels, scale_logits, unfused
 
 #: smallest normaliser used for division; below it the input pixel is passed through
 NORM_EPS = 1e-30
@@ -102,13 +102,43 @@ class PyramidFilter(nn.Module):
 
         Returns ``(output [B, 3, H, W] float32, {"partition": [B, L, H, W]})``.
         """
-        with torch.autocast(device_type=x.device.type, enabled=False):
-            head0 = heads[0].float()
-            x1, partition, parts = partition_levels(x, head0, self.levels, self.logit_scale)
-            logits = [head0[:, self.levels:]] + [heads[i].float() for i in range(1, self.levels)]
-            filtered = [apply_kernels(part, logits[i], self.logit_scale) for i, part in enumerate(parts)]
-            acc = filtered[-1]
-            for i in range(self.levels - 2, -1, -1):
-                acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",
-                                    align_corners=False) + filtered[i]
-            return normalize(acc, x1[:, :-1]), {"partition": partition}
+        if fused_kernels():  # exported for OpenVINO with the project's extension: one node
+            with torch.autocast(device_type=x.device.type, enabled=False):
+                out = _PyramidFilterOp.apply(x.float(), tuple(self.kernel_sizes), self.logit_scale,
+                                             *[h.float() for h in heads])
+            return out, {}
+        return pyramid_filter(x, heads, self.kernel_sizes, self.logit_scale)
+
+
+def pyramid_filter(x: torch.Tensor, heads: Sequence[torch.Tensor], kernel_sizes: Sequence[int],
+                   logit_scale: float | None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:meth:`PyramidFilter.forward` (same arguments and result; ``kernel_sizes``, ``logit_scale``
+    as the module's)."""
+    levels = len(kernel_sizes)
+    with torch.autocast(device_type=x.device.type, enabled=False):
+        head0 = heads[0].float()
+        x1, partition, parts = partition_levels(x, head0, levels, logit_scale)
+        logits = [head0[:, levels:]] + [heads[i].float() for i in range(1, levels)]
+        filtered = [apply_kernels(part, logits[i], logit_scale) for i, part in enumerate(parts)]
+        acc = filtered[-1]
+        for i in range(levels - 2, -1, -1):
+            acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",
+                                align_corners=False) + filtered[i]
+        return normalize(acc, x1[:, :-1]), {"partition": partition}
+
+
+class _PyramidFilterOp(torch.autograd.Function):
+    """:meth:`PyramidFilter.forward` recorded as one ``denoiser::PyramidFilter`` ONNX node
+    (inputs x and the L heads; attributes ``kernel_sizes`` ints, ``scale`` float, ``has_scale``
+    int); the value is the plain computation (the tracer records the node only)."""
+
+    @staticmethod
+    def forward(ctx, x, kernel_sizes, scale, *heads):
+        return unfused(pyramid_filter, x, heads, kernel_sizes, scale)[0]
+
+    @staticmethod
+    def symbolic(g, x, kernel_sizes, scale, *heads):
+        out = g.op("denoiser::PyramidFilter", x, *heads, kernel_sizes_i=list(kernel_sizes),
+                   scale_f=1.0 if scale is None else float(scale), has_scale_i=int(scale is not None))
+        out.setType(x.type())
+        return out

@@ -1,5 +1,8 @@
-"""The project's OpenVINO CPU extension: ``denoiser::KernelApply``, the per-pixel kernel filter
-(:func:`denoiser.nn.kernels.apply_kernels_graph`) as one operation (``kernel_apply.cpp``).
+"""The project's OpenVINO CPU extension (``kernel_apply.cpp``): the kernel filters as single
+operations. ``denoiser::KernelApply`` is the per-pixel kernel filter
+(:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
+:class:`~denoiser.nn.pyramid.PyramidFilter` (partition, pooled parts, the levels' kernels,
+upsampling, normalisation).
 
 The extension is C++ against the headers and libraries the ``openvino`` wheel ships. It is
 compiled on first use, with the machine's C++ compiler (``$CXX``, else ``g++``/``c++``) and

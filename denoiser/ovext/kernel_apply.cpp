@@ -1,33 +1,46 @@
-// OpenVINO CPU extension: the per-pixel kernel filter of denoiser.nn.kernels as one operation.
+// OpenVINO CPU extension: the kernel filters of denoiser.nn as single operations (domain "denoiser").
 //
 // KernelApply(x [B, C, H, W] f32, logits [B, k*k, H, W] f32; attributes scale, has_scale)
-//   -> [B, C, H, W] f32, with, for every pixel p (r = k / 2, tap t = i*k + j, i rows, j columns):
+//   -> [B, C, H, W] f32: denoiser.nn.kernels.apply_kernels_graph. For every pixel p
+//   (r = k / 2, tap t = i*k + j, i rows, j columns):
 //
 //   z_t   = logits[b, t, p] * s(p),  s(p) = scale / sqrt(var_t(logits[b, :, p]) + 1)  (has_scale)
 //                                    s(p) = 1                                         (otherwise)
 //   w     = softmax over the taps t that read inside the image of z
 //   out_c = sum_t w_t * x[b, c, p + (i - r, j - r)]
 //
-// the same function as denoiser.nn.kernels.apply_kernels_graph (its docstring is the reference).
-// One pass per image row: the logits of a row are read from cache, the taps' exponentials are
-// computed once and each input pixel of the k rows it needs is read once per tap, instead of
-// k*k materialised shifted copies and several passes over the weights in the plain graph.
-// Rows run in parallel on the calling TBB arena (the CPU plugin's, so INFERENCE_NUM_THREADS holds).
+// PyramidFilter(x [B, 3, H, W], head0 [B, L + k0^2, H, W], head_i [B, k_i^2, H/2^i, W/2^i] for
+//   i = 1 .. L-1; attributes kernel_sizes, scale, has_scale) -> [B, 3, H, W] f32:
+//   denoiser.nn.pyramid.PyramidFilter.forward (its module docstring is the definition): the
+//   partition softmax, the parts [x, 1] * w_i average-pooled by 2^i, each level's kernel filter
+//   (as KernelApply), the bilinear upsampling and sum from the coarsest level, and the division
+//   by the filtered constant channel (x where it is <= 1e-30).
+//
+// Both run one image row at a time: the logits of a row are read from cache, the taps'
+// exponentials are computed once and each input pixel of the k rows a tap needs is read once,
+// instead of k*k materialised shifted copies and several passes over the weights in the plain
+// graph. Rows run in parallel on the calling TBB arena (the CPU plugin's, so
+// INFERENCE_NUM_THREADS holds); each row is computed by one thread in a fixed order, so results do
+// not depend on the number of threads.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
+#include <mutex>
 #include <vector>
 
 #include <openvino/core/extension.hpp>
 #include <openvino/core/op_extension.hpp>
-#include <openvino/frontend/onnx/extension/conversion.hpp>
 #include <openvino/frontend/node_context.hpp>
+#include <openvino/frontend/onnx/extension/conversion.hpp>
 #include <openvino/op/op.hpp>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
 namespace denoiser {
+
+constexpr float NORM_EPS = 1e-30f;  // denoiser.nn.pyramid.NORM_EPS
 
 // exp(x) for x <= 0 (a softmax's centred logits), about 2 ulp; 0 below -87.
 // Cody-Waite reduction x = n ln2 + f, degree-6 polynomial on |f| <= ln2 / 2, 2^n by the exponent
@@ -48,6 +61,91 @@ static inline float exp_nonpositive(float x) {
     float scale;
     std::memcpy(&scale, &bits, sizeof(scale));
     return p * scale;
+}
+
+static std::unique_ptr<float[]> uninitialised(size_t n) { return std::unique_ptr<float[]>(new float[n]); }
+
+// Softmax scale per pixel of a row: s[px] = scale / sqrt(var over the n planes + 1) (two-pass
+// variance, as torch.var(unbiased=False)), or 1. z: n planes of W values, `plane` apart. tmp: W floats.
+static void logit_scale_row(const float* z, int64_t n, int64_t plane, int64_t W, float scale, bool has_scale,
+                            float* s, float* tmp) {
+    if (!has_scale) {
+        std::fill(s, s + W, 1.0f);
+        return;
+    }
+    std::fill(tmp, tmp + W, 0.0f);
+    for (int64_t t = 0; t < n; ++t)
+        for (int64_t px = 0; px < W; ++px) tmp[px] += z[t * plane + px];
+    for (int64_t px = 0; px < W; ++px) tmp[px] *= 1.0f / n;
+    std::fill(s, s + W, 0.0f);
+    for (int64_t t = 0; t < n; ++t)
+        for (int64_t px = 0; px < W; ++px) {
+            const float d = z[t * plane + px] - tmp[px];
+            s[px] += d * d;
+        }
+    for (int64_t px = 0; px < W; ++px) s[px] = scale / std::sqrt(s[px] * (1.0f / n) + 1.0f);
+}
+
+// Scratch of one thread for rows of width W and C channels.
+struct RowScratch {
+    explicit RowScratch(int64_t W, int64_t C) : data(uninitialised(static_cast<size_t>(W) * (4 + C))) {
+        s = data.get(), m = s + W, sum = m + W, e = sum + W, acc = e + W;
+    }
+    std::unique_ptr<float[]> data;
+    float *s, *m, *sum, *e, *acc;
+};
+
+// The kernel filter of row y: acc (C rows of W) = sum_t w_t * x[c, y + i - r, px + j - r], and
+// sum (W) = the softmax's denominators; the caller divides. X: C planes of H x W; Z: k*k logit
+// planes of H x W, `plane` apart, already offset to row y.
+static void filter_row(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
+                       int64_t y, float scale, bool has_scale, RowScratch& t) {
+    const int64_t r = k / 2, K = k * k;
+    logit_scale_row(Z, K, plane, W, scale, has_scale, t.s, t.sum);
+    {  // the largest in-image scaled logit; the centre tap always is in the image
+        const float* z = Z + (r * k + r) * plane;
+        for (int64_t px = 0; px < W; ++px) t.m[px] = z[px] * t.s[px];
+    }
+    for (int64_t i = 0; i < k; ++i) {
+        const int64_t yy = y + i - r;
+        if (yy < 0 || yy >= H) continue;
+        for (int64_t j = 0; j < k; ++j) {
+            const int64_t d = j - r, x0 = std::max<int64_t>(0, -d), x1 = std::min<int64_t>(W, W - d);
+            const float* z = Z + (i * k + j) * plane;
+            for (int64_t px = x0; px < x1; ++px) t.m[px] = std::max(t.m[px], z[px] * t.s[px]);
+        }
+    }
+    std::fill(t.sum, t.sum + W, 0.0f);
+    std::fill(t.acc, t.acc + C * W, 0.0f);
+    for (int64_t i = 0; i < k; ++i) {
+        const int64_t yy = y + i - r;
+        if (yy < 0 || yy >= H) continue;
+        for (int64_t j = 0; j < k; ++j) {
+            const int64_t d = j - r, x0 = std::max<int64_t>(0, -d), x1 = std::min<int64_t>(W, W - d);
+            const float* z = Z + (i * k + j) * plane;
+            for (int64_t px = x0; px < x1; ++px) {
+                t.e[px] = exp_nonpositive(z[px] * t.s[px] - t.m[px]);
+                t.sum[px] += t.e[px];
+            }
+            for (int64_t c = 0; c < C; ++c) {
+                const float* xr = X + (c * H + yy) * W + d;
+                float* a = t.acc + c * W;
+                for (int64_t px = x0; px < x1; ++px) a[px] += t.e[px] * xr[px];
+            }
+        }
+    }
+    for (int64_t px = 0; px < W; ++px) t.sum[px] = 1.0f / t.sum[px];
+}
+
+template <class F>
+static void parallel_rows(int64_t rows, F&& body) {
+    tbb::parallel_for(tbb::blocked_range<int64_t>(0, rows, 4), body);
+}
+
+static int64_t kernel_size_of(int64_t K) {
+    const int64_t k = static_cast<int64_t>(std::lround(std::sqrt(static_cast<double>(K))));
+    OPENVINO_ASSERT(k * k == K && k % 2 == 1, "kernel logits need k*k channels with odd k, got ", K);
+    return k;
 }
 
 class KernelApply : public ov::op::Op {
@@ -86,86 +184,24 @@ public:
     bool evaluate(ov::TensorVector& outputs, const ov::TensorVector& inputs) const override {
         const auto& xs = inputs[0].get_shape();
         const auto& ls = inputs[1].get_shape();
-        const int64_t B = xs[0], C = xs[1], H = xs[2], W = xs[3], K = ls[1];
-        const int64_t k = static_cast<int64_t>(std::lround(std::sqrt(static_cast<double>(K))));
-        OPENVINO_ASSERT(k * k == K && k % 2 == 1 && ls[0] == xs[0] && ls[2] == xs[2] && ls[3] == xs[3],
-                        "KernelApply: logits ", ls, " do not match x ", xs);
+        const int64_t B = xs[0], C = xs[1], H = xs[2], W = xs[3];
+        const int64_t k = kernel_size_of(ls[1]);
+        OPENVINO_ASSERT(ls[0] == xs[0] && ls[2] == xs[2] && ls[3] == xs[3], "KernelApply: logits ", ls,
+                        " do not match x ", xs);
         outputs[0].set_shape(xs);
         const float* X = inputs[0].data<const float>();
         const float* L = inputs[1].data<const float>();
         float* O = outputs[0].data<float>();
-        const int64_t r = k / 2;
-        const float scale = m_scale;
-        const bool has_scale = m_has_scale;
-        tbb::parallel_for(tbb::blocked_range<int64_t>(0, B * H, 4), [&](const tbb::blocked_range<int64_t>& rows) {
-            std::vector<float> buf(static_cast<size_t>(W) * (4 + C));
-            float* s = buf.data();
-            float* m = s + W;
-            float* sum = m + W;
-            float* e = sum + W;
-            float* acc = e + W;
+        const int64_t HW = H * W;
+        parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
+            RowScratch t(W, C);
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
-                const float* Lb = L + b * K * H * W + y * W;  // tap t's row at Lb + t*H*W
-                const float* Xb = X + b * C * H * W;
-                // the logits' scale per pixel (two-pass variance over the taps, as torch.var)
-                if (has_scale) {
-                    std::fill(m, m + W, 0.0f);
-                    for (int64_t t = 0; t < K; ++t) {
-                        const float* z = Lb + t * H * W;
-                        for (int64_t px = 0; px < W; ++px) m[px] += z[px];
-                    }
-                    for (int64_t px = 0; px < W; ++px) m[px] *= 1.0f / K;
-                    std::fill(sum, sum + W, 0.0f);
-                    for (int64_t t = 0; t < K; ++t) {
-                        const float* z = Lb + t * H * W;
-                        for (int64_t px = 0; px < W; ++px) {
-                            const float d = z[px] - m[px];
-                            sum[px] += d * d;
-                        }
-                    }
-                    for (int64_t px = 0; px < W; ++px) s[px] = scale / std::sqrt(sum[px] * (1.0f / K) + 1.0f);
-                } else {
-                    std::fill(s, s + W, 1.0f);
-                }
-                // the largest in-image scaled logit; the centre tap is always in the image
-                {
-                    const float* z = Lb + (r * k + r) * H * W;
-                    for (int64_t px = 0; px < W; ++px) m[px] = z[px] * s[px];
-                }
-                for (int64_t i = 0; i < k; ++i) {
-                    const int64_t yy = y + i - r;
-                    if (yy < 0 || yy >= H) continue;
-                    for (int64_t j = 0; j < k; ++j) {
-                        const int64_t d = j - r, x0 = std::max<int64_t>(0, -d), x1 = std::min<int64_t>(W, W - d);
-                        const float* z = Lb + (i * k + j) * H * W;
-                        for (int64_t px = x0; px < x1; ++px) m[px] = std::max(m[px], z[px] * s[px]);
-                    }
-                }
-                std::fill(sum, sum + W, 0.0f);
-                std::fill(acc, acc + C * W, 0.0f);
-                for (int64_t i = 0; i < k; ++i) {
-                    const int64_t yy = y + i - r;
-                    if (yy < 0 || yy >= H) continue;
-                    for (int64_t j = 0; j < k; ++j) {
-                        const int64_t d = j - r, x0 = std::max<int64_t>(0, -d), x1 = std::min<int64_t>(W, W - d);
-                        const float* z = Lb + (i * k + j) * H * W;
-                        for (int64_t px = x0; px < x1; ++px) {
-                            e[px] = exp_nonpositive(z[px] * s[px] - m[px]);
-                            sum[px] += e[px];
-                        }
-                        for (int64_t c = 0; c < C; ++c) {
-                            const float* xr = Xb + (c * H + yy) * W + d;
-                            float* a = acc + c * W;
-                            for (int64_t px = x0; px < x1; ++px) a[px] += e[px] * xr[px];
-                        }
-                    }
-                }
-                for (int64_t px = 0; px < W; ++px) sum[px] = 1.0f / sum[px];
+                filter_row(X + b * C * HW, C, H, W, L + b * k * k * HW + y * W, HW, k, y, m_scale, m_has_scale, t);
                 for (int64_t c = 0; c < C; ++c) {
-                    float* o = O + ((b * C + c) * H + y) * W;
-                    const float* a = acc + c * W;
-                    for (int64_t px = 0; px < W; ++px) o[px] = a[px] * sum[px];
+                    float* o = O + (b * C + c) * HW + y * W;
+                    const float* a = t.acc + c * W;
+                    for (int64_t px = 0; px < W; ++px) o[px] = a[px] * t.sum[px];
                 }
             }
         });
@@ -177,10 +213,216 @@ private:
     bool m_has_scale = false;
 };
 
+// One coordinate of torch's bilinear interpolation (align_corners=False) from n_in to n_out samples.
+struct Lerp {
+    int64_t i0, i1;
+    float l0, l1;
+};
+
+static std::vector<Lerp> bilinear_axis(int64_t n_in, int64_t n_out) {
+    std::vector<Lerp> out(static_cast<size_t>(n_out));
+    const float ratio = static_cast<float>(n_in) / static_cast<float>(n_out);
+    for (int64_t d = 0; d < n_out; ++d) {
+        float src = ratio * (d + 0.5f) - 0.5f;
+        src = std::max(src, 0.0f);
+        const int64_t i0 = std::min<int64_t>(static_cast<int64_t>(src), n_in - 1);
+        const int64_t i1 = i0 + (i0 < n_in - 1 ? 1 : 0);
+        const float l1 = src - static_cast<float>(i0);
+        out[d] = {i0, i1, 1.0f - l1, l1};
+    }
+    return out;
+}
+
+// dst (4 planes h x w) += bilinear upsampling of src (4 planes hs x ws), row y only.
+static void add_upsampled_row(const float* src, int64_t hs, int64_t ws, const Lerp& ly, const std::vector<Lerp>& lx,
+                              int64_t w, float* dst_row, int64_t dst_plane, int64_t channels) {
+    for (int64_t c = 0; c < channels; ++c) {
+        const float* r0 = src + (c * hs + ly.i0) * ws;
+        const float* r1 = src + (c * hs + ly.i1) * ws;
+        float* o = dst_row + c * dst_plane;
+        for (int64_t px = 0; px < w; ++px) {
+            const Lerp& l = lx[px];
+            o[px] += ly.l0 * (l.l0 * r0[l.i0] + l.l1 * r0[l.i1]) + ly.l1 * (l.l0 * r1[l.i0] + l.l1 * r1[l.i1]);
+        }
+    }
+}
+
+class PyramidFilter : public ov::op::Op {
+public:
+    OPENVINO_OP("PyramidFilter", "denoiser");
+
+    PyramidFilter() = default;
+    PyramidFilter(const ov::OutputVector& args, std::vector<int64_t> kernel_sizes, float scale, bool has_scale)
+        : Op(args), m_kernel_sizes(std::move(kernel_sizes)), m_scale(scale), m_has_scale(has_scale) {
+        constructor_validate_and_infer_types();
+    }
+
+    void validate_and_infer_types() override {
+        const int64_t L = static_cast<int64_t>(m_kernel_sizes.size());
+        NODE_VALIDATION_CHECK(this, L >= 1 && static_cast<int64_t>(get_input_size()) == L + 1,
+                              "PyramidFilter: needs x and one head per level (", L, " levels), got ",
+                              get_input_size(), " inputs");
+        for (size_t i = 0; i < get_input_size(); ++i)
+            NODE_VALIDATION_CHECK(this, get_input_element_type(i) == ov::element::f32 &&
+                                            get_input_partial_shape(i).rank().compatible(4),
+                                  "PyramidFilter: 4-D f32 inputs only");
+        set_output_type(0, ov::element::f32, get_input_partial_shape(0));
+    }
+
+    std::shared_ptr<ov::Node> clone_with_new_inputs(const ov::OutputVector& args) const override {
+        return std::make_shared<PyramidFilter>(args, m_kernel_sizes, m_scale, m_has_scale);
+    }
+
+    bool visit_attributes(ov::AttributeVisitor& visitor) override {
+        visitor.on_attribute("kernel_sizes", m_kernel_sizes);
+        visitor.on_attribute("scale", m_scale);
+        visitor.on_attribute("has_scale", m_has_scale);
+        return true;
+    }
+
+    bool has_evaluate() const override { return true; }
+
+    bool evaluate(ov::TensorVector& outputs, const ov::TensorVector& inputs) const override {
+        const int64_t L = static_cast<int64_t>(m_kernel_sizes.size());
+        const auto& xs = inputs[0].get_shape();
+        const int64_t B = xs[0], C = xs[1], H = xs[2], W = xs[3], C1 = C + 1;
+        std::vector<int64_t> hs(L), ws(L);
+        for (int64_t i = 0; i < L; ++i) {
+            hs[i] = H >> i, ws[i] = W >> i;  // avg_pool2d(2^i) floors
+            const auto& s = inputs[i + 1].get_shape();
+            const int64_t k = m_kernel_sizes[i];
+            OPENVINO_ASSERT(k % 2 == 1 && k >= 1, "PyramidFilter: kernel size ", k, " is not odd");
+            OPENVINO_ASSERT(s[0] == xs[0] && s[1] == static_cast<size_t>(k * k + (i == 0 ? L : 0)) &&
+                                s[2] == static_cast<size_t>(hs[i]) && s[3] == static_cast<size_t>(ws[i]),
+                            "PyramidFilter: head ", i, " has shape ", s, " for x ", xs);
+        }
+        outputs[0].set_shape(xs);
+        const float* X = inputs[0].data<const float>();
+        const float* H0 = inputs[1].data<const float>();
+        float* O = outputs[0].data<float>();
+        const int64_t HW = H * W, K0 = m_kernel_sizes[0] * m_kernel_sizes[0];
+        // level i's part: [B, C + 1, hs, ws]; levels >= 1 also keep their filtered sum (acc).
+        // One allocation, kept between calls (fresh pages cost page faults on every frame).
+        std::lock_guard<std::mutex> lock(m_mutex);
+        std::vector<size_t> offsets{0};
+        for (int64_t i = 0; i < L; ++i) {
+            const size_t n = static_cast<size_t>(B * C1 * hs[i] * ws[i]);
+            offsets.push_back(offsets.back() + n);
+            if (i > 0) offsets.push_back(offsets.back() + n);
+        }
+        if (m_scratch.size() < offsets.back()) m_scratch.resize(offsets.back());
+        std::vector<float*> parts(L), accs(L, nullptr);
+        for (int64_t i = 0, o = 0; i < L; ++i) {
+            parts[i] = m_scratch.data() + offsets[o++];
+            if (i > 0) accs[i] = m_scratch.data() + offsets[o++];
+        }
+        // 1. the partition weights, level 0's part at full resolution and the coarser parts
+        //    (average pools of w_i * [x, 1] by 2^i), in groups of 2^(L-1) rows: a coarse row's
+        //    source rows all lie in one group, so each is written by one thread
+        const int64_t G = int64_t(1) << (L - 1), groups = (H + G - 1) / G;
+        parallel_rows(B * groups, [&](const tbb::blocked_range<int64_t>& range) {
+            std::vector<float> s(W), tmp(W), m(W), sum(W), e(static_cast<size_t>(L * W));
+            for (int64_t group = range.begin(); group != range.end(); ++group) {
+                const int64_t b = group / groups, y_end = std::min(H, (group % groups + 1) * G);
+                for (int64_t y = (group % groups) * G; y < y_end; ++y) {
+                    const float* z = H0 + b * (L + K0) * HW + y * W;
+                    logit_scale_row(z, L, HW, W, m_scale, m_has_scale, s.data(), tmp.data());
+                    for (int64_t px = 0; px < W; ++px) m[px] = z[px] * s[px];
+                    for (int64_t l = 1; l < L; ++l)
+                        for (int64_t px = 0; px < W; ++px) m[px] = std::max(m[px], z[l * HW + px] * s[px]);
+                    std::fill(sum.begin(), sum.end(), 0.0f);
+                    for (int64_t l = 0; l < L; ++l)
+                        for (int64_t px = 0; px < W; ++px) {
+                            e[l * W + px] = exp_nonpositive(z[l * HW + px] * s[px] - m[px]);
+                            sum[px] += e[l * W + px];
+                        }
+                    for (int64_t px = 0; px < W; ++px) sum[px] = 1.0f / sum[px];
+                    for (int64_t l = 0; l < L; ++l) {
+                        float* w = e.data() + l * W;
+                        for (int64_t px = 0; px < W; ++px) w[px] *= sum[px];
+                        const int64_t f = int64_t(1) << l, yc = y >> l, wc = ws[l];
+                        if (yc >= hs[l]) continue;  // rows a floor-sized pool leaves out
+                        float* dst = parts[l] + b * C1 * hs[l] * wc + yc * wc;
+                        const int64_t plane = hs[l] * wc;
+                        if (l == 0) {
+                            for (int64_t c = 0; c < C; ++c) {
+                                const float* xr = X + (b * C + c) * HW + y * W;
+                                for (int64_t px = 0; px < W; ++px) dst[c * plane + px] = w[px] * xr[px];
+                            }
+                            std::memcpy(dst + C * plane, w, W * sizeof(float));
+                            continue;
+                        }
+                        if (y % f == 0)
+                            for (int64_t c = 0; c < C1; ++c) std::fill(dst + c * plane, dst + c * plane + wc, 0.0f);
+                        for (int64_t c = 0; c < C1; ++c) {
+                            float* d = dst + c * plane;
+                            if (c < C) {
+                                const float* xr = X + (b * C + c) * HW + y * W;
+                                for (int64_t px = 0; px < wc; ++px)
+                                    for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx] * xr[px * f + dx];
+                            } else {  // the constant channel: the pooled weights
+                                for (int64_t px = 0; px < wc; ++px)
+                                    for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx];
+                            }
+                            if (y % f == f - 1) {
+                                const float norm = 1.0f / static_cast<float>(f * f);
+                                for (int64_t px = 0; px < wc; ++px) d[px] *= norm;
+                            }
+                        }
+                    }
+                }
+            }
+        });
+        // 3. from the coarsest level up: acc_i = filter_i(part_i) + up(acc_{i+1}); level 0 divides
+        for (int64_t i = L - 1; i >= 0; --i) {
+            const int64_t h = hs[i], w = ws[i], k = m_kernel_sizes[i], plane = h * w;
+            const float* Z = i == 0 ? H0 + L * HW : inputs[i + 1].data<const float>();
+            const int64_t zb = (i == 0 ? L + K0 : k * k) * plane;  // logits per image
+            std::vector<Lerp> ly, lx;
+            if (i < L - 1) ly = bilinear_axis(hs[i + 1], h), lx = bilinear_axis(ws[i + 1], w);
+            parallel_rows(B * h, [&](const tbb::blocked_range<int64_t>& rows) {
+                RowScratch t(w, C1);
+                for (int64_t row = rows.begin(); row != rows.end(); ++row) {
+                    const int64_t b = row / h, y = row % h;
+                    filter_row(parts[i] + b * C1 * plane, C1, h, w, Z + b * zb + y * w, plane, k, y, m_scale,
+                               m_has_scale, t);
+                    for (int64_t c = 0; c < C1; ++c)
+                        for (int64_t px = 0; px < w; ++px) t.acc[c * w + px] *= t.sum[px];
+                    if (i < L - 1)
+                        add_upsampled_row(accs[i + 1] + b * C1 * hs[i + 1] * ws[i + 1], hs[i + 1], ws[i + 1],
+                                          ly[y], lx, w, t.acc, w, C1);
+                    if (i > 0) {
+                        for (int64_t c = 0; c < C1; ++c)
+                            std::memcpy(accs[i] + (b * C1 + c) * plane + y * w, t.acc + c * w, w * sizeof(float));
+                        continue;
+                    }
+                    const float* den = t.acc + C * w;
+                    for (int64_t c = 0; c < C; ++c) {
+                        const float* a = t.acc + c * w;
+                        const float* xr = X + (b * C + c) * HW + y * W;
+                        float* o = O + (b * C + c) * HW + y * W;
+                        for (int64_t px = 0; px < w; ++px)
+                            o[px] = den[px] > NORM_EPS ? a[px] / std::max(den[px], NORM_EPS) : xr[px];
+                    }
+                }
+            });
+        }
+        return true;
+    }
+
+private:
+    std::vector<int64_t> m_kernel_sizes;
+    float m_scale = 1.0f;
+    bool m_has_scale = false;
+    mutable std::mutex m_mutex;
+    mutable std::vector<float> m_scratch;  // the parts and sums, reused between calls
+};
+
 }  // namespace denoiser
 
 OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::KernelApply>>(),
+    std::make_shared<ov::OpExtension<denoiser::PyramidFilter>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "KernelApply", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
@@ -188,5 +430,15 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
             const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
             return std::make_shared<denoiser::KernelApply>(ctx.get_input(0), ctx.get_input(1), scale,
                                                            has_scale != 0)->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "PyramidFilter", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            ov::OutputVector args;
+            for (size_t i = 0; i < ctx.get_input_size(); ++i) args.push_back(ctx.get_input(static_cast<int>(i)));
+            const auto sizes = ctx.get_attribute<std::vector<int64_t>>("kernel_sizes");
+            const float scale = ctx.get_attribute<float>("scale", 1.0f);
+            const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
+            return std::make_shared<denoiser::PyramidFilter>(args, sizes, scale, has_scale != 0)->outputs();
         }),
 }));

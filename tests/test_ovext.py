@@ -134,7 +134,7 @@ def test_kernel_apply_hard_values_and_threads(tmp_path):
     x[:, :3, 10:20] = 0.0  # black
     logits = torch.randn(1, 25, h, w, generator=g) * 4
     logits[:, :, ::3] = 1e4 * torch.sign(torch.randn(1, 25, 1, w, generator=g))
-    for scale in (None, 5.0):
+    for scale in (None, 5.0, 15.0, 30.0):  # 15 * sqrt(25) = 75: shifted by the mean, near its bound; 30: by the max
         path = export_filter(tmp_path / f"h{scale}.onnx", scale, x, logits)
         one = run_openvino(path, x, logits, threads=1)
         two = run_openvino(path, x, logits, threads=2)

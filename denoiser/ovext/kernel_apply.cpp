@@ -42,10 +42,10 @@ namespace denoiser {
 
 constexpr float NORM_EPS = 1e-30f;  // denoiser.nn.pyramid.NORM_EPS
 
-// exp(x) for x <= 0 (a softmax's centred logits), about 2 ulp; 0 below -87.
+// exp(x) for x <= 88 (a softmax's shifted logits), about 2 ulp; 0 below -87.
 // Cody-Waite reduction x = n ln2 + f, degree-6 polynomial on |f| <= ln2 / 2, 2^n by the exponent
 // bits. Branch-free so the row loops vectorise.
-static inline float exp_nonpositive(float x) {
+static inline float exp_bounded(float x) {
     x = std::max(x, -87.0f);
     const float n = std::nearbyint(x * 1.44269504088896341f);
     float f = std::fma(n, -0.693359375f, x);
@@ -88,53 +88,117 @@ static void logit_scale_row(const float* z, int64_t n, int64_t plane, int64_t W,
 
 // Scratch of one thread for rows of width W and C channels.
 struct RowScratch {
-    explicit RowScratch(int64_t W, int64_t C) : data(uninitialised(static_cast<size_t>(W) * (4 + C))) {
-        s = data.get(), m = s + W, sum = m + W, e = sum + W, acc = e + W;
-    }
+    explicit RowScratch(int64_t W, int64_t C) : data(uninitialised(static_cast<size_t>(W) * C)) { acc = data.get(); }
     std::unique_ptr<float[]> data;
-    float *s, *m, *sum, *e, *acc;
+    float* acc;  // C rows of W: the filtered row
 };
 
-// The kernel filter of row y: acc (C rows of W) = sum_t w_t * x[c, y + i - r, px + j - r], and
-// sum (W) = the softmax's denominators; the caller divides. X: C planes of H x W; Z: k*k logit
-// planes of H x W, `plane` apart, already offset to row y.
+constexpr int64_t S = 16;  // pixels per strip: one AVX-512 register of floats
+
+// Whether the softmax may be shifted by the logits' mean instead of their maximum: with the
+// scale-normalised logits every centred, scaled logit lies within scale * sqrt(K) of it
+// (|z_t - mean| <= sqrt(K var)), so exp stays finite and normal for scale * sqrt(K) <= 80.
+static bool mean_shift_ok(int64_t K, float scale, bool has_scale) {
+    return has_scale && scale * std::sqrt(static_cast<float>(K)) <= 80.0f;
+}
+
+// The kernel filter of pixels px0 .. px0 + S - 1 of row y, channels 0 .. C-1 (NC = C when known at
+// compile time, else 0), into acc (C rows of W). EDGE: some of the strip's taps or pixels lie
+// outside the row (checked per pixel); otherwise every tap column is inside. X: C planes of
+// H x W; Z: k*k logit planes `plane` apart, offset to row y.
+template <int NC, bool EDGE>
+static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
+                         int64_t y, int64_t px0, float scale, bool has_scale, float* acc_rows) {
+    const int64_t C = NC > 0 ? NC : C_;
+    const int64_t r = k / 2, K = k * k, HW = H * W;
+    const int64_t n = EDGE ? std::min<int64_t>(S, W - px0) : S;
+    float mean[S] = {}, s[S], shift[S], sum[S] = {};
+    float acc[NC > 0 ? NC : 8][S] = {};
+    for (int64_t t = 0; t < K; ++t) {
+        const float* z = Z + t * plane + px0;
+        for (int64_t l = 0; l < S; ++l) mean[l] += l < n ? z[l] : 0.0f;
+    }
+    for (int64_t l = 0; l < S; ++l) mean[l] *= 1.0f / K;
+    if (has_scale) {
+        float var[S] = {};
+        for (int64_t t = 0; t < K; ++t) {
+            const float* z = Z + t * plane + px0;
+            for (int64_t l = 0; l < S; ++l) {
+                const float d = (l < n ? z[l] : 0.0f) - mean[l];
+                var[l] += d * d;
+            }
+        }
+        for (int64_t l = 0; l < S; ++l) s[l] = scale / std::sqrt(var[l] * (1.0f / K) + 1.0f);
+    } else {
+        for (int64_t l = 0; l < S; ++l) s[l] = 1.0f;
+    }
+    if (mean_shift_ok(K, scale, has_scale)) {
+        for (int64_t l = 0; l < S; ++l) shift[l] = mean[l] * s[l];
+    } else {  // the largest in-image scaled logit; the centre tap always is in the image
+        const float* zc = Z + (r * k + r) * plane + px0;
+        for (int64_t l = 0; l < S; ++l) shift[l] = l < n ? zc[l] * s[l] : 0.0f;
+        for (int64_t i = 0; i < k; ++i) {
+            if (y + i - r < 0 || y + i - r >= H) continue;
+            for (int64_t j = 0; j < k; ++j) {
+                const float* z = Z + (i * k + j) * plane + px0;
+                for (int64_t l = 0; l < S; ++l) {
+                    const int64_t q = px0 + l + j - r;
+                    if (!EDGE || (l < n && q >= 0 && q < W)) shift[l] = std::max(shift[l], z[l] * s[l]);
+                }
+            }
+        }
+    }
+    for (int64_t i = 0; i < k; ++i) {
+        const int64_t yy = y + i - r;
+        if (yy < 0 || yy >= H) continue;
+        for (int64_t j = 0; j < k; ++j) {
+            const int64_t d = j - r;
+            const float* z = Z + (i * k + j) * plane + px0;
+            const float* xr = X + yy * W + px0 + d;
+            if (!EDGE) {
+                for (int64_t l = 0; l < S; ++l) {
+                    const float e = exp_bounded(z[l] * s[l] - shift[l]);
+                    sum[l] += e;
+                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * HW + l];
+                }
+            } else {
+                for (int64_t l = 0; l < n; ++l) {
+                    const int64_t q = px0 + l + d;
+                    if (q < 0 || q >= W) continue;
+                    const float e = exp_bounded(z[l] * s[l] - shift[l]);
+                    sum[l] += e;
+                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * HW + l];
+                }
+            }
+        }
+    }
+    for (int64_t l = 0; l < S; ++l) sum[l] = 1.0f / sum[l];
+    for (int64_t c = 0; c < C; ++c)
+        for (int64_t l = 0; l < n; ++l) acc_rows[c * W + px0 + l] = acc[c][l] * sum[l];
+}
+
+template <int NC>
+static void filter_row_c(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
+                         int64_t y, float scale, bool has_scale, float* acc) {
+    const int64_t r = k / 2;
+    for (int64_t px0 = 0; px0 < W; px0 += S) {
+        if (px0 >= r && px0 + S + r <= W)
+            filter_strip<NC, false>(X, C, H, W, Z, plane, k, y, px0, scale, has_scale, acc);
+        else
+            filter_strip<NC, true>(X, C, H, W, Z, plane, k, y, px0, scale, has_scale, acc);
+    }
+}
+
+// The kernel filter of row y: t.acc (C rows of W) = sum_t w_t * x[c, y + i - r, px + j - r] with
+// the softmax weights w. X: C planes of H x W; Z: k*k logit planes `plane` apart, offset to row y.
 static void filter_row(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
                        int64_t y, float scale, bool has_scale, RowScratch& t) {
-    const int64_t r = k / 2, K = k * k;
-    logit_scale_row(Z, K, plane, W, scale, has_scale, t.s, t.sum);
-    {  // the largest in-image scaled logit; the centre tap always is in the image
-        const float* z = Z + (r * k + r) * plane;
-        for (int64_t px = 0; px < W; ++px) t.m[px] = z[px] * t.s[px];
+    if (C == 3) return filter_row_c<3>(X, C, H, W, Z, plane, k, y, scale, has_scale, t.acc);
+    if (C == 4) return filter_row_c<4>(X, C, H, W, Z, plane, k, y, scale, has_scale, t.acc);
+    for (int64_t c0 = 0; c0 < C; c0 += 8) {  // other channel counts, 8 at a time
+        const int64_t cn = std::min<int64_t>(8, C - c0);
+        filter_row_c<0>(X + c0 * H * W, cn, H, W, Z, plane, k, y, scale, has_scale, t.acc + c0 * W);
     }
-    for (int64_t i = 0; i < k; ++i) {
-        const int64_t yy = y + i - r;
-        if (yy < 0 || yy >= H) continue;
-        for (int64_t j = 0; j < k; ++j) {
-            const int64_t d = j - r, x0 = std::max<int64_t>(0, -d), x1 = std::min<int64_t>(W, W - d);
-            const float* z = Z + (i * k + j) * plane;
-            for (int64_t px = x0; px < x1; ++px) t.m[px] = std::max(t.m[px], z[px] * t.s[px]);
-        }
-    }
-    std::fill(t.sum, t.sum + W, 0.0f);
-    std::fill(t.acc, t.acc + C * W, 0.0f);
-    for (int64_t i = 0; i < k; ++i) {
-        const int64_t yy = y + i - r;
-        if (yy < 0 || yy >= H) continue;
-        for (int64_t j = 0; j < k; ++j) {
-            const int64_t d = j - r, x0 = std::max<int64_t>(0, -d), x1 = std::min<int64_t>(W, W - d);
-            const float* z = Z + (i * k + j) * plane;
-            for (int64_t px = x0; px < x1; ++px) {
-                t.e[px] = exp_nonpositive(z[px] * t.s[px] - t.m[px]);
-                t.sum[px] += t.e[px];
-            }
-            for (int64_t c = 0; c < C; ++c) {
-                const float* xr = X + (c * H + yy) * W + d;
-                float* a = t.acc + c * W;
-                for (int64_t px = x0; px < x1; ++px) a[px] += t.e[px] * xr[px];
-            }
-        }
-    }
-    for (int64_t px = 0; px < W; ++px) t.sum[px] = 1.0f / t.sum[px];
 }
 
 template <class F>
@@ -200,8 +264,7 @@ public:
                 filter_row(X + b * C * HW, C, H, W, L + b * k * k * HW + y * W, HW, k, y, m_scale, m_has_scale, t);
                 for (int64_t c = 0; c < C; ++c) {
                     float* o = O + (b * C + c) * HW + y * W;
-                    const float* a = t.acc + c * W;
-                    for (int64_t px = 0; px < W; ++px) o[px] = a[px] * t.sum[px];
+                    std::memcpy(o, t.acc + c * W, W * sizeof(float));
                 }
             }
         });
@@ -333,7 +396,7 @@ public:
                     std::fill(sum.begin(), sum.end(), 0.0f);
                     for (int64_t l = 0; l < L; ++l)
                         for (int64_t px = 0; px < W; ++px) {
-                            e[l * W + px] = exp_nonpositive(z[l * HW + px] * s[px] - m[px]);
+                            e[l * W + px] = exp_bounded(z[l * HW + px] * s[px] - m[px]);
                             sum[px] += e[l * W + px];
                         }
                     for (int64_t px = 0; px < W; ++px) sum[px] = 1.0f / sum[px];
@@ -386,8 +449,6 @@ public:
                     const int64_t b = row / h, y = row % h;
                     filter_row(parts[i] + b * C1 * plane, C1, h, w, Z + b * zb + y * w, plane, k, y, m_scale,
                                m_has_scale, t);
-                    for (int64_t c = 0; c < C1; ++c)
-                        for (int64_t px = 0; px < w; ++px) t.acc[c * w + px] *= t.sum[px];
                     if (i < L - 1)
                         add_upsampled_row(accs[i + 1] + b * C1 * hs[i + 1] * ws[i + 1], hs[i + 1], ws[i + 1],
                                           ly[y], lx, w, t.acc, w, C1);

@@ -112,7 +112,8 @@ def test_matmul_heads_export(tiny, tmp_path):
 
 def test_fused_kernels_export(tiny, tmp_path):
     """``kernels=fused``: one ``denoiser::PyramidFilter`` node instead of the partition, the
-    kernel softmaxes, the k*k multiply-adds per level and the upsampling; checked by the command
+    kernel softmaxes, the k*k multiply-adds per level and the upsampling, and ``denoiser::Log1p``
+    for the input transforms' ``log1p``; checked by the command
     with OpenVINO (ONNX Runtime cannot run it), and equal to PyTorch at another size over three
     recurrent steps."""
     from denoiser import ovext
@@ -130,9 +131,13 @@ def test_fused_kernels_export(tiny, tmp_path):
     plain, fused = onnx.load(str(conv_path)), onnx.load(str(out))
     levels = len(net.filter.kernel_sizes)
     ours = [n.op_type for n in fused.graph.node if n.domain == "denoiser"]
-    assert ours == ["PyramidFilter"]  # the whole filter, one node
-    assert sum(n.op_type == "Softmax" for n in fused.graph.node) == sum(
-        n.op_type == "Softmax" for n in plain.graph.node) - levels - 1  # the kernels' and the partition's
+    assert ours.count("PyramidFilter") == 1 and set(ours) == {"PyramidFilter", "Log1p"}  # the whole filter, one node
+
+    def count(model, op):
+        return sum(n.op_type == op for n in model.graph.node)
+
+    assert count(plain, "Log") - count(fused, "Log") == ours.count("Log1p") >= 2  # the color and albedo features
+    assert count(fused, "Softmax") == count(plain, "Softmax") - levels - 1  # the kernels' and the partition's
     assert uses_extension(out) and not uses_extension(conv_path)
     errors = check_export(net, out, size=(33, 17), steps=3)
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors

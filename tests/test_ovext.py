@@ -53,7 +53,9 @@ def run_openvino(path, x, logits, threads=1, precision="f32"):
     compiled = core.compile_model(core.read_model(str(path)), "CPU",
                                   {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": hint})
     feed = {"x": x.numpy()}
-    if isinstance(logits, torch.Tensor):
+    if isinstance(logits, dict):
+        pass
+    elif isinstance(logits, torch.Tensor):
         feed["logits"] = logits.numpy()
     else:
         feed.update({f"h{i}": h.numpy() for i, h in enumerate(logits)})
@@ -212,6 +214,35 @@ def test_pyramid_filter_hard_values(tmp_path):
     got = run_openvino(path, x, heads)
     assert np.isfinite(got).all()
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+
+
+def test_log1p_matches_torch(tmp_path):
+    """``denoiser::Log1p`` (the exported ``torch.log1p`` of the input transforms, ONNX's
+    ``Log(1 + x)`` with ``1 + x`` in float32) within 1 ulp of the exact log of that ``1 + x``, over
+    values from 1e-12 to 1e30, and the special values: -1 -> -inf, below -1 -> NaN, +inf ->
+    +inf, NaN -> NaN, and 1 + x subnormal-free but tiny (2^-24)."""
+    from denoiser.nn.inputs import log1p
+
+    class Log(torch.nn.Module):
+        def forward(self, x):
+            return log1p(x)
+
+    x = torch.cat([torch.logspace(-12, 30, 4000), torch.rand(1000) * 5, torch.tensor([0.0, 1e-8, 65504.0])])
+    specials = torch.tensor([-1.0, -2.0, float("inf"), float("nan"), -1.0 + 2.0 ** -24])
+    x = torch.cat([x, specials]).view(1, 1, 1, -1)
+    with kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(Log(), (x,), str(tmp_path / "l.onnx"), input_names=["x"], output_names=["y"],
+                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import onnx
+
+    assert [n.op_type for n in onnx.load(str(tmp_path / "l.onnx")).graph.node] == ["Log1p"]
+    got = run_openvino(tmp_path / "l.onnx", x, {}).ravel()
+    want = torch.log((1.0 + x).ravel().double()).float().numpy()  # the graph's Log(1 + x), 1 + x in float32
+    finite = np.isfinite(want)
+    np.testing.assert_allclose(got[finite], want[finite], rtol=1.2e-7, atol=0)
+    n = len(specials)
+    assert got[-n] == -np.inf and np.isnan(got[-n + 1]) and got[-n + 2] == np.inf and np.isnan(got[-n + 3])
+    np.testing.assert_allclose(got[-1], np.log(2.0 ** -24), rtol=1e-6)
 
 
 def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):

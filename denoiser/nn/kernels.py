@@ -171,9 +171,10 @@ _KERNEL_OP = contextvars.ContextVar("kernel_op", default=False)
 def kernels_as_op(enabled: bool = True) -> Iterator[None]:
     """Within the block, an exported :func:`apply_kernels_graph` is one ``denoiser::KernelApply``
     node (attributes ``scale`` float, ``has_scale`` int) instead of slices, a softmax and k*k
-    multiply-adds, and a :class:`~denoiser.nn.pyramid.PyramidFilter` one ``denoiser::PyramidFilter``
-    node: the fused operations of the OpenVINO extension :mod:`denoiser.ovext`. Only an engine
-    with that extension loaded can run such a graph."""
+    multiply-adds, a :class:`~denoiser.nn.pyramid.PyramidFilter` one ``denoiser::PyramidFilter``
+    node and :func:`denoiser.nn.inputs.log1p` one ``denoiser::Log1p`` node: the fused operations
+    of the OpenVINO extension :mod:`denoiser.ovext`. Only an engine with that extension loaded can
+    run such a graph."""
     token = _KERNEL_OP.set(bool(enabled))
     try:
         yield

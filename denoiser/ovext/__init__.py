@@ -2,7 +2,8 @@
 operations. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
 :class:`~denoiser.nn.pyramid.PyramidFilter` (partition, pooled parts, the levels' kernels,
-upsampling, normalisation).
+upsampling, normalisation), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``
+is a reference implementation on the CPU).
 
 The extension is C++ against the headers and libraries the ``openvino`` wheel ships. It is
 compiled on first use, with the machine's C++ compiler (``$CXX``, else ``g++``/``c++``) and

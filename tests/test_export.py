@@ -89,14 +89,19 @@ def test_graph_is_lean(tiny):
     assert sum(n.op_type != "Constant" for n in nodes) < 1200
 
 
+def export_command(tmp_path, ckpt, out, *overrides) -> subprocess.CompletedProcess:
+    """``denoiser-export`` of ``ckpt`` to ``out`` with ``overrides``, checked at 28x20 on one thread."""
+    return subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", *overrides,
+                           "check_size=[20,28]", "threads=1", f"hydra.run.dir={tmp_path / 'h'}"],
+                          capture_output=True, text=True, timeout=300, check=False)
+
+
 def test_matmul_heads_export(tiny, tmp_path):
     """``heads=matmul``: every U-Net head becomes matrix products (the level-0 head one per
     part, no 1x1 convolution left for a head), with the same numbers as PyTorch."""
     _, net, ckpt, conv_path, _ = tiny
     out = tmp_path / "mm.onnx"
-    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", "heads=matmul",
-                           "check_size=[20,28]", "threads=1", f"hydra.run.dir={tmp_path / 'h'}"],
-                          capture_output=True, text=True, timeout=300, check=False)
+    proc = export_command(tmp_path, ckpt, out, "heads=matmul")
     assert proc.returncode == 0, proc.stderr[-2000:]
     conv_nodes, mm_nodes = onnx.load(str(conv_path)).graph.node, onnx.load(str(out)).graph.node
     heads = sum(n > 0 for n in net.unet.head_channels)
@@ -123,9 +128,7 @@ def test_fused_kernels_export(tiny, tmp_path):
         pytest.skip(ovext.unavailable_reason())
     _, net, ckpt, conv_path, _ = tiny
     out = tmp_path / "fused.onnx"
-    proc = subprocess.run([str(VENV_BIN / "denoiser-export"), f"ckpt={ckpt}", f"out={out}", "kernels=fused",
-                           "check_size=[20,28]", "threads=1", f"hydra.run.dir={tmp_path / 'h'}"],
-                          capture_output=True, text=True, timeout=300, check=False)
+    proc = export_command(tmp_path, ckpt, out, "kernels=fused")
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "OpenVINO vs PyTorch at 28x20" in proc.stdout and "trtexec" not in proc.stdout
     plain, fused = onnx.load(str(conv_path)), onnx.load(str(out))

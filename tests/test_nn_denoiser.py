@@ -249,13 +249,17 @@ class _Heads(torch.nn.Module):
         return tuple(self.unet(x)[0])
 
 
-def test_unet_matmul_heads_equal_conv_heads():
-    """Traced with heads_as_matmul, the U-Net's heads are the same maps as its 1x1 convolutions."""
+@pytest.mark.parametrize("upsample", ["bilinear", "nearest"])
+def test_unet_matmul_heads_equal_conv_heads(upsample):
+    """Traced with heads_as_matmul, the U-Net's heads are the same maps as its 1x1 convolutions
+    (the level-0 head's upsampled part multiplied at half resolution, then upsampled:
+    ``UNet.head0_before_upsampling``)."""
     from denoiser.nn.parts import heads_as_matmul, matmul_heads
     from denoiser.nn.unet import UNet
 
     torch.manual_seed(0)
-    unet = UNet(in_channels=7, encoder=[4, 8], bottleneck=8, decoder=[4], head_channels=[3, 2]).eval()
+    unet = UNet(in_channels=7, encoder=[4, 8], bottleneck=8, decoder=[4], head_channels=[3, 2],
+                upsample=upsample).eval()
     x = torch.randn(2, 7, 8, 12)
     with torch.no_grad():
         heads, _ = unet(x)
@@ -263,8 +267,10 @@ def test_unet_matmul_heads_equal_conv_heads():
             assert matmul_heads()
             traced = torch.jit.trace(_Heads(unet), x, check_trace=False)
         assert not matmul_heads()
-        graph_ops = {n.kind() for n in traced.inlined_graph.nodes()}
+        graph_ops = [n.kind() for n in traced.inlined_graph.nodes()]
         assert "aten::matmul" in graph_ops
+        # the bottleneck's and the head's: the full-resolution upsampled features are not computed
+        assert graph_ops.count("aten::upsample_bilinear2d" if upsample == "bilinear" else "aten::upsample_nearest2d") == 2
         for a, b in zip(heads, traced(x)):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 

@@ -245,6 +245,35 @@ def test_log1p_matches_torch(tmp_path):
     np.testing.assert_allclose(got[-1], np.log(2.0 ** -24), rtol=1e-6)
 
 
+@pytest.mark.parametrize(("mode", "hw", "half"), [
+    ("bilinear", (12, 20), (6, 10)),  # the exact 2x of the level-0 head
+    ("bilinear", (9, 14), (4, 7)),  # any other size: the general path
+    ("nearest", (12, 20), (6, 10)),
+])
+def test_add_upsampled_matches_interpolate(tmp_path, mode, hw, half):
+    """``denoiser::AddUpsampled`` against ``a + F.interpolate(z, size, mode)`` (align_corners False)."""
+    from denoiser.nn.unet import _AddUpsampledOp
+
+    class Add(torch.nn.Module):
+        def forward(self, a, z):
+            return _AddUpsampledOp.apply(a, z, mode, False if mode == "bilinear" else None)
+
+    g = torch.Generator().manual_seed(5)
+    a, z = torch.randn(2, 5, *hw, generator=g), torch.randn(2, 5, *half, generator=g) * 100
+    with torch.no_grad():
+        torch.onnx.export(Add(), (a, z), str(tmp_path / "u.onnx"), input_names=["x", "z"], output_names=["y"],
+                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import openvino as ov
+
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "u.onnx")
+    compiled = core.compile_model(core.read_model(str(tmp_path / "u.onnx")), "CPU", {"INFERENCE_NUM_THREADS": 2})
+    got = compiled({"x": a.numpy(), "z": z.numpy()})[compiled.output(0)]
+    want = (a + torch.nn.functional.interpolate(z, size=hw, mode=mode,
+                                                align_corners=False if mode == "bilinear" else None)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-4)
+
+
 def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):
     from denoiser.step_graph import OpenVinoStep
 

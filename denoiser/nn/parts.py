@@ -64,6 +64,16 @@ def pointwise_of_parts(conv: nn.Conv2d, parts: Sequence[torch.Tensor]) -> torch.
     return out.reshape(b, -1, h, w)
 
 
+def pointwise(weight: torch.Tensor, bias: torch.Tensor | None, x: torch.Tensor) -> torch.Tensor:
+    """A 1x1 convolution as the matrix product of :func:`pointwise_of_parts` (one part):
+    weight ``[C_out, C_in]``, bias ``[C_out]`` or None, x ``[B, C_in, H, W]`` -> ``[B, C_out, H, W]``."""
+    b, _, h, w = x.shape
+    out = torch.matmul(weight, x.permute(0, 2, 3, 1).flatten(1, 2).transpose(1, 2))  # [B, C_out, H*W]
+    if bias is not None:
+        out = out + bias.view(1, -1, 1)
+    return out.reshape(b, -1, h, w)
+
+
 _MATMUL_HEADS = contextvars.ContextVar("matmul_heads", default=False)
 
 

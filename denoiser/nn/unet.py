@@ -26,7 +26,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.parts import conv_of_parts, matmul_heads, pointwise_of_parts
+from denoiser.nn.kernels import fused_kernels
+from denoiser.nn.parts import conv_of_parts, matmul_heads, pointwise, pointwise_of_parts
 
 
 def conv_block(cin: int, cout: int, negative_slope: float) -> nn.Sequential:
@@ -122,13 +123,14 @@ class UNet(nn.Module):
                 x = block(x)
             skips.append(x)
             x = F.max_pool2d(x, 2)
-        x = self._up(self.bottleneck(x))
+        half = self.bottleneck(x)  # the input of the last 2x upsampling, at 1/2 resolution
+        x = self._up(half)
         features: list[torch.Tensor] = [None] * self.levels  # type: ignore[list-item]
         for j, block in enumerate(self.decoder):
             scale = self.levels - 1 - j
             x = block(torch.cat([skips[scale], x], dim=1))
             features[scale] = x
-            x = self._up(x)
+            half, x = x, self._up(x)
         features[0] = torch.cat([skips[0], x], dim=1)
         # exported for OpenVINO f32 (matmul_heads): each head as matrix products, the level-0 head
         # per part (skip 0 and the upsampled features, no concatenation); see pointwise_of_parts
@@ -136,4 +138,38 @@ class UNet(nn.Module):
         parts = [[skips[0], x]] + [[f] for f in features[1:]]
         heads = [(pointwise_of_parts(head, parts[i]) if as_matmul else head(features[i])) if n > 0 else None
                  for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
+        if as_matmul and fused_kernels() and self.head_channels[0] > 0:
+            heads[0] = self.head0_before_upsampling(skips[0], half)
         return heads, features
+
+    def head0_before_upsampling(self, skip0: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
+        """The level-0 head of ``[skip0, up(half)]`` with its upsampled part's product taken at
+        half resolution: ``W_s skip0 + b + up(W_u half)``, since a 1x1 convolution and the 2x
+        upsampling (bilinear or nearest, weights summing to 1) are linear maps over channels and
+        over pixels respectively, so they commute. skip0: ``[B, C_0, H, W]``; half: ``[B, C_u,
+        H/2, W/2]`` -> ``[B, head_channels[0], H, W]``, the same numbers up to float rounding with
+        a quarter of that part's multiply-adds. What the graph exported with matmul heads and the
+        fused operations runs (``denoiser::AddUpsampled`` keeps the sum planar; with OpenVINO's
+        own upsampling its channels-last output made the head's channel split a 137 ms reference
+        node at 1080p)."""
+        head = self.heads[0]
+        weight, n = head.weight[:, :, 0, 0], skip0.shape[1]
+        a, z = pointwise(weight[:, :n], head.bias, skip0), pointwise(weight[:, n:], None, half)
+        if fused_kernels():  # one planar denoiser::AddUpsampled node (the OpenVINO extension)
+            return _AddUpsampledOp.apply(a, z, self.upsample_mode, self.align)
+        return a + self._up(z)
+
+
+class _AddUpsampledOp(torch.autograd.Function):
+    """``a + interpolate(z, 2x)`` recorded as one ``denoiser::AddUpsampled`` ONNX node (attribute
+    ``mode``); the value is the plain computation."""
+
+    @staticmethod
+    def forward(ctx, a, z, mode, align):
+        return a + F.interpolate(z, size=a.shape[-2:], mode=mode, align_corners=align)
+
+    @staticmethod
+    def symbolic(g, a, z, mode, align):
+        out = g.op("denoiser::AddUpsampled", a, z, mode_s=mode)
+        out.setType(a.type())
+        return out

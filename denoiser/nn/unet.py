@@ -144,7 +144,7 @@ class UNet(nn.Module):
 
     def head0_before_upsampling(self, skip0: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
         """The level-0 head of ``[skip0, up(half)]`` with its upsampled part's product taken at
-        half resolution: ``W_s skip0 + b + up(W_u half)``, since a 1x1 convolution and the 2x
+        half resolution: ``W_s skip0 + up(W_u half + b)``, since a 1x1 convolution and the 2x
         upsampling (bilinear or nearest, weights summing to 1) are linear maps over channels and
         over pixels respectively, so they commute. skip0: ``[B, C_0, H, W]``; half: ``[B, C_u,
         H/2, W/2]`` -> ``[B, head_channels[0], H, W]``, the same numbers up to float rounding with
@@ -154,7 +154,8 @@ class UNet(nn.Module):
         node at 1080p)."""
         head = self.heads[0]
         weight, n = head.weight[:, :, 0, 0], skip0.shape[1]
-        a, z = pointwise(weight[:, :n], head.bias, skip0), pointwise(weight[:, n:], None, half)
+        # the bias joins the half-resolution product (the upsampling's weights sum to 1)
+        a, z = pointwise(weight[:, :n], None, skip0), pointwise(weight[:, n:], head.bias, half)
         if fused_kernels():  # one planar denoiser::AddUpsampled node (the OpenVINO extension)
             return _AddUpsampledOp.apply(a, z, self.upsample_mode, self.align)
         return a + self._up(z)

@@ -1,9 +1,11 @@
-"""The OpenVINO extension (denoiser.ovext): ``denoiser::KernelApply`` against the kernel filter.
+"""The OpenVINO extension (denoiser.ovext): each operation against what it replaces.
 
-The operation is compared with a plain loop over pixels (the definition in
-``denoiser/nn/kernels.py``) and with eager :func:`~denoiser.nn.kernels.apply_kernels`, at odd
-sizes, kernels larger than the image, extreme logits and fireflies; then as part of a whole
-exported network (tests/test_openvino.py runs the fused graph's parity over a sequence).
+``denoiser::KernelApply`` against a plain loop over pixels (the definition in
+``denoiser/nn/kernels.py``) and eager :func:`~denoiser.nn.kernels.apply_kernels`, at odd sizes,
+kernels larger than the image, extreme logits and fireflies; ``denoiser::PyramidFilter`` against
+:class:`~denoiser.nn.pyramid.PyramidFilter`; ``denoiser::Log1p`` against the exact log;
+``denoiser::AddUpsampled`` against ``F.interpolate``; then the build's failure modes. Whole
+exported networks run the fused graph's parity over a sequence in tests/test_openvino.py.
 """
 
 import math

@@ -149,11 +149,12 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
 def keep_freed_memory() -> None:
     """Let glibc's allocator keep freed memory for reuse instead of returning it to the system
     (``mallopt``: large blocks from the heap, not ``mmap``; no trimming), for the rest of the
-    process. OpenVINO's CPU plugin allocates the outputs of extension operations
-    (:mod:`denoiser.ovext`) at every inference; with glibc's defaults each such buffer (25 MB
-    for a 3-channel 1080p image) was mapped afresh and page-faulted on every frame: the paper
-    student's f32 step at 1080p took 2164 ms and varied by 10% between frames, 2135 ms with
-    this (interleaved medians of 9). No effect where the C library is not glibc."""
+    process. With the extension's operations (:mod:`denoiser.ovext`) in the graph, the step's
+    time varied by 10% between frames under glibc's defaults, as if large buffers (25 MB for a
+    3-channel 1080p image; OpenVINO's CPU plugin appears to allocate those operations' outputs at
+    every inference) were mapped afresh and page-faulted on every frame: the paper student's f32
+    step at 1080p took 2164 ms, 2135 ms with this and steady (interleaved medians of 9). No
+    effect where the C library is not glibc."""
     import ctypes
     import ctypes.util
 

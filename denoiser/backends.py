@@ -106,7 +106,7 @@ class _ExportedGraphBackend:
     dtype = "fp32"
     device = "cpu"
     matmul_heads = False  # export_onnx's choice of head operators (see there)
-    fused_kernels = False  # export_onnx's denoiser::KernelApply nodes (see there)
+    fused_kernels = False  # export_onnx's operations of the OpenVINO extension (see there)
 
     def _export(self, net) -> str:
         from denoiser.step_graph import export_onnx
@@ -167,9 +167,9 @@ class OpenVinoBackend(_ExportedGraphBackend):
     the U-Net's heads are exported as matrix products (``export_onnx(matmul_heads=True)``: a
     1x1 convolution's float32 output reaches a softmax over channels through a slow reference
     reorder in OpenVINO), in bf16 as 1x1 convolutions (docs/export.md). In both, the kernel
-    filter of each pyramid level is one ``denoiser::KernelApply`` node
-    (``export_onnx(fused_kernels=True)``) when the project's OpenVINO extension builds
-    (:mod:`denoiser.ovext`), else the plain graph (one line on stderr says why).
+    filter is one ``denoiser::PyramidFilter`` node and the ``log1p`` transforms
+    ``denoiser::Log1p`` nodes (``export_onnx(fused_kernels=True)``) when the project's OpenVINO
+    extension builds (:mod:`denoiser.ovext`), else the plain graph (one line on stderr says why).
     """
 
     def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU",

@@ -109,9 +109,10 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     ``matmul_heads``: the U-Net's 1x1 heads as matrix products
     (:func:`denoiser.nn.parts.pointwise_of_parts`; same numbers): the graph OpenVINO runs fastest
     in f32, while 1x1 convolutions (the default) are what it runs fastest in bf16.
-    ``fused_kernels``: each pyramid level's kernel filter as one ``denoiser::KernelApply`` node
-    (:func:`denoiser.nn.kernels.kernels_as_op`; same numbers): faster in OpenVINO, and only
-    OpenVINO with the project's extension (:mod:`denoiser.ovext`) can run it.
+    ``fused_kernels``: the kernel filter, the input transforms' ``log1p`` and (with matmul heads)
+    the level-0 head's upsampling as operations of the project's OpenVINO extension
+    (:func:`denoiser.nn.kernels.kernels_as_op`, :mod:`denoiser.ovext`; same numbers): faster in
+    OpenVINO, and only OpenVINO with that extension can run the file.
     """
     import onnx
 
@@ -169,7 +170,7 @@ def keep_freed_memory() -> None:
 
 def uses_extension(path: str | os.PathLike) -> bool:
     """Whether the ONNX graph at ``path`` imports the ``denoiser`` domain (its
-    ``denoiser::KernelApply`` nodes need the OpenVINO extension :mod:`denoiser.ovext`)."""
+    nodes need the OpenVINO extension :mod:`denoiser.ovext`)."""
     import onnx
 
     model = onnx.load(str(path), load_external_data=False)
@@ -230,7 +231,7 @@ class OpenVinoStep:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
         keep_freed_memory()
         self.core = ov.Core()
-        if uses_extension(path):  # denoiser::KernelApply (export_onnx(fused_kernels=True))
+        if uses_extension(path):  # export_onnx(fused_kernels=True)
             from denoiser import ovext
 
             ovext.load_into(self.core, path)

@@ -9,9 +9,10 @@ The graph and its inputs and outputs are described in :mod:`denoiser.step_graph`
 ``docs/export.md``. The result is checked by ONNX Runtime against PyTorch at ``check_size``, a
 different resolution from ``trace_size``, over two recurrent steps (reset, then with the
 returned state); the largest absolute error of every output is printed and must stay below
-``tolerance * max(1, max |value|)``. ``kernels=fused`` writes each pyramid level's kernel filter
-as one ``denoiser::KernelApply`` node, which only OpenVINO with the project's extension runs
-(:mod:`denoiser.ovext`); that graph is checked with OpenVINO f32 instead.
+``tolerance * max(1, max |value|)``. ``kernels=fused`` writes the kernel filter and the
+``log1p`` transforms as operations of the project's OpenVINO extension (``denoiser::PyramidFilter``,
+``denoiser::Log1p``), which only OpenVINO with that extension runs (:mod:`denoiser.ovext`); that
+graph is checked with OpenVINO f32 instead.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def run(cfg: DictConfig) -> dict:
         k, (e, s) = next(iter(bad.items()))
         raise UserError(f"{out}: {engine} differs from PyTorch in {k} by {e:.3g} > tolerance {tol} x max(1, {s:.3g})")
     print(f"max abs error {max(e for e, _ in errors.values()):.3g}: within tolerance {tol} x max(1, max |value|): ok")
-    if kernels == "graph":  # TensorRT has no denoiser::KernelApply
+    if kernels == "graph":  # TensorRT has none of the extension's operations
         print("TensorRT FP16 engine (see docs/export.md):\n" + trtexec_command(out, net, int(cfg.batch)))
     return dict(errors)
 

@@ -56,19 +56,24 @@ def pointwise_of_parts(conv: nn.Conv2d, parts: Sequence[torch.Tensor]) -> torch.
     out, start = None, 0
     for part in parts:
         n = part.shape[1]
-        rows = part.permute(0, 2, 3, 1).flatten(1, 2)  # [B, H*W, C_i]
-        y = torch.matmul(weight[:, start: start + n], rows.transpose(1, 2))  # [B, C_out, H*W]
+        y = _product(weight[:, start: start + n], part)
         out, start = (y if out is None else out + y), start + n
     if conv.bias is not None:
         out = out + conv.bias.view(1, -1, 1)
     return out.reshape(b, -1, h, w)
 
 
+def _product(weight: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``W @ X^T`` over the channels-last rows of x: weight ``[C_out, C_in]``, x ``[B, C_in, H, W]``
+    -> ``[B, C_out, H*W]`` (see :func:`pointwise_of_parts` for why this form)."""
+    return torch.matmul(weight, x.permute(0, 2, 3, 1).flatten(1, 2).transpose(1, 2))
+
+
 def pointwise(weight: torch.Tensor, bias: torch.Tensor | None, x: torch.Tensor) -> torch.Tensor:
     """A 1x1 convolution as the matrix product of :func:`pointwise_of_parts` (one part):
     weight ``[C_out, C_in]``, bias ``[C_out]`` or None, x ``[B, C_in, H, W]`` -> ``[B, C_out, H, W]``."""
     b, _, h, w = x.shape
-    out = torch.matmul(weight, x.permute(0, 2, 3, 1).flatten(1, 2).transpose(1, 2))  # [B, C_out, H*W]
+    out = _product(weight, x)
     if bias is not None:
         out = out + bias.view(1, -1, 1)
     return out.reshape(b, -1, h, w)

@@ -3,7 +3,8 @@ operations. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
 :class:`~denoiser.nn.pyramid.PyramidFilter` (partition, pooled parts, the levels' kernels,
 upsampling, normalisation), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``
-is a reference implementation on the CPU).
+is a reference implementation on the CPU), ``denoiser::AddUpsampled`` the level-0 head's sum
+with its upsampled half-resolution part (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`).
 
 The extension is C++ against the headers and libraries the ``openvino`` wheel ships. It is
 compiled on first use, with the machine's C++ compiler (``$CXX``, else ``g++``/``c++``) and
@@ -31,9 +32,6 @@ from pathlib import Path
 
 from denoiser.atomic import atomic_path
 from denoiser.errors import UserError
-
-#: the ONNX domain of the extension's operations
-DOMAIN = "denoiser"
 
 #: the extension's source, shipped with the package
 SOURCE = Path(__file__).with_name("kernel_apply.cpp")
@@ -127,12 +125,25 @@ def unavailable_reason() -> str | None:
 def load_into(core, source: str | os.PathLike = "graph") -> None:
     """Add the extension to an ``openvino.Core`` (before it reads a graph that uses it).
 
-    Raises :class:`~denoiser.errors.UserError` naming ``source`` when it is unavailable."""
+    Raises :class:`~denoiser.errors.UserError` naming ``source`` and the operations it uses when
+    the extension is unavailable."""
     path = kernel_extension()
     if path is None:
-        raise UserError(f"{source}: uses denoiser::KernelApply, and the OpenVINO extension is unavailable: "
+        raise UserError(f"{source}: uses {_operations(source)}, and the OpenVINO extension is unavailable: "
                         f"{unavailable_reason()}")
     core.add_extension(str(path))
+
+
+def _operations(source: str | os.PathLike) -> str:
+    """The extension's operations an ONNX file uses (``denoiser::PyramidFilter, ...``), for messages."""
+    try:
+        import onnx
+
+        nodes = onnx.load(str(source), load_external_data=False).graph.node
+    except (ImportError, OSError):  # no onnx, or no such file: name the extension only
+        return "the extension's operations"
+    names = sorted({f"denoiser::{n.op_type}" for n in nodes if n.domain == "denoiser"})
+    return ", ".join(names) or "the extension's operations"
 
 
 @functools.cache

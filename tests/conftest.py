@@ -3,6 +3,10 @@
 import os
 import sys
 import tempfile
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
 
 # built artefacts (the OpenVINO extension, denoiser.ovext) go to a per-session folder, not ~/.cache
 os.environ.setdefault("DENOISER_CACHE", tempfile.mkdtemp(prefix="denoiser-test-cache-"))
@@ -22,6 +26,74 @@ def _absl_handler_on_the_real_stderr() -> None:
 
 
 _absl_handler_on_the_real_stderr()
+
+#: set by .ci/run where ``openvino`` imports and a C++ compiler exists: there the OpenVINO
+#: extension's tests must run, and a skip for want of the extension (or of openvino) is a failure
+REQUIRE_OVEXT = "DENOISER_REQUIRE_OVEXT"
+#: test modules that are all about OpenVINO: under REQUIRE_OVEXT a skip of the whole module fails
+OPENVINO_MODULES = ("test_ovext.py", "test_openvino.py")
+
+
+def skip_or_fail(reason: str):
+    """Skip the test for ``reason``, or fail it when ``$DENOISER_REQUIRE_OVEXT`` is 1."""
+    if os.environ.get(REQUIRE_OVEXT) == "1":
+        pytest.fail(f"{reason} (and {REQUIRE_OVEXT}=1: this test must run here)", pytrace=False)
+    pytest.skip(reason)
+
+
+def extension_or_skip() -> Path:
+    """The OpenVINO extension's library (:func:`denoiser.ovext.kernel_extension`, built on first
+    use); skips the test naming why it is unavailable (fails it under ``$DENOISER_REQUIRE_OVEXT``)."""
+    from denoiser import ovext
+
+    path = ovext.kernel_extension()
+    if path is None:
+        skip_or_fail(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
+    return path
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_make_collect_report(collector):
+    """Under ``$DENOISER_REQUIRE_OVEXT``, a module-level skip of :data:`OPENVINO_MODULES`
+    (``pytest.importorskip("openvino")``) is a collection error."""
+    report = yield
+    if (report.skipped and os.environ.get(REQUIRE_OVEXT) == "1" and isinstance(collector, pytest.Module)
+            and collector.path.name in OPENVINO_MODULES):
+        report.outcome = "failed"
+        report.longrepr = f"{collector.path.name}: skipped ({skip_reason(report)}), and {REQUIRE_OVEXT}=1"
+    return report
+
+
+def skip_reason(report) -> str:
+    """A skipped report's reason, without pytest's ``Skipped: `` prefix."""
+    text = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    return text.removeprefix("Skipped: ")
+
+
+def compact_ids(nodeids: list[str]) -> str:
+    """``tests/a.py: test_x (3 cases), test_y; tests/b.py: (module)``: node ids by file, one
+    function once with its number of parametrized cases."""
+    files: dict[str, dict[str, int]] = defaultdict(dict)
+    for nodeid in nodeids:
+        path, _, name = nodeid.partition("::")
+        name = name.split("[", 1)[0] or "(module)"
+        files[path][name] = files[path].get(name, 0) + 1
+    return "; ".join(f"{path}: " + ", ".join(name + (f" ({n} cases)" if n > 1 else "") for name, n in names.items())
+                     for path, names in files.items())
+
+
+def pytest_terminal_summary(terminalreporter):
+    """A "skipped, by reason" section: each reason once, with how many tests it skipped and
+    which (pyproject's ``-r`` leaves skips out, so they are not listed twice)."""
+    by_reason: dict[str, list[str]] = defaultdict(list)
+    for report in terminalreporter.stats.get("skipped", []):
+        by_reason[skip_reason(report)].append(report.nodeid)
+    if not by_reason:
+        return
+    terminalreporter.section("skipped, by reason", sep="-")
+    for reason, nodeids in sorted(by_reason.items(), key=lambda item: (-len(item[1]), item[0])):
+        terminalreporter.write_line(f"{len(nodeids):4d}  {reason}")
+        terminalreporter.write_line(f"      {compact_ids(nodeids)}")
 
 
 def tiny_checkpoint(path, seed: int = 0, **extra):

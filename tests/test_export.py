@@ -8,6 +8,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from conftest import extension_or_skip
 
 from denoiser.checkpoint import save_checkpoint
 from denoiser.configs import build_net, compose_net_config
@@ -121,11 +122,8 @@ def test_fused_kernels_export(tiny, tmp_path):
     for the input transforms' ``log1p``; checked by the command
     with OpenVINO (ONNX Runtime cannot run it), and equal to PyTorch at another size over three
     recurrent steps."""
-    from denoiser import ovext
-
     pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
-    if ovext.kernel_extension() is None:
-        pytest.skip(ovext.unavailable_reason())
+    extension_or_skip()
     _, net, ckpt, conv_path, _ = tiny
     out = tmp_path / "fused.onnx"
     proc = export_command(tmp_path, ckpt, out, "kernels=fused")

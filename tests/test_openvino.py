@@ -14,6 +14,7 @@ hundreds, large motion; a reset at frame 2; errors relative to ``max(1, |value|)
 import numpy as np
 import pytest
 import torch
+from conftest import extension_or_skip
 
 pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
 pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
@@ -65,8 +66,8 @@ def relative_errors(path, frames, expected, precision):
 def graph(path, name):
     """One of the fixture's exported graphs: ``conv``, ``matmul`` (heads), ``matmul-fused`` (the
     graph the f32 backend runs: matmul heads and denoiser::KernelApply) or ``fused`` (bf16's)."""
-    if "fused" in name and ovext.kernel_extension() is None:
-        pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
+    if "fused" in name:
+        extension_or_skip()
     return path.with_name({"conv": "tiny.onnx", "matmul": "tiny-mm.onnx", "matmul-fused": "tiny-mm-fused.onnx",
                            "fused": "tiny-fused.onnx"}[name])
 
@@ -152,9 +153,9 @@ def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, caps
     (no compiler) the backend says why on stderr and runs the plain graph, with the same numbers."""
     import onnx
 
-    if extension and ovext.kernel_extension() is None:
-        pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
-    if not extension:
+    if extension:
+        extension_or_skip()
+    else:
         monkeypatch.setattr(ovext, "_status", lambda: (None, "no C++ compiler ($CXX, g++ or c++)"))
     net, _, frames, expected = tiny
     backend = OpenVinoBackend("openvino f32", precision="f32")

@@ -4,27 +4,39 @@
 ``denoiser/nn/kernels.py``) and eager :func:`~denoiser.nn.kernels.apply_kernels`, at odd sizes,
 kernels larger than the image, extreme logits and fireflies; ``denoiser::PyramidFilter`` against
 :class:`~denoiser.nn.pyramid.PyramidFilter`; ``denoiser::Log1p`` against the exact log;
-``denoiser::AddUpsampled`` against ``F.interpolate``; then the build's failure modes. Whole
-exported networks run the fused graph's parity over a sequence in tests/test_openvino.py.
+``denoiser::AddUpsampled`` against ``F.interpolate``: these need the built extension and skip,
+naming why, without it (they fail instead under ``DENOISER_REQUIRE_OVEXT=1``, tests/conftest.py).
+Then the build's failure modes and the cache's trust rules, with fake compilers (shell scripts):
+these need the ``openvino`` package only. Whole exported networks run the fused graph's parity
+over a sequence in tests/test_openvino.py.
 """
 
+import hashlib
 import math
+import os
 import stat
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-
-pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
-pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
+from conftest import extension_or_skip
 
 from denoiser import ovext
 from denoiser.errors import UserError
 from denoiser.nn.kernels import apply_kernels, kernels_as_op
 from denoiser.nn.pyramid import PyramidFilter
 
-if ovext.kernel_extension() is None:
-    pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}", allow_module_level=True)
+
+@pytest.fixture
+def extension():
+    """The built extension (the tests that run its operations, through ONNX graphs)."""
+    pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
+    return extension_or_skip()
+
+
+needs_extension = pytest.mark.usefixtures("extension")
 
 
 class Filter(torch.nn.Module):
@@ -113,6 +125,7 @@ def loop_reference(x, logits, scale):
     return out
 
 
+@needs_extension
 @pytest.mark.parametrize("k", [1, 3, 5, 7])
 @pytest.mark.parametrize("scale", [None, 2.5])
 def test_kernel_apply_matches_the_loop_over_pixels(tmp_path, k, scale):
@@ -127,6 +140,7 @@ def test_kernel_apply_matches_the_loop_over_pixels(tmp_path, k, scale):
     np.testing.assert_allclose(got, apply_kernels(x, logits, scale).numpy(), rtol=2e-5, atol=2e-5)
 
 
+@needs_extension
 def test_kernel_apply_hard_values_and_threads(tmp_path):
     """Fireflies, black pixels, logits at +-1e4 (saturated softmaxes: one-hot kernels), and a
     row split across threads: equal to eager within float32 rounding, finite, and the same bits
@@ -148,6 +162,7 @@ def test_kernel_apply_hard_values_and_threads(tmp_path):
         np.testing.assert_allclose(one, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
 
 
+@needs_extension
 def test_kernel_apply_in_bf16_inference(tmp_path):
     """Under ``INFERENCE_PRECISION_HINT=bf16`` the operation still runs in float32 (its inputs
     arrive converted): the same numbers as f32."""
@@ -162,6 +177,7 @@ def test_kernel_apply_in_bf16_inference(tmp_path):
                                rtol=1e-6, atol=1e-6)
 
 
+@needs_extension
 @pytest.mark.parametrize(("sizes", "scale", "hw"), [
     ([5, 5, 5], 2.5, (20, 28)),  # the student's pyramid
     ([5, 5, 5], None, (21, 30)),  # sizes that are not multiples of 4: floored pools, upsampling to size
@@ -188,6 +204,7 @@ def one_hot(taps, k: int = 5) -> torch.Tensor:
     return logits
 
 
+@needs_extension
 def test_pyramid_filter_hard_values(tmp_path):
     """Saturated softmaxes (logits at +-1e4: one-hot weights) built so that every level's kernel
     reads only pixels whose partition weight is 0: the normaliser is exactly 0 below the first
@@ -218,6 +235,7 @@ def test_pyramid_filter_hard_values(tmp_path):
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
 
 
+@needs_extension
 def test_log1p_matches_torch(tmp_path):
     """``denoiser::Log1p`` (the exported ``torch.log1p`` of the input transforms, ONNX's
     ``Log(1 + x)`` with ``1 + x`` in float32) within 1 ulp of the exact log of that ``1 + x``, over
@@ -247,6 +265,7 @@ def test_log1p_matches_torch(tmp_path):
     np.testing.assert_allclose(got[-1], np.log(2.0 ** -24), rtol=1e-6)
 
 
+@needs_extension
 @pytest.mark.parametrize(("mode", "hw", "half"), [
     ("bilinear", (12, 20), (6, 10)),  # the exact 2x of the level-0 head
     ("bilinear", (9, 14), (4, 7)),  # any other size: the general path
@@ -277,6 +296,8 @@ def test_add_upsampled_matches_interpolate(tmp_path, mode, hw, half):
 
 
 def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):
+    pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
+    pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
     from denoiser.step_graph import OpenVinoStep
 
     x, logits = torch.rand(1, 4, 8, 8), torch.randn(1, 9, 8, 8)
@@ -286,18 +307,169 @@ def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):
         OpenVinoStep(path)
 
 
-def test_failed_build_leaves_nothing_and_says_why(tmp_path, monkeypatch):
-    """A compiler error becomes the reason (one line) and no library is left in the cache."""
-    fake = tmp_path / "fake-cxx"
-    fake.write_text("#!/bin/sh\necho 'kernel_apply.cpp:1:1: error: simulated failure' >&2\nexit 1\n")
-    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
-    monkeypatch.setenv("CXX", str(fake))
-    monkeypatch.setenv("DENOISER_CACHE", str(tmp_path / "cache"))
-    ovext._status.cache_clear()
+class FakeBuild:
+    """A private cache (``$DENOISER_CACHE``) and a shell script as ``$CXX``: the build's failure
+    modes and the cache's rules without a real compiler. Each run of the script appends its
+    arguments to ``log``; :meth:`status` is what a new process would get."""
+
+    def __init__(self, tmp_path, monkeypatch):
+        self.tmp, self.monkeypatch = tmp_path, monkeypatch
+        self.cache = tmp_path / "cache"
+        self.log = tmp_path / "cxx.log"
+        monkeypatch.setenv("DENOISER_CACHE", str(self.cache))
+
+    def compiler(self, body: str, name: str = "fake-cxx"):
+        """``$CXX`` becomes a script that logs its arguments, sets ``$OUT`` to its ``-o`` path, then runs ``body``."""
+        script = self.tmp / name
+        script.write_text(f'#!/bin/sh\necho "$@" >> "{self.log}"\n'
+                          'while [ $# -gt 0 ]; do [ "$1" = "-o" ] && OUT="$2"; shift; done\n' + body + "\n")
+        script.chmod(script.stat().st_mode | stat.S_IEXEC)
+        self.monkeypatch.setenv("CXX", str(script))
+
+    def runs(self) -> list[str]:
+        return self.log.read_text().splitlines() if self.log.exists() else []
+
+    def status(self):
+        ovext._status.cache_clear()
+        return ovext.kernel_extension(), ovext.unavailable_reason()
+
+
+@pytest.fixture
+def fake(tmp_path, monkeypatch):
+    pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
     try:
-        assert ovext.kernel_extension() is None
-        assert "simulated failure" in ovext.unavailable_reason()
-        left = [p for p in (tmp_path / "cache").rglob("*") if p.is_file()]
-        assert left == [], left
+        yield FakeBuild(tmp_path, monkeypatch)
     finally:
         ovext._status.cache_clear()  # the next use builds again under the restored environment
+
+
+FAILS = "echo 'kernel_apply.cpp:1:1: error: simulated failure' >&2\nexit 1"
+BUILDS = "printf 'built by the fake compiler\\n' > \"$OUT\""
+
+
+def test_failed_build_leaves_no_library_and_says_why(fake):
+    """A compiler error becomes the reason (one line); no library is left in the cache, only the
+    remembered reason."""
+    fake.compiler(FAILS)
+    path, reason = fake.status()
+    assert path is None and "simulated failure" in reason and "\n" not in reason
+    left = [p for p in fake.cache.rglob("*") if p.is_file()]
+    assert [p.name for p in left] == [ovext.FAILED], left
+    assert "simulated failure" in left[0].read_text()
+
+
+def test_a_failed_build_is_remembered(fake):
+    """The next process says the remembered reason without compiling; deleting the marker retries."""
+    fake.compiler(FAILS)
+    first = fake.status()[1]
+    path, reason = fake.status()
+    assert path is None and len(fake.runs()) == 1
+    assert reason.startswith(first) and "remembered" in reason
+    marker = next(fake.cache.rglob(ovext.FAILED))
+    assert str(marker) in reason
+    marker.unlink()
+    fake.compiler(BUILDS)  # the same script path: the same cache key
+    path, reason = fake.status()
+    assert reason is None and path.read_text() == "built by the fake compiler\n" and len(fake.runs()) == 2
+
+
+def test_a_compiler_that_hangs_is_stopped(fake, monkeypatch):
+    """A compiler past ``$DENOISER_OVEXT_TIMEOUT`` is killed with its children (the shell's
+    ``sleep`` holds the output pipes) and the build fails with the reason, remembered."""
+    monkeypatch.setenv(ovext.TIMEOUT_ENV, "0.5")
+    fake.compiler("sleep 60\n" + BUILDS)
+    start = time.monotonic()
+    path, reason = fake.status()
+    assert time.monotonic() - start < 20
+    assert path is None and "took longer than 0.5 s" in reason and ovext.TIMEOUT_ENV in reason
+    assert not list(fake.cache.rglob("*.so")) and len(list(fake.cache.rglob(ovext.FAILED))) == 1
+
+
+def test_a_bad_timeout_is_a_reason_not_a_failed_build(fake, monkeypatch):
+    monkeypatch.setenv(ovext.TIMEOUT_ENV, "soon")
+    fake.compiler(BUILDS)
+    path, reason = fake.status()
+    assert path is None and reason == f"${ovext.TIMEOUT_ENV}='soon': not a positive number of seconds"
+    assert fake.runs() == [] and not list(fake.cache.rglob(ovext.FAILED))
+
+
+def test_a_foreign_library_is_not_loaded(fake, capfd):
+    """A real shared library (OpenVINO's TBB) planted at the exact path the cache loads from is
+    refused: by :func:`~denoiser.ovext.load_into` in the process that checked the build, and by the
+    next process, which builds the library again; likewise with the recorded hash removed."""
+    import openvino as ov
+
+    fake.compiler(BUILDS)
+    path, _ = fake.status()
+    digest = ovext._hash_file(path).read_text().strip()
+    assert digest == hashlib.sha256(b"built by the fake compiler\n").hexdigest()
+    foreign = ovext._openvino_libs(Path(ov.__file__).parent)[-1].read_bytes()  # libtbb.so
+    path.write_bytes(foreign)
+    with pytest.raises(UserError, match="SHA-256 is not the one recorded"):
+        ovext.load_into(ov.Core())
+    capfd.readouterr()
+    again, reason = fake.status()
+    assert again == path and reason is None and len(fake.runs()) == 2
+    assert path.read_text() == "built by the fake compiler\n"
+    assert "not the one recorded after its build; not loading it, building it again" in capfd.readouterr().err
+    path.write_bytes(foreign)
+    ovext._hash_file(path).unlink()
+    again, reason = fake.status()
+    assert again == path and reason is None and len(fake.runs()) == 3
+    assert path.read_text() == "built by the fake compiler\n" and ovext._hash_file(path).read_text().strip() == digest
+    assert "no SHA-256 recorded beside it" in capfd.readouterr().err
+
+
+def test_cache_folders_are_private(fake):
+    fake.compiler(BUILDS)
+    path, _ = fake.status()
+    for folder in (fake.cache, fake.cache / "ovext", path.parent):
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o700, folder
+
+
+@pytest.mark.parametrize("problem", ["group-writable root", "world-writable ovext", "ovext of another user",
+                                     "ovext a link"])
+def test_an_untrusted_cache_folder_is_refused(fake, problem):
+    """The cache root or ``ovext/`` writable by others, owned by another user, or a link: the
+    reason names the folder and the problem, and nothing is compiled or loaded there."""
+    ovdir = fake.cache / "ovext"
+    if problem == "ovext a link":
+        elsewhere = fake.tmp / "elsewhere"
+        elsewhere.mkdir(mode=0o700)
+        fake.cache.mkdir(mode=0o700)
+        ovdir.symlink_to(elsewhere)
+    else:
+        ovdir.mkdir(parents=True, mode=0o700)
+    if problem == "group-writable root":
+        fake.cache.chmod(0o770)
+    elif problem == "world-writable ovext":
+        ovdir.chmod(0o702)
+    elif problem == "ovext of another user":
+        if os.getuid() != 0:
+            pytest.skip("giving a folder to another user needs root")
+        os.chown(ovdir, 65534, 65534)
+    fake.compiler(BUILDS)
+    path, reason = fake.status()
+    assert path is None and fake.runs() == []
+    folder = fake.cache if problem.endswith("root") else ovdir
+    expect = {"group-writable root": "writable by group or others (mode 0770)",
+              "world-writable ovext": "writable by group or others (mode 0702)",
+              "ovext of another user": "owned by user id 65534", "ovext a link": "not a folder"}[problem]
+    assert reason.startswith(f"{folder}: {expect}"), reason
+
+
+@pytest.mark.parametrize("cpuinfo", ["flags", "no flags line", "missing"])
+def test_march_native_only_where_the_cpu_flags_are_known(fake, monkeypatch, cpuinfo):
+    """Without a ``flags`` line in /proc/cpuinfo the CPU cannot be told apart from another, so the
+    cached library is built for the compiler's default target, under its own key."""
+    info = fake.tmp / "cpuinfo"
+    if cpuinfo != "missing":
+        info.write_text("processor\t: 0\nmodel name\t: test\n" + ("flags\t\t: fpu sse2 avx2\n" if cpuinfo == "flags" else ""))
+    monkeypatch.setattr(ovext, "CPUINFO", info)
+    fake.compiler(BUILDS)
+    path, reason = fake.status()
+    assert reason is None and path.exists()
+    assert (ovext.NATIVE in fake.runs()[0].split()) == (cpuinfo == "flags")
+    monkeypatch.setattr(ovext, "CPUINFO", fake.tmp / "other")
+    (fake.tmp / "other").write_text("flags\t\t: fpu sse2\n")
+    assert fake.status()[0].parent != path.parent  # another CPU: another key

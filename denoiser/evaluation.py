@@ -20,7 +20,7 @@ import torch
 from denoiser.data.evalset import read_frame, sequence_reference
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import markdown_table, read_csv
-from denoiser.metrics import MetricAccumulator, flip_exposure, psnr
+from denoiser.metrics import COLUMNS, MetricAccumulator, flip_exposure, psnr
 from denoiser.plot_crops import crop_box, to_display
 
 
@@ -87,9 +87,9 @@ class Evaluation:
             for seq, values in per_seq.items():
                 secs = self.seconds[label].get(seq, [])
                 rows.append({"method": label, "scene": self.scenes.get(seq, ""), "sequence": seq,
-                             "frames": values["frames"], **{m: values[m] for m in acc.metrics},
+                             "frames": values["frames"], **{m: values[m] for m in acc.columns},
                              "ms_per_frame": 1000.0 * sum(secs) / max(len(secs), 1)})
-            overall = acc.compute()
+            overall = acc.compute(subsets=True)
             all_secs = [s for v in self.seconds[label].values() for s in v]
             rows.append({"method": label, "scene": "mean", "sequence": "mean",
                          "frames": sum(v["frames"] for v in per_seq.values()), **overall,
@@ -106,8 +106,13 @@ class Evaluation:
                     by_scene.setdefault(r["scene"], []).append(r)
             for scene, rs in by_scene.items():
                 out.append({"method": label, "scene": scene, "sequences": len(rs),
-                            **{m: _mean([r[m] for r in rs]) for m in self.metrics}})
+                            **{m: _mean([r[m] for r in rs]) for m in self.columns}})
         return out
+
+    @property
+    def columns(self) -> list[str]:
+        """The metric columns of the tables: the metrics, then their frame subsets (``psnr_f2``)."""
+        return next(iter(self.acc.values())).columns
 
     def frame_rows(self) -> list[dict]:
         return [{"method": label, **row} for label, acc in self.acc.items() for row in acc.frame_rows()]
@@ -125,17 +130,14 @@ def write_denoised(path: Path, output: torch.Tensor) -> None:
     write_frame(path, {"denoised": output[0].permute(1, 2, 0).cpu().numpy()})
 
 
-METRIC_FORMATS = {"psnr": ".2f", "ssim": ".4f", "tpsnr": ".2f", "flip": ".4f", "relmse": ".4g", "smape": ".4f",
-                  "ms_per_frame": ".1f"}
-
-
-METRIC_HEADERS = {"psnr": "PSNR dB ↑", "ssim": "SSIM ↑", "tpsnr": "tPSNR dB ↑", "flip": "FLIP ↓",
-                  "relmse": "relMSE ↓", "smape": "SMAPE ↓", "ms_per_frame": "ms/frame (eval run)"}
+#: format spec and header of every column of the evaluation's tables (:data:`denoiser.metrics.COLUMNS`)
+METRIC_FORMATS = {**{c: spec.fmt for c, spec in COLUMNS.items()}, "ms_per_frame": ".1f"}
+METRIC_HEADERS = {**{c: spec.header for c, spec in COLUMNS.items()}, "ms_per_frame": "ms/frame (eval run)"}
 
 
 def markdown_report(ev: Evaluation, rows: list[dict], header: str) -> str:
     """The three Markdown tables: overall, per scene, per sequence."""
-    metrics = ev.metrics
+    metrics = ev.columns
     overall = [r for r in rows if r["sequence"] == "mean"]
     per_seq = [r for r in rows if r["sequence"] != "mean"]
     parts = [header,

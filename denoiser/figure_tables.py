@@ -13,7 +13,7 @@ Each row gives the metrics of ``metrics`` (mean ± std over seeds for a group of
 :func:`denoiser.summary.format_mean_std`) and the group's time at the bench size
 (:func:`denoiser.summary.group_timing`). The two sentences are computed from the means of
 ``rank_metric`` (PSNR by default; the direction, higher or lower is better, from
-:data:`denoiser.summary.METRICS`). A declared method missing from the evaluation keeps its row,
+:data:`denoiser.metrics.COLUMNS`). A declared method missing from the evaluation keeps its row,
 empty, and is named under the table: a comparison run without ONND still reads as the figure.
 """
 
@@ -24,7 +24,8 @@ from itertools import pairwise
 
 from denoiser.errors import ConfigError
 from denoiser.measure import markdown_table
-from denoiser.summary import DIGITS, LOWER_IS_BETTER, METRICS, format_mean_std, group_timing
+from denoiser.metrics import COLUMNS
+from denoiser.summary import format_mean_std, group_timing
 
 
 def _rows(spec: Mapping) -> list[tuple[str, str]]:
@@ -41,8 +42,8 @@ def _rows(spec: Mapping) -> list[tuple[str, str]]:
 
 
 def _check_metric(metric: str) -> None:
-    if metric not in METRICS:
-        raise ConfigError(f"tables: unknown metric {metric!r} (one of {', '.join(METRICS)})")
+    if metric not in COLUMNS:
+        raise ConfigError(f"tables: unknown metric {metric!r} (one of {', '.join(COLUMNS)})")
 
 
 def figure_table(spec: Mapping, groups: Mapping[str, Mapping], bench: Mapping[str, Mapping],
@@ -60,18 +61,18 @@ def figure_table(spec: Mapping, groups: Mapping[str, Mapping], bench: Mapping[st
         group = groups.get(method)
         if group is not None:
             row["seeds"] = len(group["seeds"]) or ""
-            row.update({m: format_mean_std(group, m, DIGITS[m]) for m in metrics})
+            row.update({m: format_mean_std(group, m, COLUMNS[m].digits) for m in metrics})
             timed = group_timing(group, bench)
             if timed:
                 row["ms"] = f"{float(timed['ms_median']):.0f}"
         rows.append(row)
     h, w = size
     return markdown_table(rows, ["method", "seeds", *metrics, "ms"],
-                          headers={**METRICS, "ms": f"ms/frame {w}x{h}"})
+                          headers={**{m: COLUMNS[m].header for m in metrics}, "ms": f"ms/frame {w}x{h}"})
 
 
 def _better(a: float, b: float, metric: str) -> bool:
-    return a < b if metric in LOWER_IS_BETTER else a > b
+    return a < b if COLUMNS[metric].lower_is_better else a > b
 
 
 def rank_line(spec: Mapping, groups: Mapping[str, Mapping], metric: str) -> str | None:
@@ -84,7 +85,7 @@ def rank_line(spec: Mapping, groups: Mapping[str, Mapping], metric: str) -> str 
     labels = dict(_rows(spec))
     if target not in labels:
         raise ConfigError(f"tables '{spec['title']}': rank {target!r} is not one of its rows ({', '.join(labels)})")
-    how = f"({METRICS[metric]}, mean over seeds)"
+    how = f"({COLUMNS[metric].header}, mean over seeds)"
     if metric not in groups.get(target, {}):
         return f"{labels[target]}: not evaluated {how}"
     mine = groups[target][metric]
@@ -116,9 +117,9 @@ def order_line(spec: Mapping, groups: Mapping[str, Mapping], metric: str) -> str
         return f"{claim}: n/a (not evaluated: {', '.join(missing)})"
     values = [groups[m][metric] for m in methods]
     if all(_better(a, b, metric) for a, b in pairwise(values)):
-        return f"{claim}: yes ({METRICS[metric]})"
-    measured = sorted(methods, key=lambda m: groups[m][metric], reverse=metric not in LOWER_IS_BETTER)
-    return f"{claim}: no (measured: {' > '.join(labels[m] for m in measured)}; {METRICS[metric]})"
+        return f"{claim}: yes ({COLUMNS[metric].header})"
+    measured = sorted(methods, key=lambda m: groups[m][metric], reverse=not COLUMNS[metric].lower_is_better)
+    return f"{claim}: no (measured: {' > '.join(labels[m] for m in measured)}; {COLUMNS[metric].header})"
 
 
 def figure_sections(tables: Sequence[Mapping], groups: Sequence[Mapping], bench: Mapping[str, Mapping],

@@ -31,7 +31,10 @@ Aggregation (:class:`MetricAccumulator`): per-frame values; the first ``warmup``
 a reset (start of a sequence or window, camera cut) are excluded where history matters (a
 recurrent network has no history yet); a sequence's value is the mean over its kept frames;
 the overall value is the mean over sequences (each sequence weighs the same, whatever its
-length). NaN values (tPSNR on a first frame) are skipped in means. Under DDP each process sends
+length). NaN values (tPSNR on a first frame) are skipped in means. A frame-subset column
+(:data:`FRAME_SUBSETS`: ``psnr_all`` over every frame, ``psnr_f2`` over frames 2+ of each
+sequence, 1-based) is the mean
+over every frame from a position on, warm-up or not. Under DDP each process sends
 its per-sequence sums and counts (:meth:`MetricAccumulator.sequence_sums`) and every process
 averages them the same way (:func:`combine_sequence_sums`).
 """
@@ -47,15 +50,60 @@ import numpy as np
 import torch
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
-#: Metric names in table order, and whether a higher value is better.
-METRICS: dict[str, bool] = {
-    "psnr": True,
-    "ssim": True,
-    "tpsnr": True,
-    "flip": False,
-    "relmse": False,
-    "smape": False,
+
+@dataclass(frozen=True)
+class Metric:
+    """How a metric is shown and compared, said once for every table (evaluation, summaries).
+
+    ``label``: its name in a table header (with the unit); ``digits``: decimals shown;
+    ``lower_is_better``: its direction (the header gets ↓, else ↑). A *frame subset* column
+    (``of`` set) averages metric ``of`` over the frames of each sequence whose 0-based index is
+    at least ``first_frame``, every such frame counted (the warm-up rule does not apply: the
+    column is defined by frame position alone).
+    """
+
+    label: str
+    digits: int
+    lower_is_better: bool = False
+    of: str | None = None
+    first_frame: int = 0
+
+    @property
+    def header(self) -> str:
+        """``"PSNR dB ↑"``: the label and the direction."""
+        return f"{self.label} {'↓' if self.lower_is_better else '↑'}"
+
+    @property
+    def fmt(self) -> str:
+        """The format spec of a value (``".2f"``)."""
+        return f".{self.digits}f"
+
+
+#: Metrics computed per frame, in table order.
+METRICS: dict[str, Metric] = {
+    "psnr": Metric("PSNR dB", 2),
+    "ssim": Metric("SSIM", 4),
+    "tpsnr": Metric("tPSNR dB", 2),
+    "flip": Metric("FLIP", 4, lower_is_better=True),
+    "relmse": Metric("relMSE", 4, lower_is_better=True),
+    "smape": Metric("SMAPE", 4, lower_is_better=True),
 }
+
+
+def frame_subset(of: str, first_frame: int) -> Metric:
+    """The column of metric ``of`` over frames ``first_frame + 1``, ... of each sequence (1-based
+    in its label: ``frame_subset("psnr", 1)`` is "PSNR dB frames 2+")."""
+    base = METRICS[of]
+    frames = "all frames" if first_frame == 0 else f"frames {first_frame + 1}+"
+    return Metric(f"{base.label} {frames}", base.digits, base.lower_is_better, of, first_frame)
+
+
+#: Frame-subset columns (:meth:`MetricAccumulator.per_sequence` adds one wherever its metric is
+#: computed): ``psnr_all`` over every frame (warm-up included), ``psnr_f2`` the quality once the
+#: recurrent history is in use (frame 1 skipped), where temporal methods fail first.
+FRAME_SUBSETS: dict[str, Metric] = {"psnr_all": frame_subset("psnr", 0), "psnr_f2": frame_subset("psnr", 1)}
+#: Every column a table may show: the metrics, then the frame subsets.
+COLUMNS: dict[str, Metric] = {**METRICS, **FRAME_SUBSETS}
 
 #: Minimum MSE in PSNR-type metrics (caps them at 100 dB for identical frames).
 MIN_MSE = 1e-10
@@ -290,6 +338,8 @@ class MetricAccumulator:
         if warmup < 0:
             raise ValueError(f"warmup must be >= 0, got {warmup}")
         self.metrics = [m for m in METRICS if m in metrics]
+        #: frame-subset columns of the metrics computed (``psnr_f2`` when ``psnr`` is)
+        self.subsets = [c for c, spec in FRAME_SUBSETS.items() if spec.of in self.metrics]
         self.warmup = int(warmup)
         self.reset()
 
@@ -378,21 +428,31 @@ class MetricAccumulator:
         return [r for s in self._seqs.values() for r in s.rows if include_warmup or not r["warmup"]]
 
     def per_sequence(self) -> OrderedDict[str, dict[str, float]]:
-        """``{sequence: {metric: mean over kept frames, "frames": count}}`` in first-seen order."""
+        """``{sequence: {metric: mean over kept frames, subset: mean over its frames, "frames":
+        count kept}}`` in first-seen order (subsets: :attr:`subsets`, see :class:`Metric`)."""
         result: OrderedDict[str, dict[str, float]] = OrderedDict()
         for name, state in self._seqs.items():
             kept = [r for r in state.rows if not r["warmup"]]
             if not kept:
                 continue
             values = {m: _nanmean(r.get(m, float("nan")) for r in kept) for m in self.metrics}
+            for column in self.subsets:
+                spec = FRAME_SUBSETS[column]
+                values[column] = _nanmean(r[spec.of] for r in state.rows if r["frame"] >= spec.first_frame)
             values["frames"] = len(kept)
             result[name] = values
         return result
 
-    def compute(self) -> dict[str, float]:
-        """Overall ``{metric: mean over sequences of the per-sequence means}``."""
+    @property
+    def columns(self) -> list[str]:
+        """The metrics, then their frame-subset columns: the keys of ``compute(subsets=True)``."""
+        return [*self.metrics, *self.subsets]
+
+    def compute(self, subsets: bool = False) -> dict[str, float]:
+        """Overall ``{metric: mean over sequences of the per-sequence means}``; with ``subsets``,
+        the frame-subset columns too (:attr:`columns`)."""
         seqs = self.per_sequence()
-        return {m: _nanmean(v[m] for v in seqs.values()) for m in self.metrics}
+        return {m: _nanmean(v[m] for v in seqs.values()) for m in (self.columns if subsets else self.metrics)}
 
     def sequence_sums(self) -> dict[str, dict[str, tuple[float, int]]]:
         """``{sequence: {metric: (sum, count)}}`` over kept, non-NaN frames: what a process sends

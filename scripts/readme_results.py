@@ -3,9 +3,11 @@
 ``reports/demo/summary.md``) and ``make readme-pareto`` (``reports/pareto/pareto.md`` and its plot).
 
 The table is the block between ``<!-- <marker>:begin -->`` and ``<!-- <marker>:end -->`` in both
-files; the README's block is replaced, with a line naming the source file (and its run id, commit
-and test-split hash when it states them). ``--image SRC:DST`` copies a picture the README shows
-(e.g. to ``docs/images/``). Figures in the README are therefore never typed by hand.
+files; the README's block is replaced, with a line naming the source file and the run id and
+commit it states (``scripts/readme_check.py`` reads that commit: ``make readme-check``). Where
+the README has no block yet, the paragraph holding ``<!-- <marker>:pending -->`` is replaced by it.
+``--image SRC:DST`` copies a picture (e.g. to ``docs/images/``) and shows it in the block. Figures
+in the README are therefore never typed by hand.
 
     python scripts/readme_results.py [--summary reports/demo/summary.md] [--readme README.md]
     python scripts/readme_results.py --summary reports/pareto/pareto.md --marker pareto \\
@@ -15,6 +17,7 @@ and test-split hash when it states them). ``--image SRC:DST`` copies a picture t
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import shutil
 import sys
@@ -27,6 +30,16 @@ def block(text: str, where: str, marker: str) -> tuple[int, int]:
     if start < 0 or end < start:
         sys.exit(f"error: {where}: no {begin} ... {end_mark} block")
     return start, end + len(end_mark)
+
+
+def readme_span(text: str, where: str, marker: str) -> tuple[int, int]:
+    """The README's block for ``marker``, else the paragraph holding ``<!-- <marker>:pending -->``."""
+    pending = f"<!-- {marker}:pending -->"
+    if f"<!-- {marker}:begin -->" not in text and pending in text:
+        at = text.index(pending)
+        start, end = text.rfind("\n\n", 0, at), text.find("\n\n", at)
+        return (0 if start < 0 else start + 2), (len(text) if end < 0 else end)
+    return block(text, where, marker)
 
 
 def main() -> None:
@@ -52,9 +65,13 @@ def main() -> None:
     stated = "".join(f", {k} {v}" for k, v in facts.items())
     source = f"<!-- copied by scripts/readme_results.py from {summary_path}{stated} -->\n"
     table = summary[s0 + len(begin): s1 - len(end)].strip("\n")
+    if "commit" not in facts:
+        sys.exit(f"error: {summary_path}: states no '- commit: ...' line (the README block must name its commit)")
+    pictures = "".join(f"\n\n![{args.marker}: {src.name}]({os.path.relpath(dst, readme_path.resolve().parent)})"
+                       for src, dst in ((s, d.resolve()) for s, d in images))
     readme = readme_path.read_text()
-    r0, r1 = block(readme, str(readme_path), args.marker)
-    new = readme[:r0] + begin + "\n" + source + table + "\n" + end + readme[r1:]
+    r0, r1 = readme_span(readme, str(readme_path), args.marker)
+    new = readme[:r0] + begin + "\n" + source + table + pictures + "\n" + end + readme[r1:]
     for src, dst in images:
         dst.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(src, dst.with_suffix(".tmp"))

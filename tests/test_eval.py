@@ -48,15 +48,18 @@ def test_eval_tables_images_and_values(setup, tmp_path):
     from denoiser.data.exr import read_frame
     from denoiser.metrics import psnr
 
-    values = []
-    for t in (1, 3):
+    values = {}
+    for t in range(4):
         bufs, _ = read_frame(root / "data/test/seq_000" / f"frame_{t:04d}.exr",
                              {"color": ("color.R", "color.G", "color.B"),
                               "reference": ("reference.R", "reference.G", "reference.B")})
         to_t = {k: torch.from_numpy(v).permute(2, 0, 1)[None] for k, v in bufs.items()}
-        values.append(float(psnr(to_t["color"], to_t["reference"])[0]))
+        values[t] = float(psnr(to_t["color"], to_t["reference"])[0])
     assert noisy["test/seq_000"]["frames"] == 2
-    assert math.isclose(noisy["test/seq_000"]["psnr"], sum(values) / 2, rel_tol=1e-5)
+    assert math.isclose(noisy["test/seq_000"]["psnr"], (values[1] + values[3]) / 2, rel_tol=1e-5)
+    # frames 2+ (1-based): every frame but the first, the warm-up frame 2 after the cut included
+    assert math.isclose(noisy["test/seq_000"]["psnr_f2"], (values[1] + values[2] + values[3]) / 3, rel_tol=1e-5)
+    assert "PSNR dB frames 2+ ↑" in (out / "metrics.md").read_text()
     mean = noisy["mean"]["psnr"]
     assert math.isclose(mean, (noisy["test/seq_000"]["psnr"] + noisy["test/seq_001"]["psnr"]) / 2, rel_tol=1e-6)
     # OIDN really denoises; tPSNR is defined only where no cut precedes (frames 1 and 3)

@@ -111,7 +111,7 @@ def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tm
                            str(report / "summary.md"), "--readme", str(readme), "--marker", "blender"],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
-    assert rows["student"] in readme.read_text() and "old" not in readme.read_text()
+    assert rows["student"] in readme.read_text() and "\nold\n" not in readme.read_text()
     # the test table is unchanged, and no blender evaluation means no section
     assert "| OIDN-fast |" in summary.split("## Blender")[0]
     (report / "blender" / "metrics.csv").unlink()

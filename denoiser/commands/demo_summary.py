@@ -7,17 +7,21 @@ Usage::
 A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its end. It reads
 
 * ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the test split; students labelled
-  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.summary`);
+  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.summary`), one row
+  for methods with identical per-sequence values (``OIDN-balanced = OIDN-high``), and the
+  paired claims of ``claims`` (network minus baseline per sequence, a bootstrap interval over
+  sequences and a verdict from it), with a per-family table of the same differences;
 * ``<report>/bench/bench.csv`` (``denoiser-bench``): ms per 1080p frame per method on its
   fastest backend, and the speed-up over OIDN-fast;
 * every run directory under ``<report>/runs``: steps trained (``last.ckpt``), best val PSNR
   (``best.ckpt``) and its seed;
 * each ``<report>/<dir>/metrics.csv`` named under ``extra_evals`` (``{dir: title}``, e.g. the
   demo networks on the Blender Cycles sequences), when it exists: one more table per
-  evaluation, with every method's PSNR gain over the noisy input;
+  evaluation, with every method's PSNR gain over the noisy input, and its claims;
 
 and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of the test split's
-files, and the tables. ``scripts/readme_results.py`` copies its results table into the README.
+files, and the tables. ``scripts/readme_results.py`` copies its results block (the table and the
+claims) into the README.
 
 ``make compare`` (``scripts/compare.sh``) runs it over ``conf/compare_summary.yaml``::
 
@@ -36,17 +40,23 @@ from omegaconf import DictConfig
 
 from denoiser.atomic import atomic_write_text
 from denoiser.checkpoint import read_checkpoint
-from denoiser.errors import UserError
+from denoiser.errors import ConfigError, UserError
 from denoiser.figure_tables import figure_sections
 from denoiser.measure import markdown_table, read_csv
+from denoiser.metrics import COLUMNS
 from denoiser.summary import (
-    DIGITS,
-    METRICS,
+    SUMMARY_COLUMNS,
+    check_claims,
+    claim_lines,
+    family_lines,
     format_mean_std,
     git_commit,
+    group_sequences,
     group_timing,
+    merge_identical,
     method_means,
     seed_groups,
+    sequence_values,
     split_seed,
     tree_hash,
 )
@@ -83,10 +93,29 @@ def bench_rows(path: Path, size: tuple[int, int]) -> dict[str, dict]:
     return best
 
 
+#: headers of the summarised columns
+HEADERS = {c: COLUMNS[c].header for c in SUMMARY_COLUMNS}
+
+
 def metric_row(group: dict) -> dict:
-    """A seed group's table row: method, number of seeds, and every metric as mean ± std."""
+    """A seed group's table row: method, number of seeds, and every column as mean ± std."""
     return {"method": group["method"], "seeds": len(group["seeds"]) or "",
-            **{m: format_mean_std(group, m, DIGITS[m]) for m in METRICS}}
+            **{m: format_mean_std(group, m, COLUMNS[m].digits) for m in SUMMARY_COLUMNS}}
+
+
+def merged_note(groups: list[dict]) -> list[str]:
+    """A paragraph under a table naming its merged rows (:func:`denoiser.summary.merge_identical`)."""
+    merged = [g["method"] for g in groups if len(g.get("members", [])) > 1]
+    note = (f"`{' `, `'.join(merged)}`: the same value on every sequence and metric, one row (OIDN's qualities "
+            "run the same weights where its large weights are not installed, as on this CPU).")
+    return ["", note] if merged else []
+
+
+def evaluation(path: Path) -> tuple[list[dict], dict]:
+    """A metrics.csv's seed groups (:func:`denoiser.summary.seed_groups`) and its per-sequence
+    values per group (:func:`denoiser.summary.group_sequences`)."""
+    rows = read_csv(path)
+    return seed_groups(method_means(rows)), group_sequences(sequence_values(rows))
 
 
 def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, int], reference: str) -> str:
@@ -104,8 +133,8 @@ def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, i
                 row["speedup"] = f"{ref_ms / float(timed['ms_median']):.2f}x"
         rows.append(row)
     h, w = size
-    columns = ["method", "seeds", *METRICS, "ms", "backend", "speedup"]
-    headers = {**METRICS, "ms": f"ms/frame {w}x{h}", "speedup": f"vs {reference}"}
+    columns = ["method", "seeds", *SUMMARY_COLUMNS, "ms", "backend", "speedup"]
+    headers = {**HEADERS, "ms": f"ms/frame {w}x{h}", "speedup": f"vs {reference}"}
     return markdown_table(rows, columns, headers=headers)
 
 
@@ -118,20 +147,29 @@ def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
         if base is not None and "psnr" in g and g["method"] != noisy:
             row["gain"] = f"{g['psnr'] - base:+.2f}"
         rows.append(row)
-    return markdown_table(rows, ["method", "seeds", *METRICS, "gain"], headers={**METRICS, "gain": "PSNR gain dB"})
+    return markdown_table(rows, ["method", "seeds", *SUMMARY_COLUMNS, "gain"],
+                          headers={**HEADERS, "gain": "PSNR gain dB"})
 
 
-def extra_sections(report: Path, extra: dict) -> list[str]:
-    """Markdown lines of one table per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists,
-    between ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
+def extra_sections(report: Path, extra: dict, claims: list[dict]) -> list[str]:
+    """Markdown lines of one table (and the claims) per ``{dir: title}`` whose
+    ``<report>/<dir>/metrics.csv`` exists, between ``<!-- <dir>:begin -->`` and
+    ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
     lines: list[str] = []
     for name, title in extra.items():
         csv_path = report / str(name) / "metrics.csv"
         if csv_path.exists():
-            groups = seed_groups(method_means(read_csv(csv_path)))
+            groups, per_sequence = evaluation(csv_path)
+            groups = merge_identical(groups, per_sequence)
             lines += [f"## {title}", "", f"From `{csv_path}`; students: mean ± std over seeds.", "",
-                      f"<!-- {name}:begin -->", gain_table(groups).rstrip(), f"<!-- {name}:end -->", ""]
+                      f"<!-- {name}:begin -->", gain_table(groups).rstrip(), *merged_note(groups), "",
+                      *claim_lines(claims, per_sequence), f"<!-- {name}:end -->", ""]
     return lines
+
+
+def families(path: Path) -> dict[str, str]:
+    """``{sequence: family}`` (the ``scene`` column) of a metrics.csv's per-sequence rows."""
+    return {str(r["sequence"]): str(r["scene"]) for r in read_csv(path) if str(r["sequence"]) != "mean"}
 
 
 def run(cfg: DictConfig) -> Path:
@@ -140,7 +178,11 @@ def run(cfg: DictConfig) -> Path:
     metrics_csv = report / "eval" / "metrics.csv"
     if not metrics_csv.exists():
         raise UserError(f"{metrics_csv}: no evaluation found (run denoiser-eval first)")
-    groups = seed_groups(method_means(read_csv(metrics_csv)))
+    claims = check_claims(cfg.get("claims") or [])
+    if cfg.family_metric not in COLUMNS:
+        raise ConfigError(f"family_metric: unknown {cfg.family_metric!r} (one of {', '.join(COLUMNS)})")
+    groups, per_sequence = evaluation(metrics_csv)
+    merged = merge_identical(groups, per_sequence)
     size = (int(cfg.bench_size[0]), int(cfg.bench_size[1]))
     bench_csv = report / "bench" / "bench.csv"
     bench = bench_rows(bench_csv, size) if bench_csv.exists() else {}
@@ -154,6 +196,11 @@ def run(cfg: DictConfig) -> Path:
         f"- seeds (students): {list(cfg.seeds)}",
         f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
         "",
+        ("Metrics: the mean over test sequences of each sequence's mean over its frames kept after "
+         f"denoiser-eval's warm-up; {COLUMNS['psnr_all'].label}: over every frame; "
+         f"{COLUMNS['psnr_f2'].label}: over every frame but each sequence's first "
+         "(frames counted from 1, warm-up or not): the quality once the history is in use."),
+        "",
     ]
     if cfg.tables:
         lines += [
@@ -166,10 +213,14 @@ def run(cfg: DictConfig) -> Path:
         "## Test split, every method" if cfg.tables else "## Test split (students: mean ± std over seeds)",
         "",
         BEGIN,
-        results_table(groups, bench, size, cfg.speed_reference).rstrip(),
+        results_table(merged, bench, size, cfg.speed_reference).rstrip(),
+        *merged_note(merged),
+        "",
+        *claim_lines(claims, per_sequence),
         END,
         "",
-        *extra_sections(report, cfg.get("extra_evals") or {}),
+        *(family_lines(claims, per_sequence, families(metrics_csv), cfg.family_metric) + [""] if claims else []),
+        *extra_sections(report, cfg.get("extra_evals") or {}, claims),
         "## Training runs (steps and best validation PSNR)",
         "",
         markdown_table(runs, ["run", "seed", "steps", "val_psnr", "collapsed"], formats={"val_psnr": ".2f"},

@@ -20,7 +20,10 @@ exposure range from all its reference frames.
 Outputs in ``out_dir``:
 
 * ``metrics.csv`` - one row per method and sequence (scene, kept frames, metrics, ms per
-  frame of this run) plus one ``sequence=mean`` row per method (mean over sequences);
+  frame of this run) plus one ``sequence=mean`` row per method (mean over sequences); beside
+  ``psnr`` (frames kept after the warm-up), ``psnr_all`` (every frame) and ``psnr_f2``: PSNR over
+  frames 2+ of each sequence (1-based: every frame but the first, warm-up or not;
+  :data:`denoiser.metrics.FRAME_SUBSETS`);
 * ``frames.csv`` - one row per method and frame (warm-up frames flagged);
 * ``metrics.md`` - the overall table (methods x metrics), the per-scene table and the
   per-sequence table;
@@ -120,15 +123,16 @@ def run(cfg: DictConfig) -> dict:
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     rows = ev.sequence_rows()
-    write_csv(out_dir / "metrics.csv", rows, ["method", "scene", "sequence", "frames", *metrics, "ms_per_frame"])
+    write_csv(out_dir / "metrics.csv", rows, ["method", "scene", "sequence", "frames", *ev.columns, "ms_per_frame"])
     write_csv(out_dir / "frames.csv", ev.frame_rows(), ["method", "sequence", "frame", "warmup", *metrics])
     header = (f"# Evaluation on {Path(cfg.data.root) / cfg.split}\n\n{len(sources)} sequence(s), "
               f"warm-up {cfg.warmup} frame(s) excluded after each reset, {threads} thread(s). Metrics: "
               "PSNR/SSIM/tPSNR on ACES+sRGB tonemapped frames, HDR-FLIP with a per-sequence exposure range, "
-              "relMSE and SMAPE on linear HDR (see denoiser/metrics.py).\n\n")
+              "relMSE and SMAPE on linear HDR (see denoiser/metrics.py). \"all frames\": warm-up included; "
+              "\"frames 2+\": every frame of a sequence but its first (frames counted from 1), warm-up or not.\n\n")
     atomic_write_text(out_dir / "metrics.md", markdown_report(ev, rows, header))
-    overall = {r["method"]: {m: r[m] for m in metrics} for r in rows if r["sequence"] == "mean"}
-    print(markdown_table([r for r in rows if r["sequence"] == "mean"], ["method", *metrics, "ms_per_frame"],
+    overall = {r["method"]: {m: r[m] for m in ev.columns} for r in rows if r["sequence"] == "mean"}
+    print(markdown_table([r for r in rows if r["sequence"] == "mean"], ["method", *ev.columns, "ms_per_frame"],
                          METRIC_FORMATS, METRIC_HEADERS))
     print(f"wrote {out_dir / 'metrics.csv'}, {out_dir / 'metrics.md'} and {out_dir / 'images'}")
     return overall

@@ -6,6 +6,7 @@ A backend's ``prepare(net, example, threads)`` returns a :class:`Stepper`, whose
 (:mod:`denoiser.runner`) drives over a sequence. ``available()`` says why a backend cannot
 run here (None when it can); ``dtype`` is the precision of its convolutions (``fp32``,
 ``bf16``, ``fp16``) for the tables. Backends are instantiated from ``conf/bench.yaml``'s ``backends``.
+The CUDA backends with cast weights, the Triton filter and CUDA graphs are in :mod:`denoiser.cuda_backend`.
 """
 
 from __future__ import annotations
@@ -24,13 +25,19 @@ class Stepper:
     """A prepared network: ``step(frame, state) -> (output, state)`` (the runner's contract,
     :mod:`denoiser.runner`: ``state=None`` starts a sequence); ``sync()`` waits for the device.
     ``profile()``, where the backend can say, gives the last step's time per operation type:
-    ``{op type: ms}``; None where it cannot."""
+    ``{op type: ms}``; None where it cannot. ``threads()``, where the engine can say, is the
+    thread count it actually uses, read back from it (after a step: OpenVINO resolves it when
+    compiling); ``engine`` names the library that runs the step (``torch``, ``onnxruntime``,
+    ``openvino``, ``oidn``), for its version in the tables."""
 
     def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
-                 profile: Callable[[], dict[str, float]] | None = None):
+                 profile: Callable[[], dict[str, float]] | None = None,
+                 threads: Callable[[], int] | None = None, engine: str = ""):
         self.step = step
         self.sync = sync
         self.profile = profile
+        self.threads = threads
+        self.engine = engine
 
 
 class TorchBackend:
@@ -77,8 +84,9 @@ class TorchBackend:
                 out, new_state, _ = inner(self._move(frame), state)
             return out, new_state
 
-        sync = torch.cuda.synchronize if self.device.startswith("cuda") else (lambda: None)
-        return Stepper(step, sync)
+        cuda = self.device.startswith("cuda")
+        sync = torch.cuda.synchronize if cuda else (lambda: None)
+        return Stepper(step, sync, threads=None if cuda else torch.get_num_threads, engine="torch")
 
     def wrap(self, net):
         """The callable ``(frame, state) -> (output, state, extras)`` to time."""
@@ -148,7 +156,8 @@ class OnnxRuntimeBackend(_ExportedGraphBackend):
         from denoiser.step_graph import OnnxStep
 
         runner = OnnxStep(self._export(net), threads, providers=(self.provider,))
-        return Stepper(runner.step)
+        options = runner.session.get_session_options()  # what the session was built with (0: ONNX Runtime's default)
+        return Stepper(runner.step, threads=lambda: options.intra_op_num_threads, engine="onnxruntime")
 
 
 class OpenVinoBackend(_ExportedGraphBackend):
@@ -210,4 +219,5 @@ class OpenVinoBackend(_ExportedGraphBackend):
                 print(f"{self.label}: plain kernel filter graph ({ovext.unavailable_reason()})", file=sys.stderr)
         runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device,
                               profile=self.profile)
-        return Stepper(runner.step, profile=runner.last_profile if self.profile else None)
+        return Stepper(runner.step, profile=runner.last_profile if self.profile else None,
+                       threads=runner.threads_in_use, engine="openvino")

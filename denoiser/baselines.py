@@ -116,6 +116,10 @@ class OidnDenoiser:
         self._size = (h, w)
         self._check("filter commit")
 
+    def threads_in_use(self) -> int:
+        """The device's ``numThreads`` as OIDN reports it."""
+        return int(self._device.get_int("numThreads"))
+
     def reset(self) -> None:
         """OIDN has no temporal state."""
 

@@ -7,8 +7,10 @@ their medians, and tables (Markdown and CSV).
   high-water mark; see there which applies when) and :func:`run_process` (of a whole child
   process);
 * timings: :class:`Clock` (wall and CPU seconds of a block), :func:`clock_steps` /
-  :func:`time_steps` (recurrent steps through the runner), :func:`summarize` (median, min)
-  and :func:`fastest`;
+  :func:`time_steps` (recurrent steps through the runner), :func:`round_robin` (several
+  methods' steps interleaved: each repeat times every method once, in a rotated order),
+  :func:`summarize` (median, min, max), :func:`median_interval` (the median of repeated ratios
+  with a distribution-free confidence interval) and :func:`fastest`;
 * tables: :func:`markdown_table`, :func:`write_csv` / :func:`read_csv`.
 
 Used by ``denoiser-bench``, ``denoiser-eval`` and the tools ``netstats``, ``bench_networks``,
@@ -17,6 +19,7 @@ Used by ``denoiser-bench``, ``denoiser-eval`` and the tools ``netstats``, ``benc
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import math
@@ -24,7 +27,8 @@ import os
 import statistics
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -216,9 +220,102 @@ def time_steps(stepper: Stepper, frames: list[dict], warmup: int, repeats: int) 
 
 
 def summarize(times: Sequence[float]) -> dict[str, float]:
-    """``{"median", "min", "runs"}`` of repeated timings (any unit; an even count's median is the
-    mean of the middle two). What every benchmark reports of its repeats."""
-    return {"median": statistics.median(times), "min": min(times), "runs": len(times)}
+    """``{"median", "min", "max", "runs"}`` of repeated timings (any unit; an even count's median
+    is the mean of the middle two). What every benchmark reports of its repeats."""
+    return {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": len(times)}
+
+
+def median_interval(values: Sequence[float], level: float = 0.95) -> dict[str, float]:
+    """The median of ``values`` (e.g. per-repeat ratios of paired timings) and a distribution-free
+    confidence interval for it from order statistics (the sign test's interval).
+
+    With ``n`` sorted values ``x_1 <= ... <= x_n``, ``[x_k, x_(n+1-k)]`` holds the true median with
+    probability ``1 - 2 P(Binomial(n, 1/2) <= k - 1)`` whatever the distribution; ``k`` is the
+    largest whose coverage reaches ``level``. For 7 or 8 values that is the min-max (98.4%,
+    99.2%), for 9 to 11 the second smallest and second largest. Fewer than 6 values never reach
+    95%: the min-max is returned with its lower coverage (5 values: 93.8%).
+
+    Returns ``{"median", "lo", "hi", "coverage", "runs"}``.
+    """
+    x = sorted(float(v) for v in values)
+    n = len(x)
+    if n == 0:
+        raise ValueError("median_interval needs at least one value")
+    below = 0.0  # P(Binomial(n, 1/2) <= k - 1), accumulated as k grows
+    k, coverage = 1, 1.0 - 2.0 * 0.5**n
+    for j in range(1, (n + 1) // 2):  # try k = j + 1
+        below += math.comb(n, j - 1) * 0.5**n
+        cover = 1.0 - 2.0 * (below + math.comb(n, j) * 0.5**n)
+        if cover < level:
+            break
+        k, coverage = j + 1, cover
+    return {"median": statistics.median(x), "lo": x[k - 1], "hi": x[n - k], "coverage": max(coverage, 0.0),
+            "runs": n}
+
+
+#: an entry of :func:`round_robin`: called untimed with the step's index, it returns the
+#: zero-argument call to time (set-up that must not be timed, e.g. staging the inputs, is done
+#: before returning it)
+StagedStep = Callable[[int], Callable[[], object]]
+
+
+def recurrent_steps(stepper: Stepper, frames: Sequence[dict]) -> StagedStep:
+    """A :func:`round_robin` entry stepping ``stepper`` through the recurrent runner over
+    ``frames`` (``{buffer: [B, C, H, W]}`` each, cycled; state carried, reset at step 0);
+    ``stepper.sync()`` ends each timed call."""
+    runner = RecurrentRunner(stepper.step)
+
+    def stage(k: int) -> Callable[[], object]:
+        frame = frames[k % len(frames)]
+
+        def call():
+            out = runner(frame, reset=k == 0)
+            stepper.sync()
+            return out
+
+        return call
+
+    return stage
+
+
+def round_robin(entries: Mapping[str, StagedStep], warmup: int, repeats: int,
+                warmup_context: Callable[[str], AbstractContextManager] | None = None,
+                clock: Callable[[], float] = time.perf_counter) -> tuple[dict[str, list[float]], dict[str, BaseException]]:
+    """Time several methods' steps interleaved, so a slow phase of a loaded machine falls on
+    every method alike and paired per-repeat comparisons cancel it.
+
+    First each entry (:data:`StagedStep`, in ``entries`` order) runs its ``warmup`` steps
+    (untimed, inside ``warmup_context(name)`` when given, e.g. a :class:`PeakRss`); then
+    ``repeats`` rounds, round ``r`` timing one step of every entry in the order rotated by ``r``
+    (``names[r % n:] + names[:r % n]``), so every entry takes every position equally often over
+    ``n`` rounds. Entry ``name``'s ``k``-th step (warm-up steps counted) is ``entries[name](k)``.
+
+    Returns ``(seconds, errors)``: ``seconds[name]`` the wall time of each round's step
+    (``clock`` seconds, ``repeats`` values, index = round), ``errors[name]`` the exception of an
+    entry that raised (it leaves the rotation; its ``seconds`` holds the rounds before).
+    """
+    names = list(entries)
+    seconds: dict[str, list[float]] = {n: [] for n in names}
+    errors: dict[str, BaseException] = {}
+    for name in names:
+        try:
+            with warmup_context(name) if warmup_context else contextlib.nullcontext():
+                for k in range(warmup):
+                    entries[name](k)()
+        except Exception as exc:  # noqa: BLE001 - reported per entry, the others go on
+            errors[name] = exc
+    for r in range(repeats if names else 0):
+        for name in names[r % len(names):] + names[:r % len(names)]:
+            if name in errors:
+                continue
+            try:
+                call = entries[name](warmup + r)
+                start = clock()
+                call()
+                seconds[name].append(clock() - start)
+            except Exception as exc:  # noqa: BLE001
+                errors[name] = exc
+    return seconds, errors
 
 
 def fastest(clocks: Sequence[Clock]) -> Clock:

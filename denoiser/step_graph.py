@@ -147,27 +147,6 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     return path
 
 
-def keep_freed_memory() -> None:
-    """Let glibc's allocator keep freed memory for reuse instead of returning it to the system
-    (``mallopt``: large blocks from the heap, not ``mmap``; no trimming), for the rest of the
-    process. With the extension's operations (:mod:`denoiser.ovext`) in the graph, the step's
-    time varied by 10% between frames under glibc's defaults, as if large buffers (25 MB for a
-    3-channel 1080p image; OpenVINO's CPU plugin appears to allocate those operations' outputs at
-    every inference) were mapped afresh and page-faulted on every frame: the paper student's f32
-    step at 1080p took 2164 ms, 2135 ms with this and steady (interleaved medians of 9). No
-    effect where the C library is not glibc."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD: blocks up to 1 GiB from the heap
-    mallopt(-1, 1 << 34)  # M_TRIM_THRESHOLD: keep up to 16 GiB of freed heap
-
-
 def uses_extension(path: str | os.PathLike) -> bool:
     """Whether the ONNX graph at ``path`` imports the ``denoiser`` domain (its
     nodes need the OpenVINO extension :mod:`denoiser.ovext`)."""
@@ -229,7 +208,6 @@ class OpenVinoStep:
 
         if precision not in OPENVINO_PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
-        keep_freed_memory()
         self.core = ov.Core()
         if uses_extension(path):  # export_onnx(fused_kernels=True)
             from denoiser import ovext
@@ -283,6 +261,11 @@ class OpenVinoStep:
         named = {name: np.array(request.get_tensor(name).data, copy=True) for name in self.outputs}
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
 
+    def threads_in_use(self) -> int:
+        """``INFERENCE_NUM_THREADS`` as the last compiled model resolved it (needs a step run first)."""
+        if self._last is None:
+            raise RuntimeError("threads_in_use needs a step run first (OpenVINO resolves it when compiling)")
+        return int(self._last.get_compiled_model().get_property("INFERENCE_NUM_THREADS"))
 
     def last_profile(self) -> dict[str, float]:
         """Milliseconds per node type (``Convolution``, ``Reorder``, ``Subgraph`` for fused

@@ -115,7 +115,7 @@ fi
 BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(ckpt_of "student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(ckpt_of "student_no_kd_s$FIRST")}"
 stage bench "$BIN/denoiser-bench" data=demo "ckpt=$BENCH_CKPTS" "eval_csv=$REPORT/eval/metrics.csv" \
     "out_dir=$REPORT/bench" "sizes=[[256,256],[1080,1920]]" "use_backends=[eager,onnxruntime,openvino_f32,openvino_bf16]" \
-    "skip={teacher: [[1080,1920]]}" repeats=3
+    "skip={teacher: [[1080,1920]]}" repeats=7
 stage summary "$PY" -m denoiser.commands.demo_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
 
 # 6. the report directory

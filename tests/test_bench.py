@@ -50,7 +50,10 @@ def test_bench_end_to_end(setup, tmp_path):
     assert len(table) == len(rows)
     timed = {(r["method"], r["backend"], r["height"]): r for r in table if r["status"] == "ok"}
     assert timed[("student", "eager fp32", 16)]["dtype"] == "fp32"
-    assert "avx512_bf16" in (out / "report.md").read_text()
+    cpuinfo = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""  # the CPU's flags, read here
+    flags = next((line.split(":", 1)[1].split() for line in cpuinfo.splitlines() if line.startswith("flags")), [])
+    assert all(f"{f} {'yes' if f in flags else 'no'}" in (out / "report.md").read_text()
+               for f in ("avx2", "avx512f", "avx512_bf16", "amx_tile"))  # the machine line states this CPU's ISA
     for size in (16, 24):
         for key in (("student", "eager fp32", size), ("student", "onnxruntime", size), ("OIDN-fast", "OIDN (pyoidn)", size)):
             assert timed[key]["ms_median"] > 0 and timed[key]["repeats"] == 2, key
@@ -76,7 +79,26 @@ def test_bench_end_to_end(setup, tmp_path):
     assert oidn["psnr_from"] == "eval" and math.isclose(oidn["psnr"], eval_rows["OIDN-fast"]["psnr"], rel_tol=1e-9)
     assert math.isnan(timed[("wide", "eager fp32", 16)]["psnr"])  # untrained variant: no quality
     report = (out / "report.md").read_text()
-    assert "## Student vs OIDN-fast" in report and "| 40x24 | fastest backend |" in report
+    assert "## Student vs OIDN-fast" in report and "| 40x24 | fp32 vs fp32 (like with like) |" in report
+    # versions and the thread count each engine reports (threads=1 asked of all), in the CSV, JSON and report
+    import json
+
+    from denoiser.commands.bench import engine_versions
+
+    versions = engine_versions()
+    doc = json.loads((out / "bench.json").read_text())
+    assert doc["machine"]["versions"] == versions and set(doc["machine"]["isa"]) >= {"avx2", "avx512f", "amx_bf16"}
+    for engine, version in versions.items():
+        assert f"{engine} {version}" in report
+    assert timed[("student", "onnxruntime", 16)]["engine"] == f"onnxruntime {versions['onnxruntime']}"
+    assert timed[("OIDN-fast", "OIDN (pyoidn)", 16)]["engine"] == f"oidn {versions['oidn']}"
+    assert all(r["threads"] == 1 for r in timed.values() if r["device"] == "cpu"), [r["threads"] for r in timed.values()]
+    assert all(len(r["times_ms"]) == 2 and r["ms_min"] <= r["ms_median"] <= r["ms_max"]
+               for r in doc["rows"] if r["status"] == "ok")
+    # the harness check: pyoidn's execute() alone, interleaved with the harness's OIDN path; not a table row
+    assert [c["size"] for c in doc["harness_checks"]] == ["16x16", "40x24"]
+    assert all(c["status"] == "ok" and c["direct_threads"] == 1 for c in doc["harness_checks"])
+    assert "harness overhead on OIDN-fast at 40x24: " in report and not any(r["kind"] == "check" for r in table)
     assert "matmul peak" in report and "accuracy_vs_time.png" in report
     assert (out / "accuracy_vs_time.png").read_bytes()[:4] == b"\x89PNG"
     front = pareto_front_of_rows(table, (24, 40))
@@ -202,18 +224,93 @@ def test_bench_quality_false_borrows_eval_psnr(setup, tmp_path):
     assert [(r["psnr"], r["psnr_eval"], r["psnr_from"]) for r in rows if r["method"] == "student"] == [(12.5, 12.5, "eval")]
 
 
-def test_ratio_uses_the_fastest_row_with_its_own_psnr():
-    from denoiser.commands.bench import ratio_rows
+def test_speedups_are_paired_per_round_and_precision_matched():
+    """Each row's speed-up is the median of the per-round ratios OIDN time / its time (computed
+    here by hand), with the min-max as interval at 7 rounds; the student's fp32 rows come first
+    and are labelled like with like, its bf16 rows are labelled as bf16 against OIDN's fp32."""
+    from denoiser.commands.bench import add_speedups, precision_order, ratio_rows
 
-    def row(method, backend, ms, psnr):
-        return {"method": method, "backend": backend, "device": "cpu", "height": 8, "width": 8, "ms_median": ms,
-                "psnr": psnr}
+    def row(backend, dtype, times, kind="checkpoint", method="s"):
+        return {"method": method, "backend": backend, "dtype": dtype, "device": "cpu", "height": 8, "width": 8,
+                "kind": kind, "ms_median": sorted(times)[3], "times_ms": times, "psnr": 30.0, "repeats": len(times)}
 
-    rows = [row("OIDN-fast", "OIDN (pyoidn)", 10.0, 30.0), row("s", "eager fp32", 8.0, 31.0),
-            row("s", "openvino bf16", 2.0, 30.5), row("s", "onnxruntime", 1.0, float("nan"))]
-    fastest = next(r for r in ratio_rows(rows, "s", "OIDN-fast", [[8, 8]]) if r["compare"] == "fastest backend")
-    assert fastest["student"] == "s (openvino bf16)" and fastest["ratio"] == 5.0
-    assert fastest["student_psnr"] == 30.5 and math.isclose(fastest["psnr_gain"], 0.5)
+    oidn = row("OIDN (pyoidn)", "fp32", [10, 12, 11, 30, 10, 10, 10], kind="baseline", method="OIDN-fast")
+    ov_bf16 = row("openvino bf16", "bf16", [2, 3, 2, 6, 4, 5, 2])
+    ov_f32 = row("openvino f32", "fp32", [5, 6, 5.5, 10, 4, 5, 5])
+    rows = precision_order([oidn, ov_bf16, ov_f32])
+    assert [r["backend"] for r in rows] == ["OIDN (pyoidn)", "openvino f32", "openvino bf16"]
+    add_speedups(rows, "OIDN-fast")
+    # by hand: 10/5, 12/6, 11/5.5, 30/10, 10/4, 10/5, 10/5 = 2, 2, 2, 3, 2.5, 2, 2 -> median 2, min 2, max 3
+    assert (ov_f32["speedup"], ov_f32["speedup_lo"], ov_f32["speedup_hi"]) == (2.0, 2.0, 3.0)
+    # 5, 4, 5.5, 5, 2.5, 2, 5 -> sorted 2, 2.5, 4, 5, 5, 5, 5.5
+    assert (ov_bf16["speedup"], ov_bf16["speedup_lo"], ov_bf16["speedup_hi"]) == (5.0, 2.0, 5.5)
+    assert ov_f32["speedup_coverage"] == pytest.approx(1 - 2 / 2**7)
+    ratios = ratio_rows(rows, "s", "OIDN-fast", [[8, 8]])
+    assert [(r["student"], r["compare"], r["ratio"]) for r in ratios] == [
+        ("s (openvino f32)", "fp32 vs fp32 (like with like)", 2.0), ("s (openvino bf16)", "bf16 vs fp32", 5.0)]
+    assert ratios[1]["speedup_text"] == "5.00 (2.00-5.50)"
+
+
+def test_median_interval_by_hand():
+    """Order statistics: 7 values give the min-max (coverage 1 - 2/2^7), 9 the second smallest
+    and second largest (1 - 2 (1 + 9)/2^9), 5 only the min-max at 1 - 2/2^5 < 95%."""
+    from denoiser.measure import median_interval
+
+    seven = median_interval([7, 1, 5, 3, 2, 6, 4])
+    assert (seven["median"], seven["lo"], seven["hi"]) == (4, 1, 7) and seven["coverage"] == 1 - 2 / 128
+    nine = median_interval([9, 1, 8, 2, 7, 3, 6, 4, 5])
+    assert (nine["median"], nine["lo"], nine["hi"]) == (5, 2, 8) and nine["coverage"] == 1 - 2 * 10 / 512
+    five = median_interval([5, 4, 3, 2, 1])
+    assert (five["lo"], five["hi"], five["coverage"]) == (1, 5, 1 - 2 / 32)
+
+
+def test_round_robin_rotates_the_order_each_round():
+    """Warm-up: each entry's steps in turn inside its context; then each round times every entry
+    once, the order rotated by the round; the times are the (fake) clock's differences around
+    the timed call only, not around the untimed staging."""
+    from denoiser.measure import round_robin
+
+    log = []
+    now = {"t": 0.0}
+
+    def clock():
+        return now["t"]
+
+    def entry(name, cost):
+        def stage(k):
+            log.append(("stage", name, k))
+            now["t"] += 100  # staging is untimed: never in the result
+
+            def call():
+                log.append(("call", name, k))
+                now["t"] += cost
+            return call
+        return stage
+
+    class Context:
+        def __init__(self, name):
+            self.name = name
+
+        def __enter__(self):
+            log.append(("enter", self.name))
+
+        def __exit__(self, *exc):
+            log.append(("exit", self.name))
+
+    def failing(k):
+        if k == 2:
+            raise RuntimeError("boom")
+        return lambda: None
+
+    entries = {"a": entry("a", 1.0), "b": entry("b", 2.0), "c": entry("c", 3.0), "d": failing}
+    seconds, errors = round_robin(entries, warmup=1, repeats=4, warmup_context=Context, clock=clock)
+    assert log[:6] == [("enter", "a"), ("stage", "a", 0), ("call", "a", 0), ("exit", "a"), ("enter", "b"),
+                       ("stage", "b", 0)]
+    calls = [(name, k) for what, name, *k in log if what == "call"]
+    timed_order = [name for name, (k,) in calls if k >= 1]
+    assert timed_order == ["a", "b", "c", "b", "c", "a", "c", "a", "b", "a", "b", "c"]
+    assert seconds == {"a": [1.0] * 4, "b": [2.0] * 4, "c": [3.0] * 4, "d": [0.0]}
+    assert list(errors) == ["d"] and str(errors["d"]) == "boom"
 
 
 @pytest.mark.slow
@@ -277,3 +374,13 @@ def test_share_of_the_peak_uses_the_larger_of_the_peaks_before_and_after(setup, 
     row = next(r for r in rows if r["method"] == "student")
     assert row["peak_fraction"] == pytest.approx(row["gflops_per_s"] / 250.0)
     assert "fp32 matmul peak 250.0 GFLOP/s" in (out / "report.md").read_text()
+
+
+def test_no_module_changes_the_allocator_for_the_process():
+    """Every method of denoiser-bench runs under the same process-wide settings: no module of the
+    package tunes glibc's allocator (``keep_freed_memory``'s ``mallopt`` was removed after
+    measuring it, docs/export.md)."""
+    import denoiser
+
+    root = Path(denoiser.__file__).parent
+    assert [str(p) for p in root.rglob("*.py") if "mallopt" in p.read_text()] == []

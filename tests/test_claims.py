@@ -263,3 +263,38 @@ def test_readme_results_fills_a_pending_block_and_names_its_commit(tmp_path):
     summary.write_text("<!-- pareto:begin -->\n| t |\n<!-- pareto:end -->\n")  # no commit: no copy
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     assert proc.returncode == 1 and "states no '- commit" in proc.stderr
+
+
+# --- time columns: fp32 beside bf16 ---------------------------------------------------------------
+
+
+def test_results_table_puts_fp32_beside_bf16_with_the_paired_speedup(tmp_path):
+    """The student's fastest fp32 row and fastest bf16 row each get their own columns; the speed-up
+    is the bench's paired one with its interval (not a ratio of the fastest of any precision)."""
+    from denoiser.commands.demo_summary import bench_rows, results_table
+    from denoiser.summary import seed_groups
+
+    rows = [
+        {"method": "OIDN-fast", "backend": "oidn", "dtype": "fp32", "kind": "baseline", "ms": 1400.0, "sp": (1.0, 1.0, 1.0)},
+        {"method": "student_s0", "backend": "openvino_f32", "dtype": "fp32", "kind": "network", "ms": 1380.0,
+         "sp": (1.01, 0.97, 1.06)},
+        {"method": "student_s0", "backend": "eager", "dtype": "fp32", "kind": "network", "ms": 3000.0, "sp": (0.47, 0.45, 0.5)},
+        {"method": "student_s0", "backend": "openvino_bf16", "dtype": "bf16", "kind": "network", "ms": 800.0,
+         "sp": (1.75, 1.70, 1.80)},
+    ]
+    path = tmp_path / "bench.csv"
+    with path.open("w") as f:
+        f.write("method,backend,dtype,kind,height,width,status,ms_median,speedup,speedup_lo,speedup_hi\n")
+        for r in rows:
+            f.write(f"{r['method']},{r['backend']},{r['dtype']},{r['kind']},1080,1920,ok,{r['ms']},{','.join(map(str, r['sp']))}\n")
+    bench = bench_rows(path, (1080, 1920))
+    assert bench["fp32"]["student_s0"]["backend"] == "openvino_f32" and bench["bf16"]["student_s0"]["backend"] == "openvino_bf16"
+    groups = seed_groups({"OIDN-fast": {"psnr": 30.0}, "student_s0": {"psnr": 31.0}})
+    table = results_table(groups, bench, (1080, 1920), "OIDN-fast").splitlines()
+    header = [c.strip() for c in table[0].split("|")[1:-1]]
+    assert header[-4:] == ["ms/frame 1920x1080 fp32", "fp32 vs OIDN-fast (interval)",
+                           "ms/frame 1920x1080 bf16", "bf16 vs OIDN-fast (interval)"]
+    student = [c.strip() for c in table[3].split("|")[1:-1]]
+    assert student[-4:] == ["1380 (openvino_f32)", "1.01x (0.97-1.06)", "800 (openvino_bf16)", "1.75x (1.70-1.80)"]
+    oidn = [c.strip() for c in table[2].split("|")[1:-1]]
+    assert oidn[-4:] == ["1400 (oidn)", "1.00x", "", ""]

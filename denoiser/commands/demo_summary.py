@@ -12,7 +12,7 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its e
   paired claims of ``claims`` (network minus baseline per sequence, a bootstrap interval over
   sequences and a verdict from it), with a per-family table of the same differences;
 * ``<report>/bench/bench.csv`` (``denoiser-bench``): ms per 1080p frame per method on its
-  fastest backend, and the speed-up over OIDN-fast;
+  fastest backend per precision (fp32, bf16), and the paired speed-up over OIDN-fast with its interval;
 * every run directory under ``<report>/runs``: steps trained (``last.ckpt``), best val PSNR
   (``best.ckpt``) and its seed;
 * each ``<report>/<dir>/metrics.csv`` named under ``extra_evals`` (``{dir: title}``, e.g. the
@@ -82,15 +82,37 @@ def run_rows(runs: Path) -> list[dict]:
     return rows
 
 
-def bench_rows(path: Path, size: tuple[int, int]) -> dict[str, dict]:
-    """``{method: fastest ok row at size (H, W)}`` from a ``denoiser-bench`` CSV."""
-    best: dict[str, dict] = {}
+#: the precisions a summary shows time columns for, in order (f32 first: like with like against OIDN)
+PRECISIONS = ("fp32", "bf16")
+
+
+def bench_rows(path: Path, size: tuple[int, int]) -> dict[str, dict[str, dict]]:
+    """``{precision: {method: fastest ok row of that precision at size (H, W)}}`` from a
+    ``denoiser-bench`` CSV (precision: its ``dtype`` column, ``fp32`` when empty)."""
+    best: dict[str, dict[str, dict]] = {}
     for row in read_csv(path):
         if row.get("status") != "ok" or (int(row["height"]), int(row["width"])) != size:
             continue
-        if row["method"] not in best or float(row["ms_median"]) < float(best[row["method"]]["ms_median"]):
-            best[row["method"]] = row
+        dtype = str(row.get("dtype") or "")
+        dtype = "fp32" if dtype in ("", "nan") else dtype
+        mine = best.setdefault(dtype, {})
+        if row["method"] not in mine or float(row["ms_median"]) < float(mine[row["method"]]["ms_median"]):
+            mine[row["method"]] = row
     return best
+
+
+def speedup_text(timed: dict, ref: dict | None) -> str:
+    """``"1.74x (1.60-1.85)"``: the bench's paired speed-up over the reference with its interval
+    over rounds (``speedup``/``_lo``/``_hi`` columns), or the ratio of the medians (no interval)
+    when the row has none; empty without a reference."""
+    if ref is None:
+        return ""
+    if timed.get("speedup") not in (None, "", "nan") and ref.get("kind") == "baseline":
+        mid, lo, hi = (float(timed[k]) for k in ("speedup", "speedup_lo", "speedup_hi"))
+        if ref is timed:
+            return "1.00x"
+        return f"{mid:.2f}x ({lo:.2f}-{hi:.2f})"
+    return f"{float(ref['ms_median']) / float(timed['ms_median']):.2f}x"
 
 
 #: headers of the summarised columns
@@ -118,23 +140,25 @@ def evaluation(path: Path) -> tuple[list[dict], dict]:
     return seed_groups(method_means(rows)), group_sequences(sequence_values(rows))
 
 
-def results_table(groups: list[dict], bench: dict[str, dict], size: tuple[int, int], reference: str) -> str:
-    ref_ms = float(bench[reference]["ms_median"]) if reference in bench else None
+def results_table(groups: list[dict], bench: dict[str, dict[str, dict]], size: tuple[int, int], reference: str) -> str:
+    """The results table: metrics (mean ± std over seeds), then per precision (:data:`PRECISIONS`)
+    the fastest backend's ms per frame at ``size`` and the paired speed-up over ``reference``
+    (which runs fp32 on the CPUs benchmarked: the fp32 column is like with like)."""
+    ref = bench.get("fp32", {}).get(reference)
     rows = []
+    shown = [p for p in PRECISIONS if p in bench]
     for g in groups:
         row = metric_row(g)
-        timed = group_timing(g, bench)
-        if timed:
-            row["ms"] = f"{float(timed['ms_median']):.0f}"
-            dtype = str(timed.get("dtype") or "")
-            backend = str(timed["backend"])
-            row["backend"] = backend if dtype in ("", "nan") or dtype in backend else f"{backend} {dtype}"
-            if ref_ms:
-                row["speedup"] = f"{ref_ms / float(timed['ms_median']):.2f}x"
+        for p in shown:
+            timed = group_timing(g, bench[p])
+            if timed:
+                row[f"ms_{p}"] = f"{float(timed['ms_median']):.0f} ({timed['backend']})"
+                row[f"speedup_{p}"] = speedup_text(timed, ref)
         rows.append(row)
     h, w = size
-    columns = ["method", "seeds", *SUMMARY_COLUMNS, "ms", "backend", "speedup"]
-    headers = {**HEADERS, "ms": f"ms/frame {w}x{h}", "speedup": f"vs {reference}"}
+    columns = ["method", "seeds", *SUMMARY_COLUMNS, *(c for p in shown for c in (f"ms_{p}", f"speedup_{p}"))]
+    headers = {**HEADERS, **{f"ms_{p}": f"ms/frame {w}x{h} {p}" for p in shown},
+               **{f"speedup_{p}": f"{p} vs {reference} (interval)" for p in shown}}
     return markdown_table(rows, columns, headers=headers)
 
 
@@ -205,9 +229,12 @@ def run(cfg: DictConfig) -> Path:
     if cfg.tables:
         lines += [
             ("Every table: the mean over the test sequences; mean ± std over seeds for a method trained with "
-             "several seeds (column seeds), one run otherwise; ms per frame from bench/bench.csv (fastest backend)."),
+             "several seeds (column seeds), one run otherwise; ms per frame from bench/bench.csv: the fastest "
+             "backend per precision (fp32 beside bf16; OIDN runs fp32 here, so the fp32 speed-up is like with "
+             "like), the median over interleaved rounds, and the speed-up paired per round with its interval "
+             "over rounds."),
             "",
-            *figure_sections(cfg.tables, groups, bench, size, list(cfg.table_metrics), cfg.rank_metric),
+            *figure_sections(cfg.tables, groups, bench.get("fp32", {}), size, list(cfg.table_metrics), cfg.rank_metric),
         ]
     lines += [
         "## Test split, every method" if cfg.tables else "## Test split (students: mean ± std over seeds)",

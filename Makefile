@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo readme-results readme-pareto pareto compare lint clean-cache blender
+.PHONY: gpu-check setup test demo readme-results readme-pareto readme-check pareto compare lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -20,6 +20,7 @@ setup: $(VENV)/.installed
 
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) scripts/readme_check.py
 
 # The whole pipeline on the simulated demo dataset (render, teacher, distilled and no-KD
 # students with 3 seeds each, evaluation, benchmark): reports/demo/ and its summary.md.
@@ -33,6 +34,11 @@ readme-results:
 	if grep -q '<!-- blender:begin -->' reports/demo/summary.md; then \
 		python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md --marker blender; \
 	else echo "reports/demo/summary.md: no Blender table (make blender, then make demo): README's left as it is"; fi
+
+# Fail (one line per block) when a README results block names a commit older than the last change to
+# what it measures (denoiser/nn, conf/net, conf/kernel, conf/experiment, conf/dataset): rerun, then copy.
+readme-check:
+	python3 scripts/readme_check.py --readme README.md
 
 # Copy the Pareto table of reports/pareto/pareto.md and its plot (docs/images/pareto.png) into README.md.
 readme-pareto:
@@ -56,8 +62,16 @@ compare: setup
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py
 
+# The device check of a lent GPU (docs/gpu.md): GPU tests, 1080p inference, training steps, a short
+# GPU training run and the CPU evaluation of its checkpoint -> docs/results/gpu.md. No setup: the
+# lent machine has its own torch; scripts/gpu_carry.sh prepares what it lacks (.gpu_carry/).
+gpu-check:
+	bash scripts/gpu_check.sh
+
 # Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
-# rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/, then
+# rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/ (orbit,
+# slide and six fast-object-motion sequences fast_201..206), the val split (fast_101..103, other
+# seeds: `make blender-val` alone, BLENDER_VAL_ARGS) into data/blender/val/, then
 # denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/,
 # and the ceiling a demodulating network meets on their noisy albedo (scripts/albedo_bound.py).
 # Once they exist, `make demo` also evaluates its teacher and students on them (reports/demo/blender/,
@@ -69,6 +83,7 @@ BLENDER_VENV   ?= .venv-blender
 BLENDER_PYTHON ?= $(shell command -v python3.11 || echo python3)
 BLENDER_DATA   ?= data/blender
 BLENDER_ARGS   ?= --size 128 --frames 8 --spp 4 --ref-spp 1024
+BLENDER_VAL_ARGS ?= --size 128 --frames 8 --spp 4 --ref-spp 512
 BLENDER_CKPT   ?=
 BLENDER_EVAL_ARGS ?=
 BLENDER_OUT    ?= reports/blender
@@ -78,8 +93,11 @@ $(BLENDER_VENV)/.installed:
 	$(BLENDER_VENV)/bin/python -m pip install -q "bpy>=4.2" numpy
 	touch $@
 
-blender: setup $(BLENDER_VENV)/.installed
-	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) $(BLENDER_ARGS)
+blender-val: $(BLENDER_VENV)/.installed
+	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split val $(BLENDER_VAL_ARGS)
+
+blender: setup $(BLENDER_VENV)/.installed blender-val
+	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split test $(BLENDER_ARGS)
 	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) out_dir=$(BLENDER_OUT) \
 		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)
 	$(VENV)/bin/python scripts/albedo_bound.py $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md

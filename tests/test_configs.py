@@ -134,6 +134,7 @@ SHARED_MODEL = {
                   "total_steps": "${trainer.max_steps}", "final_ratio": 0.01, "warmup_steps": 20,
                   "follow_time": True},
     "scheduler_interval": "step", "detach_every": 0, "warmup_frames": 2, "image_interval": 100, "grad_clip": 1.0, "logit_penalty": 1e-4,
+    "performance": {"channels_last": False, "fused_optimizer": True, "compile": None},
 }
 DENOISE_LOSS = {"_target_": "denoiser.losses.DenoiseLoss", "smape_weight": 1.0, "gradient_weight": 0.5,
                 "temporal_weight": 0.25}

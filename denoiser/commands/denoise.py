@@ -30,8 +30,10 @@ it once for the frame size); null (default) picks ``openvino`` when it is instal
 ``onnx`` for the export) and the device is the CPU, else ``eager``. ``precision``: ``f32``
 (default: the outputs match eager PyTorch within float32 rounding, see ``tests/test_openvino.py``)
 or ``bf16`` (OpenVINO's bf16 inference precision, eager's bfloat16 autocast; faster on CPUs with
-AVX512-BF16/AMX, errors of a few 1e-3 relative). Every backend steps through the one recurrent
-runner (:class:`~denoiser.runner.RecurrentRunner`).
+AVX512-BF16/AMX, errors of a few 1e-3 relative). With ``device=cuda``: ``cuda`` and
+``cuda_compiled`` (:mod:`denoiser.cuda_backend`: weights cast once to ``precision`` f32, bf16 or
+fp16, the Triton filter; ``cuda_compiled`` replays a CUDA graph per frame size; docs/gpu.md).
+Every backend steps through the one recurrent runner (:class:`~denoiser.runner.RecurrentRunner`).
 
 Resuming: frames whose output file exists are not written again. Their outputs are still
 needed as the recurrent history of the next frame, so the run restarts the network at the
@@ -60,8 +62,8 @@ from denoiser.runner import RecurrentRunner
 log = logging.getLogger(__name__)
 
 WRITE_MODES = ("buffers", "rgb")
-BACKENDS = ("eager", "onnxruntime", "openvino")
-PRECISIONS = ("f32", "bf16")
+BACKENDS = ("eager", "onnxruntime", "openvino", "cuda", "cuda_compiled")
+PRECISIONS = ("f32", "bf16", "fp16")  # fp16: the CUDA backends only
 
 
 def openvino_installed() -> bool:
@@ -81,9 +83,18 @@ def make_backend(name: str | None, precision: str, device: torch.device):
         name = "openvino" if device.type == "cpu" and openvino_installed() else "eager"
     if name not in BACKENDS:
         raise ConfigError(f"backend: {name!r} is not one of {', '.join(BACKENDS)}")
-    if name != "eager" and device.type != "cpu":
+    if name in ("onnxruntime", "openvino") and device.type != "cpu":
         raise ConfigError(f"backend={name} runs on the CPU; use device=cpu or backend=eager")
-    if name == "eager":
+    if name.startswith("cuda"):  # denoiser/cuda_backend.py: cast weights, Triton filter, CUDA graph
+        from denoiser.cuda_backend import CudaBackend, CudaGraphBackend
+
+        if device.type != "cuda":
+            raise ConfigError(f"backend={name} needs device=cuda")
+        backend = (CudaGraphBackend if name == "cuda_compiled" else CudaBackend)(
+            name, precision={"f32": "fp32"}.get(precision, precision), device=str(device))
+    elif precision == "fp16":
+        raise ConfigError("precision=fp16 needs backend=cuda or backend=cuda_compiled")
+    elif name == "eager":
         backend = TorchBackend("eager", device=str(device), autocast="bfloat16" if precision == "bf16" else None)
     elif name == "onnxruntime":
         if precision != "f32":

@@ -14,6 +14,8 @@
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -80,13 +82,26 @@ class DenoiserModule(pl.LightningModule):
     * ``logit_penalty``: weight of the ``logit`` loss term, the mean square of the trained
       network's head outputs (:func:`denoiser.nn.denoiser.logit_energy`; 0: off). It keeps the
       scale of the activations from drifting up without bound (docs/training.md, "Collapse").
+    * ``performance`` (docs/gpu.md): ``channels_last`` (the trained network's weights in NHWC
+      memory format: cuDNN's fast layout under bf16), ``fused_optimizer`` (``fused=True`` for an
+      optimizer that takes it, when its parameters are on CUDA: no effect on the CPU), ``compile``
+      (null, or true or a dict of ``torch.compile`` arguments: the trained network's forward is
+      compiled in place, ``nn.Module.compile``; the checkpoint's keys do not change).
     """
 
     def __init__(self, net: Mapping, optimizer: Callable | Mapping, scheduler: Callable | Mapping | None = None,
                  scheduler_interval: str = "step", detach_every: int = 0, warmup_frames: int = 2,
-                 image_interval: int = 100, grad_clip: float = 0.0, logit_penalty: float = 0.0):
+                 image_interval: int = 100, grad_clip: float = 0.0, logit_penalty: float = 0.0,
+                 performance: Mapping | None = None):
         super().__init__()
         self.net = build_net(net, "model.net")
+        performance = dict(performance or {})
+        if performance.get("channels_last"):
+            self.net = self.net.to(memory_format=torch.channels_last)
+        if performance.get("compile"):
+            options = performance["compile"]
+            self.net.compile(**(dict(options) if isinstance(options, Mapping) else {}))
+        self.fused_optimizer = bool(performance.get("fused_optimizer", False))
         self._optimizer_factory = self._factory(optimizer)
         self._scheduler_factory = self._factory(scheduler)
         self.scheduler_interval = scheduler_interval
@@ -126,7 +141,12 @@ class DenoiserModule(pl.LightningModule):
 
     def build_optimizer(self, params, factory: Callable | None = None) -> dict:
         """``{"optimizer": .., "lr_scheduler": ..}`` for Lightning from the configured factories."""
-        opt = (factory or self._optimizer_factory)(params)
+        make = factory or self._optimizer_factory
+        params = list(params)
+        if self.fused_optimizer and params and all(p.is_cuda for p in params) and \
+                "fused" in inspect.signature(getattr(make, "func", make)).parameters:
+            make = functools.partial(make, fused=True)
+        opt = make(params)
         out: dict = {"optimizer": opt}
         if self._scheduler_factory is not None and factory is None:
             scheduler = self._scheduler_factory(opt)

@@ -71,9 +71,9 @@ class DistillationModule(DenoiserModule):
                  critic_steps: int = 1, param_transfer: Mapping | None = None,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
                  detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
-                 trust_teacher_ckpt: bool = False, logit_penalty: float = 0.0):
+                 trust_teacher_ckpt: bool = False, logit_penalty: float = 0.0, performance: Mapping | None = None):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
-                         image_interval, grad_clip, logit_penalty)
+                         image_interval, grad_clip, logit_penalty, performance)
         self.automatic_optimization = False
         loss_cfg = {**DEFAULT_LOSS, **(plain(loss) or {})}
         self.save_hyperparameters({

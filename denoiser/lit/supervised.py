@@ -34,9 +34,9 @@ class SupervisedModule(DenoiserModule):
     def __init__(self, net: Mapping, loss: Mapping | DenoiseLoss, optimizer: Callable | Mapping,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
                  detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
-                 logit_penalty: float = 0.0):
+                 logit_penalty: float = 0.0, performance: Mapping | None = None):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
-                         image_interval, grad_clip, logit_penalty)
+                         image_interval, grad_clip, logit_penalty, performance)
         self.save_hyperparameters({
             "net": plain(net), "loss": plain(loss) if not callable(loss) else repr(loss),
             "optimizer": plain(optimizer) if not callable(optimizer) else repr(optimizer),

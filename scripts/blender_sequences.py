@@ -20,7 +20,15 @@ every frame), fixed thread count. Everything is built from primitives and proced
 * ``orbit``: the camera orbits a checker floor with a diffuse/noise cube, a glossy metal sphere,
   a glass ico-sphere, a rough plastic torus, an area light and a small bright emitter;
 * ``slide``: a static camera looks at a brick wall over a checker floor while a sphere and a
-  cube move across it (disocclusions every frame).
+  cube move across it (disocclusions every frame);
+* ``fast_<seed>``: fast object motion (issue 33): a static camera looks at a textured back wall
+  over a textured floor; one or two textured objects (shape, textures, colours, depth, direction
+  drawn from the seed) cross the view at 8-15 px/frame (at the image width rendered) and turn
+  5-15 degrees per frame, uncovering the background behind them every frame. Their paths are
+  laid out on screen and converted to metres at each object's depth, so the speed in pixels
+  holds for any ``--size``. Seeds ``FAST_SEEDS`` are disjoint between splits: ``--split val``
+  renders ``fast_101``-``fast_103``, ``--split test`` ``fast_201``-``fast_206`` after ``orbit``
+  and ``slide`` (``SPLIT_SEQUENCES``).
 
 Objects and the camera are keyframed on every frame from 0 to frames+1, so the ``Vector`` pass
 has a previous and next position also at the first and last rendered frame.
@@ -34,15 +42,21 @@ every other pass is bit-identical.
 from __future__ import annotations
 
 import argparse
+import colorsys
 import json
 import math
+import random
 import sys
 import time
 from pathlib import Path
 
 import bpy
 
-SEQUENCES = ("orbit", "slide")
+#: seeds of the fast-object-motion sequences ``fast_<seed>`` per split (disjoint)
+FAST_SEEDS = {"val": (101, 102, 103), "test": (201, 202, 203, 204, 205, 206)}
+#: what ``--split`` renders by default
+SPLIT_SEQUENCES = {"test": ("orbit", "slide", *(f"fast_{s}" for s in FAST_SEEDS["test"])),
+                   "val": tuple(f"fast_{s}" for s in FAST_SEEDS["val"])}
 
 
 # ----------------------------------------------------------------------------- scene set-up
@@ -313,6 +327,114 @@ def build_probe(frames: int):
 BUILDERS = {"orbit": build_orbit, "slide": build_slide, "probe": build_probe}
 
 
+#: camera of the fast-motion sequences: static, looking along +Y (the image plane is parallel to
+#: the XZ plane, so a motion in X/Z at a fixed depth is the same number of pixels everywhere)
+FAST_CAMERA = {"location": (0.0, -6.0, 1.4), "lens": 35.0, "sensor": 36.0}
+FAST_SPEED = (8.0, 15.0)      # px per frame, at the rendered width
+FAST_SPIN = (5.0, 15.0)       # degrees per frame
+FAST_SHAPES = ("cube", "uv_sphere", "ico_sphere", "cylinder", "cone", "torus")
+FAST_TEXTURES = ("checker", "noise", "brick")
+
+
+def fast_seed(name: str) -> int | None:
+    """The seed of a ``fast_<seed>`` sequence name, None for other names."""
+    head, _, tail = name.partition("_")
+    return int(tail) if head == "fast" and tail.isdigit() else None
+
+
+def _hue_color(rng: random.Random, sat=(0.5, 0.9), val=(0.55, 0.9)):
+    return colorsys.hsv_to_rgb(rng.random(), rng.uniform(*sat), rng.uniform(*val))
+
+
+def _fast_material(rng: random.Random, name: str, scale: tuple[float, float], textures=FAST_TEXTURES):
+    texture = rng.choice(textures)
+    mat = material(name, "principled", _hue_color(rng), rng.uniform(0.35, 0.8), texture=texture,
+                   color2=_hue_color(rng, (0.1, 0.6), (0.05, 0.25)), scale=rng.uniform(*scale))
+    ramp = mat.node_tree.nodes.get("Color Ramp")
+    if ramp is not None:      # noise: its Fac stays near 0.5; a narrower ramp gives a visible texture
+        ramp.color_ramp.elements[0].position = 0.4
+        ramp.color_ramp.elements[1].position = 0.6
+    return mat
+
+
+def _fast_object(rng: random.Random, index: int, radius: float):
+    shape = rng.choice(FAST_SHAPES)
+    mat = _fast_material(rng, f"Object{index}", (3.0, 7.0))
+    if shape == "cube":
+        return add("cube", mat, size=1.6 * radius)
+    if shape == "cylinder":
+        return add("cylinder", mat, radius=0.8 * radius, depth=1.6 * radius, vertices=48)
+    if shape == "cone":
+        return add("cone", mat, radius1=radius, depth=1.8 * radius, vertices=48)
+    if shape == "torus":
+        return add("torus", mat, major_radius=0.75 * radius, minor_radius=0.3 * radius)
+    if shape == "ico_sphere":
+        return add("ico_sphere", mat, radius=radius, subdivisions=2)   # facets: normals change per face
+    return add("uv_sphere", mat, radius=radius, segments=48, ring_count=24)
+
+
+def build_fast(frames: int, width: int, seed: int) -> dict:
+    """Fast object motion over a textured background (module docstring); returns what was drawn
+    (written to render.json). Screen paths: object k's centre moves ``speed`` px/frame along a
+    direction within 15 degrees of horizontal (the second object the other way, at another depth,
+    so the two cross), through a point near the image centre half-way through the sequence."""
+    rng = random.Random(seed)
+    # planes: Object texture coordinates span their whole size, so the scales are per metre
+    add("plane", _fast_material(rng, "Floor", (1.5, 4.0), ("checker", "brick")), size=30.0)
+    add("plane", _fast_material(rng, "Wall", (0.8, 2.0), ("checker", "brick")), location=(0.0, 4.0, 5.0),
+        rotation=(math.radians(90), 0.0, 0.0), size=16.0)
+    area_light((rng.uniform(-2.5, 2.5), -3.5, 4.5), (math.radians(45), 0.0, 0.0), size=3.0,
+               energy=rng.uniform(500.0, 800.0))
+    cam = camera(lens=FAST_CAMERA["lens"])
+    cam.data.sensor_width = FAST_CAMERA["sensor"]
+    cam.location = FAST_CAMERA["location"]
+    cam.rotation_euler = (math.radians(90), 0.0, 0.0)
+    mid = (frames + 1) / 2.0                  # keys run over frames 0..frames+1
+    rightwards = rng.random() < 0.5           # the first object's way; a second one goes the other way
+    drawn = []
+    for k in range(rng.choice((1, 2))):
+        depth = rng.uniform(4.5, 5.5) + 1.5 * k
+        px_per_m = width * FAST_CAMERA["lens"] / (FAST_CAMERA["sensor"] * depth)
+        speed = rng.uniform(*FAST_SPEED)
+        heading = math.radians(rng.uniform(-15.0, 15.0)) + (0.0 if rightwards == (k == 0) else math.pi)
+        centre = (rng.uniform(-0.12, 0.12) * width, rng.uniform(0.0, 0.15) * width + 0.1 * width * k)
+        spin_axis = [rng.gauss(0.0, 1.0) for _ in range(3)]
+        norm = math.sqrt(sum(a * a for a in spin_axis)) or 1.0
+        spin = rng.uniform(*FAST_SPIN) * rng.choice((-1.0, 1.0))
+        rates = [math.radians(spin) * a / norm for a in spin_axis]
+        obj = _fast_object(rng, k, rng.uniform(0.45, 0.6))
+        phase = [rng.uniform(0.0, 2 * math.pi) for _ in range(3)]
+
+        def at(f, obj=obj, px_per_m=px_per_m, speed=speed, heading=heading, centre=centre, rates=rates,
+               phase=phase, depth=depth):
+            u = centre[0] + speed * (f - mid) * math.cos(heading)     # px right of the image centre
+            v = centre[1] + speed * (f - mid) * math.sin(heading)     # px above it
+            obj.location = (u / px_per_m, FAST_CAMERA["location"][1] + depth,
+                            FAST_CAMERA["location"][2] + v / px_per_m)
+            obj.rotation_euler = tuple(p + r * f for p, r in zip(phase, rates))
+
+        keyframe(obj, frames, at)
+        drawn.append({"shape": obj.name, "depth_m": round(depth, 3), "speed_px": round(speed, 2),
+                      "heading_deg": round(math.degrees(heading), 1), "spin_deg": round(spin, 2)})
+    return {"seed": seed, "objects": drawn}
+
+
+def build(name: str, frames: int, width: int) -> dict:
+    """Build sequence ``name`` into the (reset) scene; returns what a seeded builder drew."""
+    seed = fast_seed(name)
+    if seed is not None:
+        return build_fast(frames, width, seed)
+    BUILDERS[name](frames)
+    return {}
+
+
+def sequence_name(name: str) -> str:
+    """argparse type of ``--sequences``: a builder's name or ``fast_<seed>``."""
+    if name in BUILDERS or fast_seed(name) is not None:
+        return name
+    raise argparse.ArgumentTypeError(f"unknown sequence {name!r}; use {', '.join(BUILDERS)} or fast_<seed>")
+
+
 # ----------------------------------------------------------------------------- rendering
 
 
@@ -342,8 +464,10 @@ def parse_args(argv):
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--root", type=Path, default=Path("data/blender"), help="dataset root (default data/blender)")
     p.add_argument("--split", default="test", help="split folder (default test)")
-    p.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=list(BUILDERS),
-                   help="sequences to render (default: orbit slide; probe: a 32x32 Vector/normal check)")
+    p.add_argument("--sequences", nargs="+", type=sequence_name, default=None,
+                   help="sequences to render: orbit, slide, probe (a 32x32 Vector/normal check), fast_<seed> "
+                        "(default: the split's, " + "; ".join(f"{k}: {' '.join(v)}" for k, v in
+                                                                SPLIT_SEQUENCES.items()) + ")")
     p.add_argument("--size", type=int, nargs="+", default=[128], help="W [H] in pixels (default 128)")
     p.add_argument("--frames", type=int, default=8, help="frames per sequence (default 8)")
     p.add_argument("--spp", type=int, default=4, help="samples per pixel of the noisy render (default 4)")
@@ -356,10 +480,16 @@ def parse_args(argv):
     return p.parse_args(argv)
 
 
-def settings(args, width: int, height: int) -> dict:
+#: version of the ``fast_<seed>`` builder, recorded in render.json: a change re-renders them
+FAST_VERSION = 1
+
+
+def settings(args, name: str, width: int, height: int) -> dict:
     """What a finished sequence's render.json must record for it to be skipped."""
     out = {"blender": bpy.app.version_string, "width": width, "height": height, "frames": args.frames,
            "noisy": {"spp": args.spp, "seed": args.seed}}
+    if fast_seed(name) is not None:
+        out["builder"] = f"fast v{FAST_VERSION}"
     if not args.no_reference:
         out["reference"] = {"spp": args.ref_spp, "seed": args.seed + 1000}
     return out
@@ -379,22 +509,28 @@ def complete(seq_dir: Path, frames: int, wanted: dict) -> bool:
 
 def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    if args.sequences is None:
+        if args.split not in SPLIT_SEQUENCES:
+            raise SystemExit(f"blender_sequences: split {args.split!r} has no default sequences "
+                             f"({', '.join(SPLIT_SEQUENCES)} have); name them with --sequences")
+        args.sequences = list(SPLIT_SEQUENCES[args.split])
     width = args.size[0]
     height = args.size[1] if len(args.size) > 1 else width
     print(f"blender_sequences: Blender {bpy.app.version_string}, {width}x{height}, {args.frames} frames, "
           f"{args.spp} spp noisy, {args.ref_spp} spp reference -> {args.root / args.split}", flush=True)
     for name in args.sequences:
         seq_dir = args.root / args.split / name
-        wanted = settings(args, width, height)
+        wanted = settings(args, name, width, height)
         if not args.force and complete(seq_dir, args.frames, wanted):
             print(f"{name}: complete with these settings, skipped (--force re-renders)", flush=True)
             continue
         print(f"{name}: building scene", flush=True)
         scene = reset_scene(width, height, args.threads)
         scene.frame_start, scene.frame_end = 1, args.frames
-        BUILDERS[name](args.frames)
+        drawn = build(name, args.frames, width)
         info = {**wanted, "engine": "CYCLES", "device": "CPU", "threads": args.threads,
-                "pixel_filter": "BOX 1.0", "denoiser": False, "seconds": {}}
+                "pixel_filter": "BOX 1.0", "denoiser": False, **({"scene": drawn} if drawn else {}),
+                "seconds": {}}
         t0 = time.perf_counter()
         info["seconds"]["noisy"] = render_pass(scene, seq_dir / "noisy", args.frames, args.spp, args.seed,
                                                f"{name} noisy")

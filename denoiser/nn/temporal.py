@@ -43,6 +43,13 @@ largest of three disagreements between the warped previous guide ``P`` and the c
 
 The depth term also compares ``log m`` of the two frames (the per-frame mean hit depth):
 changes of ``m`` by less than ``t`` between two frames do not reject anything.
+
+Probe (diagnostics, :mod:`denoiser.history_diagnosis`): ``TemporalRecurrence.probe`` is None
+(the default: nothing recorded, one attribute test per step). Set to a dict, every
+:meth:`~TemporalRecurrence.warp` puts into it the tensors of that step it does not return
+otherwise: ``"cover" [B, 1, H, W]`` (bilinear coverage, 0 where history was reset) and
+``"gate" [B, 1, H, W]`` (the disocclusion gate, all ones without one), beside the
+returned ``"history"`` dict. It changes no value the network computes.
 """
 
 from __future__ import annotations
@@ -134,6 +141,8 @@ class TemporalRecurrence(nn.Module):
         self.head_channels = sum(n for _, n in self.head_layout)
         starts = [sum(n for _, n in self.head_layout[:i]) for i in range(len(self.head_layout))]
         self._head = {part: slice(s, s + n) for (part, n), s in zip(self.head_layout, starts)}
+        #: None, or a dict that :meth:`warp` fills with the step's coverage, gate and history (module docstring)
+        self.probe: dict | None = None
 
     def state_channels(self) -> dict[str, int]:
         return {"output": 3, "color": 3, "features": self.state_features, "guide": GUIDE_CHANNELS}
@@ -178,8 +187,13 @@ class TemporalRecurrence(nn.Module):
         cover_safe = cover.clamp_min(COVER_MIN)
         history = {k: torch.where(ok, v / cover_safe, 0.0) for k, v in zip(STATE_KEYS, warped)}
         history["valid"] = torch.where(ok, cover, 0.0)
+        gate = None
         if self.reject_threshold is not None and guide is not None:
-            history["valid"] = history["valid"] * self.gate(history["guide"], guide)
+            gate = self.gate(history["guide"], guide)
+            history["valid"] = history["valid"] * gate
+        if self.probe is not None:
+            self.probe.update(cover=torch.where(ok, cover, 0.0), history=dict(history),
+                              gate=torch.ones_like(cover) if gate is None else gate)
         return history
 
     def input_parts(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> list[torch.Tensor]:

@@ -57,9 +57,9 @@ def test_config_defaults_keep_old_behaviour():
     for name in ("student", "teacher", "demo_student", "demo_teacher"):
         cfg = compose_net_config(name)
         # no net config demodulates: on the sample-averaged albedo renderers give, it cost ~1 dB on
-        # val (docs/training.md); ablation=demodulation switches it on
+        # val (docs/results_log.md); ablation=demodulation switches it on
         assert cfg["demodulate"] is False and cfg["temporal"]["reject_threshold"] == 0.1
-        # the demo nets' softmaxes may sharpen further: at 2.5 a small bright lamp glowed (docs/training.md)
+        # the demo nets' softmaxes may sharpen further: at 2.5 a small bright lamp glowed (docs/results_log.md)
         assert cfg["filter"]["logit_scale"] == (5 if name.startswith("demo") else 2.5)
         assert compose_net_config(name, ablation="demodulation")["demodulate"] is True
         assert compose_net_config(name, ablation="no_demodulation")["demodulate"] is False

@@ -19,7 +19,7 @@ synthetic sequences, 2-frame windows of 32x32 crops, learning rate 2e-2, 120 ste
 logits (the code before the fix, ``logit_scale=null``) it froze in 2 of 3 seeds here (seed 1
 into the exact identity); with the normalised logits every seed trains (at the config's
 ``logit_scale``: 2.5 when this was recorded, 5 since the demo nets' softmaxes were allowed to
-sharpen, docs/training.md "Small bright emitters"; both pass). The setting pins the
+sharpen, docs/results_log.md "Small bright emitters"; both pass). The setting pins the
 demo teacher as it was when the collapse was reproduced: no albedo demodulation and no
 disocclusion gate (both came later; with them the raw-logit run fails differently, its output
 falls below the input instead of freezing at it).

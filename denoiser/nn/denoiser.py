@@ -36,7 +36,7 @@ per-image color scale, :func:`~denoiser.nn.inputs.color_scale`) and maps the fil
 with ``sign(y) s expm1(|y|)`` (:func:`compress` and :func:`expand`). The filter's weights are bounded below
 (:func:`~denoiser.nn.kernels.scale_logits`), so in linear radiance a small emitter thousands of
 times brighter than its surroundings leaks into every kernel that covers it, a glow around the
-lamp (docs/training.md, "Small bright emitters"); compressed, it weighs as a value a few times
+lamp (docs/results_log.md, "Small bright emitters"); compressed, it weighs as a value a few times
 larger. The price is a bias: a mean of logarithms is below the logarithm of the mean. Both maps
 are monotone, so the output stays within [min, max] of the filter's inputs; the history blends
 stay linear.
@@ -47,7 +47,7 @@ is ``output = A(a') * irradiance output`` instead, where ``A`` applies per-pixel
 extra channels at the end of the level-0 head. Renderers that average the albedo over the
 pixel's samples (Cycles at a few spp; the simulator's ``aux=samples``) give an albedo with the
 colour's sub-pixel texture noise, which plain remodulation multiplies back into the output
-(docs/training.md, "Demodulation on renders with a noisy albedo"); the learned kernel can
+(docs/results_log.md, "Demodulation on renders with a noisy albedo"); the learned kernel can
 smooth it where the guide buffers say it is noise. Its centre-tap bias starts at
 ``REMODULATION_CENTRE_BIAS``, so an untrained kernel is about the identity (plain remodulation).
 """

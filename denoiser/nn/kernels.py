@@ -83,7 +83,7 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
     ``scale * n / sqrt(m (n - m))`` (two-valued logits; the spread is then set by ``m``). For
     the 3-level partition (two levels left out, ``m = 2``) that is ``2.12 scale``, for 6 taps of a 5x5 kernel
     ``2.34 scale``: at ``scale = 2.5`` a lamp 2500 times brighter than its surroundings kept
-    1% of its partition weight on the coarse levels (0.6% and 0.4%) and spread into a glow (docs/training.md,
+    1% of its partition weight on the coarse levels (0.6% and 0.4%) and spread into a glow (docs/results_log.md,
     "Small bright emitters"), which ``scale = 5`` removed.
     ``scale=None`` leaves the logits as they are (networks configured before this existed).
     Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4; float16 autocast can

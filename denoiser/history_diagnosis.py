@@ -244,14 +244,14 @@ def markdown(rows: list[dict], title: str) -> str:
         "",
         (f"- history weight where the warped history is wrong vs right: a {_num(wrong['a'], 3)} vs "
          f"{_num(right['a'], 3)}, b {_num(wrong['b'], 3)} vs {_num(right['b'], 3)} "
-         "(alike: the blend weights do not see the error)"),
+         "(how to read: alike would mean the blend weights do not see the error)"),
         (f"- gate-rejected pixels (gate < 1): {_num(gated['share'], 3)} of the frame; of them a > 0.5: "
          f"{_num(gated['keep_a'], 3)}, b > 0.5: {_num(gated['keep_b'], 3)}"),
         (f"- uncovered pixels (background now, moving at t-1): {uncovered['pixels']}, mean gate "
-         f"{_num(uncovered['gate'], 3)}, mean b {_num(uncovered['b'], 3)} (gate near 1: it misses the disocclusion)"),
+         f"{_num(uncovered['gate'], 3)}, mean b {_num(uncovered['b'], 3)} (how to read: a gate near 1 would mean it misses the disocclusion)"),
         (f"- warped history PSNR edge / interior / background: {_num(by['edge']['psnr_warped'])} / "
          f"{_num(by['interior']['psnr_warped'])} / {_num(by['background']['psnr_warped'])} dB "
-         "(low interior: motion vectors or the warp wrong on the object; low edge: disocclusions and "
+         "(how to read: a low interior means motion vectors or the warp wrong on the object; a low edge, disocclusions and "
          "mixed pixels)"),
         "",
     ]

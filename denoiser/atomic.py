@@ -95,3 +95,13 @@ def _running(name: str) -> bool:
     except PermissionError:  # someone else's process
         return True
     return True
+
+
+def atomic_save_figure(fig, path: str | os.PathLike) -> Path:
+    """Write a matplotlib figure to ``path`` as PNG, atomically (:func:`atomic_path`), and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path, ".png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path)

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from denoiser.atomic import atomic_path, atomic_write_text
+from denoiser.atomic import atomic_save_figure, atomic_write_text
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, UserError, first_line
 from denoiser.metrics import mse_to_psnr, tonemap
@@ -301,10 +301,7 @@ def save_grid(path: str | os.PathLike, cap: Capture, title: str) -> Path:
                 fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02).ax.tick_params(labelsize=6)
     fig.suptitle(title, fontsize=8)
     fig.tight_layout()
-    with atomic_path(path, ".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return Path(path)
+    return atomic_save_figure(fig, path)
 
 
 def diagnose(ckpt: str | os.PathLike, sequence: str | os.PathLike, layout: str = "native",

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from denoiser.atomic import atomic_path
+from denoiser.atomic import atomic_save_figure
 from denoiser.metrics import tonemap
 
 
@@ -64,7 +64,4 @@ def save_crops(path: str | os.PathLike, panels: Mapping[str, np.ndarray], notes:
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    with atomic_path(path, ".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return Path(path)
+    return atomic_save_figure(fig, path)

@@ -15,7 +15,7 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from denoiser.atomic import atomic_path
+from denoiser.atomic import atomic_save_figure
 
 
 def pareto_front(points: Mapping[str, tuple[float, float]]) -> list[str]:
@@ -120,7 +120,4 @@ def plot_accuracy_vs_time(path: str | os.PathLike, rows: Sequence[Mapping], size
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="best", framealpha=0.9)
     fig.tight_layout()
-    with atomic_path(path, ".png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return Path(path)
+    return atomic_save_figure(fig, path)

@@ -35,8 +35,8 @@ readme-results:
 		python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md --marker blender; \
 	else echo "reports/demo/summary.md: no Blender table (make blender, then make demo): README's left as it is"; fi
 
-# Fail (one line per block) when a README results block names a commit older than the last change to
-# what it measures (denoiser/nn, conf/net, conf/kernel, conf/experiment, conf/dataset): rerun, then copy.
+# Fail (one line per block) when what a README results block measures (denoiser/nn, conf/net, conf/kernel,
+# conf/experiment, conf/dataset) changed since its commit (a pure move does not count): rerun, then copy.
 readme-check:
 	python3 scripts/readme_check.py --readme README.md
 

@@ -234,7 +234,7 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     (repo / "README.md").write_text(README.format(commit=old))
     proc = readme_check(repo)
     assert proc.returncode == 1 and proc.stderr.count("\n") == 1
-    assert "block 'results'" in proc.stderr and f"commit {old}" in proc.stderr and "denoiser/nn/" in proc.stderr
+    assert "block 'results'" in proc.stderr and f"commit {old}" in proc.stderr and "denoiser/nn/unet.py" in proc.stderr
     (repo / "README.md").write_text(README.format(commit=new + "-dirty"))
     assert readme_check(repo).returncode == 0  # at the change (or after it): current
     (repo / "README.md").write_text(README.format(commit=git(repo, "rev-parse", "HEAD")))
@@ -244,6 +244,23 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     assert proc.returncode == 1 and "names no commit" in proc.stderr
     (repo / "README.md").write_text(README.format(commit="abcdef1"))
     assert "does not have" in readme_check(repo).stderr
+
+    # a move with identical content (the configs to the top level) measures the same thing ...
+    (repo / "denoiser" / "conf" / "net").mkdir(parents=True)
+    (repo / "denoiser" / "conf" / "net" / "student.yaml").write_text("width: 32\n")
+    git(repo, "add", ".")
+    git(repo, "commit", "-qm", "net config")
+    at = git(repo, "rev-parse", "HEAD")
+    (repo / "conf").mkdir()
+    git(repo, "mv", "denoiser/conf/net", "conf/net")
+    git(repo, "commit", "-qm", "conf at the top level")
+    (repo / "README.md").write_text(README.format(commit=at))
+    assert readme_check(repo).returncode == 0
+    # ... a change after the move does not
+    (repo / "conf" / "net" / "student.yaml").write_text("width: 48\n")
+    git(repo, "commit", "-qam", "wider config")
+    proc = readme_check(repo)
+    assert proc.returncode == 1 and "conf/net/student.yaml" in proc.stderr
 
 
 def test_readme_results_fills_a_pending_block_and_names_its_commit(tmp_path):

@@ -5,9 +5,11 @@ Every block ``<!-- NAME:begin --> ... <!-- NAME:end -->`` that ``scripts/readme_
 copied names, in its ``copied by`` line, the commit of the run that wrote it. A block is stale
 when what the numbers measure (:data:`MEASURED`: the networks, their configs and the dataset)
 differs between that commit and ``HEAD``: ``git diff -M --name-status <commit> HEAD -- <paths>``
-lists a file added, deleted or changed. A file that only moved (a rename with identical content,
-``R100``, e.g. the configs moving from ``denoiser/conf/`` to ``conf/``) changes nothing measured,
-so both locations are listed. Also stale: a block that names no commit, or a commit git does not
+lists a file added or deleted, or a file whose meaning changed. Meaning, not bytes: a Python file
+is compared as its syntax tree without docstrings (comments are not in the tree), a YAML file as
+the data it parses to (comments dropped), anything else byte for byte; so a comment, a docstring
+or a file that only moved (a rename, e.g. the configs from ``denoiser/conf/`` to ``conf/``, both
+locations listed) leaves a block current, and a changed value, default or line of code does not. Also stale: a block that names no commit, or a commit git does not
 know. A ``-dirty`` commit counts as its base commit. One line per stale block on stderr, then
 exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
@@ -17,6 +19,7 @@ exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is 
 from __future__ import annotations
 
 import argparse
+import ast
 import re
 import subprocess
 import sys
@@ -26,6 +29,9 @@ from pathlib import Path
 #: config groups at both of their locations: conf/ at the top level, denoiser/conf/ before)
 MEASURED = ("denoiser/nn/", *(f"{root}{group}/" for root in ("conf/", "denoiser/conf/")
                               for group in ("net", "kernel", "experiment", "dataset")))
+#: a file deleted at the first location and added at the second is the same file moved (paired
+#: even when git's rename detection, which goes by similarity, does not pair a small edited file)
+MOVED = (("denoiser/conf/", "conf/"),)
 
 BLOCK = re.compile(r"<!-- (?P<name>[\w.-]+):begin -->(?P<body>.*?)<!-- (?P=name):end -->", re.DOTALL)
 COPIED_COMMIT = re.compile(r"<!-- copied by scripts/readme_results\.py from [^\n]*?, commit (?P<commit>[0-9a-f]{7,40})"
@@ -36,13 +42,64 @@ def git(repo: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, check=False)
 
 
+def _without_docstrings(tree: ast.AST) -> ast.AST:
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def meaning(path: str, text: str) -> object:
+    """What a measured file means: a Python file's syntax tree less docstrings, a YAML file's
+    data, else its text (unparsable files fall back to their text)."""
+    try:
+        if path.endswith(".py"):
+            return ast.dump(_without_docstrings(ast.parse(text)))
+        if path.endswith((".yaml", ".yml")):
+            import yaml
+
+            return yaml.safe_load(text)
+    except Exception as exc:  # noqa: BLE001 - a syntax or YAML error: compare the text itself
+        return ("unparsable", type(exc).__name__, text)
+    return text
+
+
+def _blob(repo: Path, commit: str, path: str) -> str:
+    shown = git(repo, "show", f"{commit}:{path}")
+    if shown.returncode != 0:
+        raise SystemExit(f"error: {repo}: git show {commit}:{path} failed: {shown.stderr.strip()}")
+    return shown.stdout
+
+
 def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASURED) -> list[str]:
-    """``git diff -M --name-status`` lines between ``commit`` and ``HEAD`` under ``measured``,
-    less pure moves (``R100``): the files whose content differs."""
+    """``git diff -M --name-status`` lines between ``commit`` and ``HEAD`` under ``measured`` whose
+    file was added, deleted, or changed in :func:`meaning` (pure moves, comments and docstrings
+    drop out)."""
     diff = git(repo, "diff", "-M", "--name-status", commit, "HEAD", "--", *measured)
     if diff.returncode != 0:
         raise SystemExit(f"error: {repo}: git diff {commit} HEAD failed: {diff.stderr.strip()}")
-    return [line for line in diff.stdout.splitlines() if line and not line.startswith("R100\t")]
+    entries = [line.split("\t") for line in diff.stdout.splitlines() if line]
+    added = {e[1] for e in entries if e[0] == "A"}
+    moved = {}  # deleted old path -> added new path
+    for e in entries:
+        if e[0] == "D":
+            for before, after in MOVED:
+                if e[1].startswith(before) and after + e[1][len(before):] in added:
+                    moved[e[1]] = after + e[1][len(before):]
+    changed = []
+    for status, *paths in entries:
+        if status[0] in "RM" or (status == "D" and paths[0] in moved):
+            # renamed (maybe edited), modified, or moved between the locations: compare meanings
+            old, new = paths[0], moved.get(paths[0], paths[-1])
+            if meaning(old, _blob(repo, commit, old)) == meaning(new, _blob(repo, "HEAD", new)):
+                continue
+        elif status == "A" and paths[0] in moved.values():
+            continue  # judged with its deleted twin
+        changed.append("\t".join([status, *paths]))
+    return changed
 
 
 def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED) -> list[str]:

@@ -256,7 +256,12 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     git(repo, "commit", "-qm", "conf at the top level")
     (repo / "README.md").write_text(README.format(commit=at))
     assert readme_check(repo).returncode == 0
-    # ... a change after the move does not
+    # ... and so do a comment, a docstring and a YAML comment ...
+    (repo / "denoiser" / "nn" / "unet.py").write_text('"""The U-Net."""\nwidth = 32  # channels\n')
+    (repo / "conf" / "net" / "student.yaml").write_text("# the student\nwidth: 32   # channels\n")
+    git(repo, "commit", "-qam", "words only")
+    assert readme_check(repo).returncode == 0
+    # ... a change of a value after the move does not
     (repo / "conf" / "net" / "student.yaml").write_text("width: 48\n")
     git(repo, "commit", "-qam", "wider config")
     proc = readme_check(repo)

@@ -1,7 +1,7 @@
 """Inference backends: how a network is prepared and stepped (PyTorch eager, channels-last,
 autocast, ``torch.compile``, ONNX Runtime, OpenVINO f32/bf16; CUDA variants where a GPU is present).
 
-A backend's ``prepare(net, example, threads)`` returns a :class:`Stepper`, whose
+A backend's ``prepare(net, example, threads)`` returns a :class:`~denoiser.runner.Stepper`, whose
 ``step(frame, state, reset) -> (output, state)`` the recurrent runner
 (:mod:`denoiser.runner`) drives over a sequence. ``available()`` says why a backend cannot
 run here (None when it can); ``dtype`` is the precision of its convolutions (``fp32``,
@@ -15,29 +15,12 @@ import contextlib
 import copy
 import sys
 import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 
-
-class Stepper:
-    """A prepared network: ``step(frame, state) -> (output, state)`` (the runner's contract,
-    :mod:`denoiser.runner`: ``state=None`` starts a sequence); ``sync()`` waits for the device.
-    ``profile()``, where the backend can say, gives the last step's time per operation type:
-    ``{op type: ms}``; None where it cannot. ``threads()``, where the engine can say, is the
-    thread count it actually uses, read back from it (after a step: OpenVINO resolves it when
-    compiling); ``engine`` names the library that runs the step (``torch``, ``onnxruntime``,
-    ``openvino``, ``oidn``), for its version in the tables."""
-
-    def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
-                 profile: Callable[[], dict[str, float]] | None = None,
-                 threads: Callable[[], int] | None = None, engine: str = ""):
-        self.step = step
-        self.sync = sync
-        self.profile = profile
-        self.threads = threads
-        self.engine = engine
+from denoiser.runner import Stepper
 
 
 class TorchBackend:

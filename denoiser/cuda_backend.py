@@ -35,9 +35,8 @@ from collections.abc import Mapping
 
 import torch
 
-from denoiser.backends import Stepper
 from denoiser.errors import ConfigError
-from denoiser.runner import RecurrentRunner
+from denoiser.runner import RecurrentRunner, Stepper
 
 #: ``precision=`` -> weight dtype
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
@@ -115,7 +114,7 @@ class CudaBackend:
         return (lambda: torch.cuda.synchronize(self.device)) if self._cuda() else (lambda: None)
 
     def prepare(self, net: torch.nn.Module, example: Mapping[str, torch.Tensor] | None, threads: int) -> Stepper:
-        """A :class:`~denoiser.backends.Stepper` of ``net``: ``step(frame {buffer: [B, C, H, W]},
+        """A :class:`~denoiser.runner.Stepper` of ``net``: ``step(frame {buffer: [B, C, H, W]},
         state) -> (output [B, 3, H, W] float32 on the device, state)``."""
         net = self.prepare_net(net)
 

@@ -12,11 +12,11 @@ from conftest import compose_command, tiny_checkpoint
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
-from denoiser.backends import Stepper
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, read_csv, time_steps
 from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
+from denoiser.runner import Stepper
 
 
 @pytest.fixture(scope="module")

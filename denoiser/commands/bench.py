@@ -90,7 +90,6 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from denoiser.atomic import atomic_write_text
-from denoiser.backends import Stepper
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError
 from denoiser.evaluation import eval_means
@@ -107,6 +106,7 @@ from denoiser.measure import (
     summarize,
     write_csv,
 )
+from denoiser.runner import Stepper
 
 # ----------------------------------------------------------------------------- frames
 

@@ -132,9 +132,9 @@ def run_net(job: dict) -> dict:
     """Worker: time ``step`` of one net/size/variant; returns ms per run and the RSS growth."""
     import torch
 
-    from denoiser.backends import Stepper
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
+    from denoiser.runner import Stepper
 
     torch.set_flush_denormal(True)
     net = build_net(compose_net_config(job["net"])).eval()

@@ -146,10 +146,10 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
 
     import torch
 
-    from denoiser.backends import Stepper
     from denoiser.baselines import build_baselines
     from denoiser.measure import summarize, time_steps
     from denoiser.pareto import random_frames
+    from denoiser.runner import Stepper
 
     torch.set_num_threads(threads)
 

@@ -12,3 +12,7 @@ Conventions (stated once, used everywhere):
 """
 
 __version__ = "0.1.0"
+
+from denoiser import _aliases
+
+_aliases.install()

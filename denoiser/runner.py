@@ -14,8 +14,8 @@ Step function contract::
 ``frame`` is ``{buffer: [B, C, H, W]}`` (tensors or arrays, :mod:`denoiser.buffers`),
 ``state`` the previous call's ``new_state`` or None, which means "no history": the first frame
 of a sequence or a camera cut. :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>`,
-the exported graph's :class:`~denoiser.step_graph.OnnxStep` and every backend's
-:class:`Stepper` (what a backend prepares, :mod:`denoiser.backends`) follow it.
+the exported graph's :class:`~denoiser.inference.step_graph.OnnxStep` and every backend's
+:class:`Stepper` (what a backend prepares, :mod:`denoiser.inference.backends`) follow it.
 """
 
 from __future__ import annotations

@@ -319,8 +319,8 @@ def test_bench_openvino_bf16_psnr_through_the_backend(tmp_path):
     (bf16 keeps 8 mantissa bits; tests/test_openvino.py bounds the output error at 3e-2)."""
     pytest.importorskip("openvino", reason="openvino is not installed")
     pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
-    from denoiser.backends import OpenVinoBackend
     from denoiser.commands.bench import run as bench
+    from denoiser.inference.backends import OpenVinoBackend
 
     reason = OpenVinoBackend(precision="bf16").available()
     if reason:

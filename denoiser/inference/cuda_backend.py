@@ -4,7 +4,7 @@ backend=cuda|cuda_compiled``), and the CUDA-event timer that times them.
 :class:`CudaBackend` (eager): the network's weights cast once to ``precision`` (``fp16``,
 ``bf16`` or ``fp32``; no autocast, so no per-step weight casts; the Denoiser feeds its U-Net in
 the weights' dtype and filters in float32, :mod:`denoiser.nn.denoiser`), weights in channels-last
-memory format, and the pyramid filter run by the Triton kernels of :mod:`denoiser.triton_filter`
+memory format, and the pyramid filter run by the Triton kernels of :mod:`denoiser.inference.triton_filter`
 where Triton and CUDA are present (``triton_filter: auto``). The recurrent state stays on the
 device from frame to frame (the runner carries the step's own state tensors) and a step never
 waits for the device: frames already on the device are used in place, the output is not copied
@@ -82,7 +82,7 @@ class CudaBackend:
             if self.precision == "bf16" and not torch.cuda.is_bf16_supported():
                 return "this GPU has no bf16"
         if self.triton_filter is True:
-            from denoiser.triton_filter import unavailable_reason
+            from denoiser.inference.triton_filter import unavailable_reason
 
             return unavailable_reason(self.device)
         return None
@@ -91,7 +91,7 @@ class CudaBackend:
         """Whether ``prepare`` puts the Triton pyramid filter in (``triton_filter``)."""
         if self.triton_filter is False:
             return False
-        from denoiser.triton_filter import unavailable_reason
+        from denoiser.inference.triton_filter import unavailable_reason
 
         # auto: on CUDA only (the CPU interpreter is for tests, far too slow to time)
         return unavailable_reason(self.device) is None and (self.triton_filter is True or self._cuda())
@@ -103,7 +103,7 @@ class CudaBackend:
         if self.channels_last:
             net = net.to(memory_format=torch.channels_last)
         if self.uses_triton():
-            from denoiser.triton_filter import use_triton_filter
+            from denoiser.inference.triton_filter import use_triton_filter
 
             use_triton_filter(net)
         if self._cuda() and self.cudnn_benchmark:

@@ -23,6 +23,8 @@ MOVED = {
     "denoiser.triton_filter": "denoiser.inference.triton_filter",
     "denoiser.step_graph": "denoiser.inference.step_graph",
     "denoiser.ovext": "denoiser.inference.ovext",
+    "denoiser.baselines": "denoiser.methods.baselines",
+    "denoiser.onnd": "denoiser.methods.onnd",
 }
 
 

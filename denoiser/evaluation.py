@@ -3,7 +3,7 @@
 sequence, then over sequences). Used by ``denoiser-eval`` (:mod:`denoiser.commands.evaluate`).
 
 A *method* is anything with ``reset()`` and ``method(frame, reset) -> [1, 3, H, W]``
-(:mod:`denoiser.baselines`): the noisy input, OIDN, a trained network through the recurrent
+(:mod:`denoiser.methods.baselines`): the noisy input, OIDN, a trained network through the recurrent
 runner.
 """
 

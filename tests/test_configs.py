@@ -241,7 +241,7 @@ def test_one_baseline_list_for_eval_and_bench():
     assert options("baselines") == ["compare", "default"]  # compare = default + ONND (tests/test_onnd.py)
     ev, bench = compose_entry("eval", "threads=3"), compose_entry("bench", "threads=3")
     assert list(ev.baselines) == ["noisy", "oidn_fast", "oidn_balanced", "oidn_high"]
-    assert ev.baselines.noisy._target_ == "denoiser.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"
+    assert ev.baselines.noisy._target_ == "denoiser.methods.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"
     assert bench.baselines.noisy is None
     for key in ("oidn_fast", "oidn_balanced", "oidn_high"):
         assert ev.baselines[key] == bench.baselines[key]

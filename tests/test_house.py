@@ -130,10 +130,10 @@ def frames(count: int = 3, size: int = 16):
 def test_consumers_step_through_the_runner(step_callers, tmp_path):
     """Evaluation's network method, the benchmark's backends and timing, the FLOP count, the
     ONNX export check, and the training/validation unroll all reach Denoiser.step via the runner."""
-    from denoiser.baselines import NetworkMethod
     from denoiser.inference.backends import TorchBackend
     from denoiser.inference.step_graph import check_export, export_onnx
     from denoiser.measure import count_flops, time_steps
+    from denoiser.methods.baselines import NetworkMethod
 
     net = tiny_net()
     method = NetworkMethod(net, "tiny")

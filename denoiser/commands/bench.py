@@ -164,9 +164,9 @@ def backend_quality(cfg: DictConfig, nets, backends, pairs, threads: int) -> dic
     ``(method, backend key)`` prepared afresh by its backend and run over the evaluation
     sequences like ``denoiser-eval`` (one :class:`~denoiser.evaluation.Evaluation` per pair, so a
     failing backend fails alone)."""
-    from denoiser.baselines import StepperMethod
     from denoiser.data.evalset import open_test_split, read_frame
     from denoiser.evaluation import Evaluation
+    from denoiser.methods.baselines import StepperMethod
 
     if not pairs:
         return {}
@@ -252,7 +252,7 @@ def oidn_harness_steps(method, frames: list[dict]) -> StagedStep:
     layout before the clock starts (our frames are planar ``[1, C, H, W]``; a renderer hands OIDN
     interleaved pixels), the timed call is ``method.denoise_arrays`` (the clamping copies into
     OIDN's shared images, the filter, the output copy)."""
-    from denoiser.baselines import _hwc
+    from denoiser.methods.baselines import _hwc
 
     def stage(k: int):
         frame = frames[k % len(frames)]
@@ -272,7 +272,7 @@ def oidn_direct_steps(quality: str, threads: int, frames: list[dict]) -> tuple[S
     import pyoidn.filter as oidn_filter
     from pyoidn.device import Device
 
-    from denoiser.baselines import _hwc
+    from denoiser.methods.baselines import _hwc
 
     h, w = frames[0]["color"].shape[-2:]
     images = {n: np.zeros((h, w, 3), np.float32) for n in ("color", "albedo", "normal", "output")}
@@ -331,8 +331,8 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, versions: d
     ``repeats`` timed steps are interleaved (:func:`~denoiser.measure.round_robin`: each round
     times every method once, in a rotated order), so a slow phase of the machine falls on every
     method alike and the speed-up vs the baseline is paired per round."""
-    from denoiser.baselines import OidnDenoiser, build_baselines
     from denoiser.configs import instantiate_config
+    from denoiser.methods.baselines import OidnDenoiser, build_baselines
 
     versions = versions if versions is not None else engine_versions()
     isa = isa if isa is not None else cpu_isa()

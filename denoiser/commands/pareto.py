@@ -146,8 +146,8 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
 
     import torch
 
-    from denoiser.baselines import build_baselines
     from denoiser.measure import summarize, time_steps
+    from denoiser.methods.baselines import build_baselines
     from denoiser.pareto import random_frames
     from denoiser.runner import Stepper
 

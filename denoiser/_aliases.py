@@ -25,6 +25,14 @@ MOVED = {
     "denoiser.ovext": "denoiser.inference.ovext",
     "denoiser.baselines": "denoiser.methods.baselines",
     "denoiser.onnd": "denoiser.methods.onnd",
+    "denoiser.evaluation": "denoiser.report.evaluation",
+    "denoiser.summary": "denoiser.report.summary",
+    "denoiser.figure_tables": "denoiser.report.figure_tables",
+    "denoiser.plot_crops": "denoiser.report.plot_crops",
+    "denoiser.plot_tradeoff": "denoiser.report.plot_tradeoff",
+    "denoiser.pareto": "denoiser.report.pareto",
+    "denoiser.stats": "denoiser.report.stats",
+    "denoiser.history_diagnosis": "denoiser.report.history_diagnosis",
 }
 
 

@@ -15,7 +15,7 @@ from test_eval_data import write_dataset
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, read_csv, time_steps
-from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
+from denoiser.report.plot_tradeoff import pareto_front, pareto_front_of_rows
 from denoiser.runner import Stepper
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from denoiser.data.synthetic import write_synthetic_sequence
-from denoiser.pareto import dominates, front_indices, group_seeds, seed_of, varying_overrides
+from denoiser.report.pareto import dominates, front_indices, group_seeds, seed_of, varying_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 #: tiny, quiet training jobs: 2 steps of net=tiny on 16x16 crops, one validation at the end
@@ -280,7 +280,7 @@ def test_a_network_without_recurrence_times_on_the_graph_backends(backend):
     """Without temporal recurrence the exported graph has no ``motion`` input: the feed leaves it out."""
     from denoiser.configs import build_net, compose_net_config
     from denoiser.inference.backends import OnnxRuntimeBackend, OpenVinoBackend
-    from denoiser.pareto import time_network
+    from denoiser.report.pareto import time_network
 
     impl = OpenVinoBackend() if backend == "openvino" else OnnxRuntimeBackend()
     if impl.available():

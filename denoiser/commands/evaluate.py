@@ -48,11 +48,11 @@ from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.checkpoint import checkpoint_paths, load_denoiser
 from denoiser.data.evalset import open_test_split
 from denoiser.errors import ConfigError
-from denoiser.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
 from denoiser.measure import markdown_table, write_csv
 from denoiser.methods.baselines import NetworkMethod, build_baselines
 from denoiser.metrics import METRICS
-from denoiser.plot_crops import save_crops
+from denoiser.report.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
+from denoiser.report.plot_crops import save_crops
 
 log = logging.getLogger(__name__)
 

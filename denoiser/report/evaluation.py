@@ -21,7 +21,7 @@ from denoiser.data.evalset import read_frame, sequence_reference
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS, MetricAccumulator, flip_exposure, psnr
-from denoiser.plot_crops import crop_box, to_display
+from denoiser.report.plot_crops import crop_box, to_display
 
 
 class Evaluation:

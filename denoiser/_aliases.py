@@ -33,6 +33,8 @@ MOVED = {
     "denoiser.pareto": "denoiser.report.pareto",
     "denoiser.stats": "denoiser.report.stats",
     "denoiser.history_diagnosis": "denoiser.report.history_diagnosis",
+    "denoiser.losses": "denoiser.lit.losses",
+    "denoiser.transfer": "denoiser.lit.transfer",
 }
 
 

@@ -390,7 +390,7 @@ def test_filtered_remodulation_exports_with_the_same_numbers(tmp_path):
 def test_parameter_transfer_reads_the_remodulation_taps():
     """The remodulation logits are the last 9 level-0 head channels, row-major taps; a teacher
     without them transfers nothing into them (the student keeps its near-identity start)."""
-    from denoiser.transfer import head_meanings, transfer_parameters
+    from denoiser.lit.transfer import head_meanings, transfer_parameters
 
     net, plain = filtered(seed=9)
     meanings = head_meanings(net)[0]

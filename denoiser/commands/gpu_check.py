@@ -154,7 +154,7 @@ def inference_text(rows, columns, h, w, markdown_table) -> str:
 def train_step_rows(cfg: DictConfig, deadline: float, report: Report) -> list[dict]:
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
-    from denoiser.losses import DenoiseLoss
+    from denoiser.lit.losses import DenoiseLoss
     from denoiser.measure import markdown_table, summarize
 
     ts = cfg.train_step

@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from denoiser.metrics import COLUMNS, METRICS, MetricAccumulator, psnr
-from denoiser.stats import paired_interval
-from denoiser.summary import (
+from denoiser.report.stats import paired_interval
+from denoiser.report.summary import (
     group_sequences,
     group_timing,
     merge_identical,
@@ -29,7 +29,7 @@ from denoiser.summary import (
 ROOT = Path(__file__).resolve().parents[1]
 
 
-# --- denoiser.stats -------------------------------------------------------------------------------
+# --- denoiser.report.stats -------------------------------------------------------------------------------
 
 
 def hand_bootstrap(a, b, confidence, resamples, seed):
@@ -294,7 +294,7 @@ def test_results_table_puts_fp32_beside_bf16_with_the_paired_speedup(tmp_path):
     """The student's fastest fp32 row and fastest bf16 row each get their own columns; the speed-up
     is the bench's paired one with its interval (not a ratio of the fastest of any precision)."""
     from denoiser.commands.demo_summary import bench_rows, results_table
-    from denoiser.summary import seed_groups
+    from denoiser.report.summary import seed_groups
 
     rows = [
         {"method": "OIDN-fast", "backend": "oidn", "dtype": "fp32", "kind": "baseline", "ms": 1400.0, "sp": (1.0, 1.0, 1.0)},

@@ -78,7 +78,7 @@ def final_metrics(trainer) -> dict[str, float]:
 def measure_time(cfg: DictConfig, net) -> dict[str, float]:
     """The time objective (``objectives.time``): ms per frame of the trained ``net`` at
     ``objectives.time.size`` on its backend; ``{}`` when not configured."""
-    from denoiser.pareto import time_network
+    from denoiser.report.pareto import time_network
 
     spec = (cfg.get("objectives") or {}).get("time")
     if not spec:
@@ -94,7 +94,7 @@ def measure_time(cfg: DictConfig, net) -> dict[str, float]:
 def stored_run(cfg: DictConfig) -> dict[str, float] | None:
     """With ``skip_done``, the metrics of a finished run of the same overrides in this run
     directory (DONE and metrics.json); a run of other overrides there is an error."""
-    from denoiser.pareto import DONE_FILE, METRICS_FILE, read_json
+    from denoiser.report.pareto import DONE_FILE, METRICS_FILE, read_json
 
     out = Path(cfg.output_dir)
     if not cfg.get("skip_done") or not (out / DONE_FILE).is_file():
@@ -110,7 +110,7 @@ def stored_run(cfg: DictConfig) -> dict[str, float] | None:
 
 def write_done(cfg: DictConfig, metrics: dict[str, float]) -> None:
     from denoiser.atomic import atomic_write_text
-    from denoiser.pareto import DONE_FILE, METRICS_FILE
+    from denoiser.report.pareto import DONE_FILE, METRICS_FILE
 
     out = Path(cfg.output_dir)
     atomic_write_text(out / METRICS_FILE, json.dumps({"overrides": hydra_runtime()[0], "metrics": metrics}, indent=1))

@@ -44,7 +44,7 @@ largest of three disagreements between the warped previous guide ``P`` and the c
 The depth term also compares ``log m`` of the two frames (the per-frame mean hit depth):
 changes of ``m`` by less than ``t`` between two frames do not reject anything.
 
-Probe (diagnostics, :mod:`denoiser.history_diagnosis`): ``TemporalRecurrence.probe`` is None
+Probe (diagnostics, :mod:`denoiser.report.history_diagnosis`): ``TemporalRecurrence.probe`` is None
 (the default: nothing recorded, one attribute test per step). Set to a dict, every
 :meth:`~TemporalRecurrence.warp` puts into it the tensors of that step it does not return
 otherwise: ``"cover" [B, 1, H, W]`` (bilinear coverage, 0 where history was reset) and

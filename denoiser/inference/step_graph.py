@@ -1,7 +1,7 @@
 """A denoiser's recurrent step as an ONNX graph (opset 17), and that graph run by ONNX Runtime.
 
 Used by ``denoiser-export`` (:mod:`denoiser.commands.export`), by the ONNX Runtime and OpenVINO
-backends of the benchmark (:mod:`denoiser.backends`) and by ``denoiser-denoise``
+backends of the benchmark (:mod:`denoiser.inference.backends`) and by ``denoiser-denoise``
 (:class:`OnnxStep`, :class:`OpenVinoStep`). The graph is one :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>` with the recurrent
 state as explicit inputs and outputs (see ``docs/export.md``):
 
@@ -111,7 +111,7 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     in f32, while 1x1 convolutions (the default) are what it runs fastest in bf16.
     ``fused_kernels``: the kernel filter, the input transforms' ``log1p`` and (with matmul heads)
     the level-0 head's upsampling as operations of the project's OpenVINO extension
-    (:func:`denoiser.nn.kernels.kernels_as_op`, :mod:`denoiser.ovext`; same numbers): faster in
+    (:func:`denoiser.nn.kernels.kernels_as_op`, :mod:`denoiser.inference.ovext`; same numbers): faster in
     OpenVINO, and only OpenVINO with that extension can run the file.
     """
     import onnx
@@ -149,7 +149,7 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
 
 def uses_extension(path: str | os.PathLike) -> bool:
     """Whether the ONNX graph at ``path`` imports the ``denoiser`` domain (its
-    nodes need the OpenVINO extension :mod:`denoiser.ovext`)."""
+    nodes need the OpenVINO extension :mod:`denoiser.inference.ovext`)."""
     import onnx
 
     model = onnx.load(str(path), load_external_data=False)
@@ -210,7 +210,7 @@ class OpenVinoStep:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
         self.core = ov.Core()
         if uses_extension(path):  # export_onnx(fused_kernels=True)
-            from denoiser import ovext
+            from denoiser.inference import ovext
 
             ovext.load_into(self.core, path)
         self.model = self.core.read_model(str(path))

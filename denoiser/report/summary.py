@@ -12,7 +12,7 @@ methods with the same value on every sequence and column once.
 
 Claims (:func:`claim_rows`): per sequence, a group's value averaged over its seeds
 (:func:`group_sequences`) minus the baseline's on the same sequence, and the paired bootstrap
-interval of the mean difference (:func:`denoiser.stats.paired_interval`); the verdict (ahead,
+interval of the mean difference (:func:`denoiser.report.stats.paired_interval`); the verdict (ahead,
 tied, behind) comes from the interval. Column names, headers, decimals and directions:
 :data:`denoiser.metrics.COLUMNS`.
 """
@@ -30,7 +30,7 @@ from pathlib import Path
 from denoiser.errors import ConfigError
 from denoiser.measure import markdown_table
 from denoiser.metrics import COLUMNS
-from denoiser.stats import CONFIDENCE, RESAMPLES, SEED, PairedInterval, paired_interval
+from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED, PairedInterval, paired_interval
 
 #: columns summarised, in table order (header, decimals, direction: denoiser.metrics.COLUMNS)
 SUMMARY_COLUMNS = ("psnr", "psnr_all", "psnr_f2", "ssim", "tpsnr", "flip", "relmse")
@@ -196,7 +196,7 @@ def claim_lines(claims: Sequence[Mapping], per_sequence: SequenceValues) -> list
         return [f"Claims not made (a method or metric not evaluated): {', '.join(missing)}."] if missing else []
     lines = [(f"Paired differences, network minus baseline: per test sequence, the network's value (mean over "
              f"its seeds) minus the baseline's; the mean over sequences and its {CONFIDENCE:.0%} percentile "
-             f"bootstrap interval ({RESAMPLES} resamples, seed {SEED}; denoiser/stats.py). Verdict from the "
+             f"bootstrap interval ({RESAMPLES} resamples, seed {SEED}; denoiser/report/stats.py). Verdict from the "
              "interval, not the means: ahead when it lies wholly on the network's better side of 0 (above 0 for "
              "↑ metrics, below 0 for ↓ ones), behind when wholly on the other side, tied when it holds 0."), ""]
     lines += [markdown_table(rows, ["network", "baseline", "metric", "difference", "half", "n", "verdict"],

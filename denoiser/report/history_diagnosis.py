@@ -265,7 +265,7 @@ def save_grid(path: str | os.PathLike, cap: Capture, title: str) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from denoiser.plot_crops import to_display
+    from denoiser.report.plot_crops import to_display
 
     ref = cap.images["reference"]
     errors = {f"|{k} - ref|^2": pixel_error(cap.images[k], ref)[0, 0].numpy()

@@ -1,4 +1,4 @@
-"""The pyramid kernel filter in Triton, for the CUDA backends (:mod:`denoiser.cuda_backend`).
+"""The pyramid kernel filter in Triton, for the CUDA backends (:mod:`denoiser.inference.cuda_backend`).
 
 Same numbers as :func:`denoiser.nn.pyramid.pyramid_filter` (whose module docstring is the
 definition) within float32 rounding, in three kernels:
@@ -12,7 +12,7 @@ definition) within float32 rounding, in three kernels:
   of the shifted input pixels: no ``[B, k*k, H, W]`` weights are written. With the scale the
   softmax is shifted by the logits' mean (every centred, scaled logit lies within
   ``scale * sqrt(k*k)`` of it, so ``exp`` stays normal for ``scale * sqrt(k*k) <= 80``; the
-  OpenVINO extension's rule, ``denoiser/ovext/kernel_apply.cpp``), otherwise by their maximum;
+  OpenVINO extension's rule, ``denoiser/inference/ovext/kernel_apply.cpp``), otherwise by their maximum;
 * :func:`add_upsampled`: ``bilinear_up(coarse) + fine`` (``F.interpolate``, ``align_corners=False``),
   and at level 0 the division by the filtered constant channel with the input-pixel fallback
   (:func:`denoiser.nn.pyramid.normalize`).

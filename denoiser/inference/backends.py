@@ -1,12 +1,12 @@
 """Inference backends: how a network is prepared and stepped (PyTorch eager, channels-last,
 autocast, ``torch.compile``, ONNX Runtime, OpenVINO f32/bf16; CUDA variants where a GPU is present).
 
-A backend's ``prepare(net, example, threads)`` returns a :class:`Stepper`, whose
+A backend's ``prepare(net, example, threads)`` returns a :class:`~denoiser.runner.Stepper`, whose
 ``step(frame, state, reset) -> (output, state)`` the recurrent runner
 (:mod:`denoiser.runner`) drives over a sequence. ``available()`` says why a backend cannot
 run here (None when it can); ``dtype`` is the precision of its convolutions (``fp32``,
 ``bf16``, ``fp16``) for the tables. Backends are instantiated from ``conf/bench.yaml``'s ``backends``.
-The CUDA backends with cast weights, the Triton filter and CUDA graphs are in :mod:`denoiser.cuda_backend`.
+The CUDA backends with cast weights, the Triton filter and CUDA graphs are in :mod:`denoiser.inference.cuda_backend`.
 """
 
 from __future__ import annotations
@@ -15,29 +15,12 @@ import contextlib
 import copy
 import sys
 import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 
-
-class Stepper:
-    """A prepared network: ``step(frame, state) -> (output, state)`` (the runner's contract,
-    :mod:`denoiser.runner`: ``state=None`` starts a sequence); ``sync()`` waits for the device.
-    ``profile()``, where the backend can say, gives the last step's time per operation type:
-    ``{op type: ms}``; None where it cannot. ``threads()``, where the engine can say, is the
-    thread count it actually uses, read back from it (after a step: OpenVINO resolves it when
-    compiling); ``engine`` names the library that runs the step (``torch``, ``onnxruntime``,
-    ``openvino``, ``oidn``), for its version in the tables."""
-
-    def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
-                 profile: Callable[[], dict[str, float]] | None = None,
-                 threads: Callable[[], int] | None = None, engine: str = ""):
-        self.step = step
-        self.sync = sync
-        self.profile = profile
-        self.threads = threads
-        self.engine = engine
+from denoiser.runner import Stepper
 
 
 class TorchBackend:
@@ -107,7 +90,7 @@ class CompileBackend(TorchBackend):
 
 
 class _ExportedGraphBackend:
-    """A backend running the exported ONNX step graph (:mod:`denoiser.step_graph`): the export
+    """A backend running the exported ONNX step graph (:mod:`denoiser.inference.step_graph`): the export
     happens once per network (untimed) into a temporary directory."""
 
     label = "exported graph"
@@ -117,7 +100,7 @@ class _ExportedGraphBackend:
     fused_kernels = False  # export_onnx's operations of the OpenVINO extension (see there)
 
     def _export(self, net) -> str:
-        from denoiser.step_graph import export_onnx
+        from denoiser.inference.step_graph import export_onnx
 
         if not hasattr(self, "_exported"):
             self._exported: dict[int, tuple] = {}
@@ -131,7 +114,7 @@ class _ExportedGraphBackend:
 
 
 class OnnxRuntimeBackend(_ExportedGraphBackend):
-    """The exported ONNX step graph (:mod:`denoiser.step_graph`) in ONNX Runtime.
+    """The exported ONNX step graph (:mod:`denoiser.inference.step_graph`) in ONNX Runtime.
 
     ``provider``: an ONNX Runtime execution provider (``CPUExecutionProvider``,
     ``CUDAExecutionProvider``); the export happens once per network, untimed.
@@ -153,7 +136,7 @@ class OnnxRuntimeBackend(_ExportedGraphBackend):
         return None
 
     def prepare(self, net, example, threads: int) -> Stepper:
-        from denoiser.step_graph import OnnxStep
+        from denoiser.inference.step_graph import OnnxStep
 
         runner = OnnxStep(self._export(net), threads, providers=(self.provider,))
         options = runner.session.get_session_options()  # what the session was built with (0: ONNX Runtime's default)
@@ -161,7 +144,7 @@ class OnnxRuntimeBackend(_ExportedGraphBackend):
 
 
 class OpenVinoBackend(_ExportedGraphBackend):
-    """The exported ONNX step graph compiled by OpenVINO (:class:`~denoiser.step_graph.OpenVinoStep`).
+    """The exported ONNX step graph compiled by OpenVINO (:class:`~denoiser.inference.step_graph.OpenVinoStep`).
 
     Args:
         label: backend name in tables.
@@ -178,12 +161,12 @@ class OpenVinoBackend(_ExportedGraphBackend):
     reorder in OpenVINO), in bf16 as 1x1 convolutions (docs/export.md). In both, the kernel
     filter is one ``denoiser::PyramidFilter`` node and the ``log1p`` transforms
     ``denoiser::Log1p`` nodes (``export_onnx(fused_kernels=True)``) when the project's OpenVINO
-    extension builds (:mod:`denoiser.ovext`), else the plain graph (one line on stderr says why).
+    extension builds (:mod:`denoiser.inference.ovext`), else the plain graph (one line on stderr says why).
     """
 
     def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU",
                  profile: bool = False):
-        from denoiser.step_graph import OPENVINO_PRECISIONS
+        from denoiser.inference.step_graph import OPENVINO_PRECISIONS
 
         if precision not in OPENVINO_PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
@@ -194,7 +177,7 @@ class OpenVinoBackend(_ExportedGraphBackend):
         self.device = device.lower()
         self.profile = bool(profile)
         self.matmul_heads = precision == "f32"
-        self.fused_kernels = None  # decided on first use: the extension builds (denoiser.ovext)
+        self.fused_kernels = None  # decided on first use: the extension builds (denoiser.inference.ovext)
 
     def available(self) -> str | None:
         try:
@@ -210,8 +193,8 @@ class OpenVinoBackend(_ExportedGraphBackend):
         return None
 
     def prepare(self, net, example, threads: int) -> Stepper:
-        from denoiser import ovext
-        from denoiser.step_graph import OpenVinoStep
+        from denoiser.inference import ovext
+        from denoiser.inference.step_graph import OpenVinoStep
 
         if self.fused_kernels is None:
             self.fused_kernels = ovext.kernel_extension() is not None

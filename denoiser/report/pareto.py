@@ -4,7 +4,7 @@ time objective and ``denoiser-pareto``'s sequential timing pass use it (docs/par
 
 * :func:`front_indices`: the non-dominated points, O(n log n) (tests check it against a plain loop);
 * :func:`time_network`: median ms per recurrent step of a network on a backend of
-  :mod:`denoiser.backends` (``denoiser-bench``'s measurement: :func:`denoiser.measure.time_steps`);
+  :mod:`denoiser.inference.backends` (``denoiser-bench``'s measurement: :func:`denoiser.measure.time_steps`);
 * :func:`job_dirs`, :func:`read_job`: the jobs of a finished Hydra multirun directory;
 * :func:`group_seeds`: jobs that differ only by ``seed=`` (a variant retrained with more seeds);
 * :func:`dominates`: whether one ``(psnr, ms)`` point beats another on both axes.
@@ -65,7 +65,7 @@ def random_frames(height: int, width: int, count: int = 2, seed: int = 0) -> lis
 def time_network(net, backend, size: Sequence[int], threads: int | None = None, warmup: int = 1,
                  repeats: int = 3) -> dict:
     """Median and fastest ms per recurrent step of ``net`` on ``backend`` (an instance from
-    :mod:`denoiser.backends`) for frames of ``size`` ``(H, W)``: ``{"ms_median", "ms_min",
+    :mod:`denoiser.inference.backends`) for frames of ``size`` ``(H, W)``: ``{"ms_median", "ms_min",
     "backend", "threads", "height", "width"}``; ``ms_median`` is NaN with a ``status`` when the
     backend is not available here."""
     import torch

@@ -4,7 +4,7 @@ backend=cuda|cuda_compiled``), and the CUDA-event timer that times them.
 :class:`CudaBackend` (eager): the network's weights cast once to ``precision`` (``fp16``,
 ``bf16`` or ``fp32``; no autocast, so no per-step weight casts; the Denoiser feeds its U-Net in
 the weights' dtype and filters in float32, :mod:`denoiser.nn.denoiser`), weights in channels-last
-memory format, and the pyramid filter run by the Triton kernels of :mod:`denoiser.triton_filter`
+memory format, and the pyramid filter run by the Triton kernels of :mod:`denoiser.inference.triton_filter`
 where Triton and CUDA are present (``triton_filter: auto``). The recurrent state stays on the
 device from frame to frame (the runner carries the step's own state tensors) and a step never
 waits for the device: frames already on the device are used in place, the output is not copied
@@ -35,9 +35,8 @@ from collections.abc import Mapping
 
 import torch
 
-from denoiser.backends import Stepper
 from denoiser.errors import ConfigError
-from denoiser.runner import RecurrentRunner
+from denoiser.runner import RecurrentRunner, Stepper
 
 #: ``precision=`` -> weight dtype
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
@@ -83,7 +82,7 @@ class CudaBackend:
             if self.precision == "bf16" and not torch.cuda.is_bf16_supported():
                 return "this GPU has no bf16"
         if self.triton_filter is True:
-            from denoiser.triton_filter import unavailable_reason
+            from denoiser.inference.triton_filter import unavailable_reason
 
             return unavailable_reason(self.device)
         return None
@@ -92,7 +91,7 @@ class CudaBackend:
         """Whether ``prepare`` puts the Triton pyramid filter in (``triton_filter``)."""
         if self.triton_filter is False:
             return False
-        from denoiser.triton_filter import unavailable_reason
+        from denoiser.inference.triton_filter import unavailable_reason
 
         # auto: on CUDA only (the CPU interpreter is for tests, far too slow to time)
         return unavailable_reason(self.device) is None and (self.triton_filter is True or self._cuda())
@@ -104,7 +103,7 @@ class CudaBackend:
         if self.channels_last:
             net = net.to(memory_format=torch.channels_last)
         if self.uses_triton():
-            from denoiser.triton_filter import use_triton_filter
+            from denoiser.inference.triton_filter import use_triton_filter
 
             use_triton_filter(net)
         if self._cuda() and self.cudnn_benchmark:
@@ -115,7 +114,7 @@ class CudaBackend:
         return (lambda: torch.cuda.synchronize(self.device)) if self._cuda() else (lambda: None)
 
     def prepare(self, net: torch.nn.Module, example: Mapping[str, torch.Tensor] | None, threads: int) -> Stepper:
-        """A :class:`~denoiser.backends.Stepper` of ``net``: ``step(frame {buffer: [B, C, H, W]},
+        """A :class:`~denoiser.runner.Stepper` of ``net``: ``step(frame {buffer: [B, C, H, W]},
         state) -> (output [B, 3, H, W] float32 on the device, state)``."""
         net = self.prepare_net(net)
 

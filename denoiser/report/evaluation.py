@@ -3,7 +3,7 @@
 sequence, then over sequences). Used by ``denoiser-eval`` (:mod:`denoiser.commands.evaluate`).
 
 A *method* is anything with ``reset()`` and ``method(frame, reset) -> [1, 3, H, W]``
-(:mod:`denoiser.baselines`): the noisy input, OIDN, a trained network through the recurrent
+(:mod:`denoiser.methods.baselines`): the noisy input, OIDN, a trained network through the recurrent
 runner.
 """
 
@@ -21,7 +21,7 @@ from denoiser.data.evalset import read_frame, sequence_reference
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS, MetricAccumulator, flip_exposure, psnr
-from denoiser.plot_crops import crop_box, to_display
+from denoiser.report.plot_crops import crop_box, to_display
 
 
 class Evaluation:

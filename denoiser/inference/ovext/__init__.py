@@ -32,7 +32,7 @@ The build is atomic: a failed or interrupted build leaves no library behind.
 
 :func:`kernel_extension` returns the library's path, or None when it cannot be built (no
 ``openvino``, no compiler, a compile error, an untrusted cache); :func:`unavailable_reason` says
-why in one line. Graphs exported with ``fused_kernels=True`` (:func:`denoiser.step_graph.export_onnx`)
+why in one line. Graphs exported with ``fused_kernels=True`` (:func:`denoiser.inference.step_graph.export_onnx`)
 need it; the OpenVINO backend exports them when it is available and the plain graph otherwise.
 """
 

@@ -189,7 +189,7 @@ class NetworkMethod:
 
 
 class StepperMethod:
-    """A backend's prepared network (:class:`~denoiser.backends.Stepper`: eager, ONNX Runtime,
+    """A backend's prepared network (:class:`~denoiser.runner.Stepper`: eager, ONNX Runtime,
     OpenVINO f32/bf16, ...) as an evaluation method, stepped through the recurrent runner, so
     its quality is measured through the same backend and precision as its time
     (``denoiser-bench``). Outputs come back as ``[1, 3, H, W]`` float32 CPU tensors."""

@@ -7,14 +7,23 @@ names below it: ``denoiser.ovext.x``) with the module at its new path, imported 
 ``denoiser.losses`` *is* ``denoiser.lit.losses``, the same module object. New code imports the
 new paths; this table only grows (a module that moves again gets its latest path).
 
+It also finds ``denoiser.conf`` in a source checkout: the configs live at the checkout's top
+level (``conf/``, as docs/design.md places them), and a wheel ships them inside the package
+(``pyproject.toml`` maps the package ``denoiser.conf`` to ``conf/``). When the package directory
+holds no ``conf/`` of its own and ``<checkout>/conf/__init__.py`` exists beside it, that is
+``denoiser.conf`` (so ``python train.py``, a ``PYTHONPATH`` checkout and an editable install
+all read the checkout's configs); otherwise the normal import finds the wheel's copy.
+
 Private: not a root module of the package (tests/test_house.py counts the others).
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import sys
 from importlib.machinery import ModuleSpec
+from pathlib import Path
 
 #: old module -> where it lives now
 MOVED = {
@@ -67,8 +76,22 @@ class AliasFinder:
     def find_spec(self, fullname, path=None, target=None):
         if not fullname.startswith("denoiser."):
             return None
+        if fullname == "denoiser.conf":
+            return checkout_conf_spec()
         new = new_name(fullname)
         return None if new is None else ModuleSpec(fullname, _Alias(new))
+
+
+def checkout_conf_spec() -> ModuleSpec | None:
+    """The spec of ``denoiser.conf`` at a source checkout's top-level ``conf/`` (module
+    docstring), or None where the package ships its own ``conf/`` (a wheel) or no checkout is beside it."""
+    package = Path(__file__).resolve().parent
+    if (package / "conf" / "__init__.py").is_file():
+        return None
+    init = package.parent / "conf" / "__init__.py"
+    if not init.is_file():
+        return None
+    return importlib.util.spec_from_file_location("denoiser.conf", init, submodule_search_locations=[str(init.parent)])
 
 
 def install() -> None:

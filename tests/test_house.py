@@ -79,6 +79,26 @@ def test_the_root_holds_at_most_ten_modules():
     assert len(root) <= ROOT_MODULES_AT_MOST, f"{len(root)} modules at the root, move some into a wing: {root}"
 
 
+def test_conf_is_at_the_top_level_and_every_package_ships():
+    """The configs live in ``conf/`` beside the package (docs/design.md), ``denoiser.conf`` is that
+    directory in a checkout, and pyproject's explicit package list (setuptools' find cannot add the
+    mapped ``denoiser.conf``) names every package directory, so none is left out of the wheel."""
+    import tomllib
+
+    import denoiser.conf
+
+    checkout = PACKAGE.parent
+    assert not (PACKAGE / "conf").exists() and (checkout / "conf" / "train.yaml").is_file()
+    assert Path(denoiser.conf.CONF_DIR) == checkout / "conf"
+    tool = tomllib.loads((checkout / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert tool["package-dir"] == {"denoiser.conf": "conf"}
+    found = {"denoiser.conf"} | {
+        ".".join(d.relative_to(checkout).parts) for top in ("denoiser", "hydra_plugins")
+        for d in [checkout / top, *(checkout / top).rglob("*")]
+        if d.is_dir() and d.name != "__pycache__" and any(d.glob("*.py"))}
+    assert set(tool["packages"]) == found
+
+
 def test_every_part_of_the_package_has_an_import_rule():
     parts = {part_of("denoiser." + p.relative_to(PACKAGE).with_suffix("").parts[0]) for p in modules()
              if p.name != "__init__.py" or p.parent != PACKAGE}
@@ -286,7 +306,7 @@ def test_old_targets_resolve_through_hydra():
 
 
 def test_the_configs_name_the_new_paths():
-    """Every ``_target_`` under denoiser/conf resolves, and none names a moved module's old path."""
+    """Every ``_target_`` under conf resolves, and none names a moved module's old path."""
     from hydra.utils import get_object
 
     from denoiser._aliases import new_name

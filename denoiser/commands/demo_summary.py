@@ -39,7 +39,6 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from denoiser.atomic import atomic_write_text
-from denoiser.checkpoint import read_checkpoint
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS
@@ -55,9 +54,9 @@ from denoiser.report.summary import (
     group_timing,
     merge_identical,
     method_means,
+    run_row,
     seed_groups,
     sequence_values,
-    split_seed,
     tree_hash,
 )
 
@@ -67,19 +66,7 @@ BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 
 def run_rows(runs: Path) -> list[dict]:
     """One row per run directory: name, seed, steps (last.ckpt), best val PSNR (best.ckpt)."""
-    rows = []
-    for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir()):
-        row: dict = {"run": run.name, "seed": split_seed(run.name)[1]}
-        last, best = run / "checkpoints" / "last.ckpt", run / "checkpoints" / "best.ckpt"
-        if last.exists():
-            row["steps"] = int(read_checkpoint(last)["global_step"])
-        if best.exists():
-            for key, state in read_checkpoint(best)["callbacks"].items():
-                if "val/psnr" in key and isinstance(state, dict) and state.get("best_model_score") is not None:
-                    row["val_psnr"] = float(state["best_model_score"])
-        row["collapsed"] = "yes" if (run / "COLLAPSED").exists() else "no"
-        rows.append(row)
-    return rows
+    return [run_row(run) for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir())]
 
 
 #: the precisions a summary shows time columns for, in order (f32 first: like with like against OIDN)

@@ -252,6 +252,26 @@ def group_timing(group: Mapping, bench: Mapping[str, Mapping]) -> Mapping | None
     return next((bench[f"{name}_s{s}"] for s in group["seeds"] if f"{name}_s{s}" in bench), None)
 
 
+def run_row(run: str | os.PathLike) -> dict:
+    """A training run directory as a table row: ``run`` (its name), ``seed`` (of a ``<group>_s<k>``
+    name), ``steps`` (``checkpoints/last.ckpt``), ``val_psnr`` (the best validation PSNR that
+    ``checkpoints/best.ckpt`` records) and ``collapsed`` (``yes`` where the CollapseDetector left
+    ``COLLAPSED``); a key is absent where its file is."""
+    from denoiser.checkpoint import read_checkpoint
+
+    run = Path(run)
+    row: dict = {"run": run.name, "seed": split_seed(run.name)[1]}
+    last, best = run / "checkpoints" / "last.ckpt", run / "checkpoints" / "best.ckpt"
+    if last.exists():
+        row["steps"] = int(read_checkpoint(last)["global_step"])
+    if best.exists():
+        for key, state in read_checkpoint(best)["callbacks"].items():
+            if "val/psnr" in key and isinstance(state, dict) and state.get("best_model_score") is not None:
+                row["val_psnr"] = float(state["best_model_score"])
+    row["collapsed"] = "yes" if (run / "COLLAPSED").exists() else "no"
+    return row
+
+
 def tree_hash(root: str | os.PathLike) -> str:
     """SHA-256 over the relative paths and bytes of every file under ``root`` (sorted): the
     content hash of a split, so a report names exactly the frames it was measured on."""

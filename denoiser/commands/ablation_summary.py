@@ -397,7 +397,7 @@ def run(cfg: DictConfig) -> Path:
         f"teacher (the runs table checks both), evaluated on the same {n_seq:.0f} test sequences. Quality: the mean over sequences, mean ± std over seeds. "
         f"Δ: per test sequence, the variant's value (mean over its seeds) minus {ref}'s; the mean over sequences "
         f"and its {CONFIDENCE:.0%} percentile bootstrap interval ({RESAMPLES} resamples, seed {SEED}; "
-        "denoiser/stats.py), and the verdict from the interval: ahead when it lies wholly on the variant's better "
+        "denoiser/report/stats.py), and the verdict from the interval: ahead when it lies wholly on the variant's better "
         "side of 0 (↑: above, ↓: below), behind when wholly on the other side, tied when it holds 0. A claim of "
         f"the paper holds or not by the verdict of {COLUMNS[str(cfg.decide_metric)].label}; the other metrics' "
         "verdicts follow it."),

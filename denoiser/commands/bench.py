@@ -86,11 +86,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from denoiser.atomic import atomic_write_text
 from denoiser.buffers import FRAME_INPUTS
+from denoiser.configs import plain
 from denoiser.errors import ConfigError
 from denoiser.frames import resize_frame
 from denoiser.measure import (
@@ -731,7 +732,7 @@ def run(cfg: DictConfig) -> list[dict]:
         plot_size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
         noisy = quality.get(cfg.get("noisy_label", "noisy input"))
         plot_path = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", rows, plot_size,
-                                          curves=_plain(cfg.get("curves")),
+                                          curves=plain(cfg.get("curves")) or {},
                                           noisy_psnr=float(noisy["psnr"]) if noisy else None,
                                           title=f"{seq_name} frames at {plot_size[1]}x{plot_size[0]}, {threads} CPU thread(s)")
     student = cfg.compare.student or default_student(network_labels(rows))
@@ -768,11 +769,6 @@ def write_json(path: Path, data: dict) -> Path:
         return x
 
     return atomic_write_text(path, json.dumps(clean(data), indent=1) + "\n")
-
-
-def _plain(node) -> dict:
-    """A config node (or None) as a plain dict."""
-    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
 
 
 def default_student(labels: list[str]) -> str | None:

@@ -148,7 +148,7 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
 
     from denoiser.measure import summarize, time_steps
     from denoiser.methods.baselines import build_baselines
-    from denoiser.report.pareto import random_frames
+    from denoiser.report.pareto import timing_frames
     from denoiser.runner import Stepper
 
     torch.set_num_threads(threads)
@@ -171,7 +171,7 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
             times = {}
             for size in sizes:
                 print(f"[baseline] {label} at {size_tag(size)}", flush=True)
-                frames = random_frames(*size)
+                frames = timing_frames(*size)
                 stepper = Stepper(lambda f, s, m=method: (m(f, s is None), None))
                 times[f"ms_{size_tag(size)}"] = 1000 * summarize(time_steps(stepper, frames, int(cfg.warmup),
                                                                             int(cfg.repeats)))["median"]

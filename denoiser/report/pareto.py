@@ -51,15 +51,12 @@ def dominates(a: tuple[float, float], b: tuple[float, float]) -> bool:
     return a[0] >= b[0] and a[1] <= b[1] and (a[0] > b[0] or a[1] < b[1])
 
 
-def random_frames(height: int, width: int, count: int = 2, seed: int = 0) -> list[dict]:
-    """``count`` frames ``{buffer: [1, C, H, W]}`` of uniform noise: the network inputs, for timing
-    only (the time of a step does not depend on the pixel values)."""
-    import torch
+def timing_frames(height: int, width: int, count: int = 2) -> list[dict]:
+    """``count`` random frames ``{buffer: [1, C, H, W]}`` (:func:`denoiser.frames.random_frame`,
+    seeds 0..count-1): network inputs for timing only (a step's time does not depend on the values)."""
+    from denoiser.frames import random_frame
 
-    from denoiser.buffers import CHANNELS, FRAME_INPUTS
-
-    gen = torch.Generator().manual_seed(seed)
-    return [{k: torch.rand(1, CHANNELS[k], height, width, generator=gen) for k in FRAME_INPUTS} for _ in range(count)]
+    return [random_frame(1, height, width, seed=i) for i in range(count)]
 
 
 def time_network(net, backend, size: Sequence[int], threads: int | None = None, warmup: int = 1,
@@ -80,7 +77,7 @@ def time_network(net, backend, size: Sequence[int], threads: int | None = None, 
     reason = backend.available()
     if reason:
         return {**row, "ms_median": float("nan"), "ms_min": float("nan"), "status": f"skipped: {reason}"}
-    frames = random_frames(height, width)
+    frames = timing_frames(height, width)
     stepper = backend.prepare(net.eval(), frames[0], threads)
     stats = summarize(time_steps(stepper, frames, int(warmup), int(repeats)))
     return {**row, "ms_median": 1000 * stats["median"], "ms_min": 1000 * stats["min"], "status": "ok"}
@@ -158,7 +155,3 @@ def cache_key(path: str | os.PathLike, **what) -> str:
     text = json.dumps({"path": str(Path(path).resolve()), "size": st.st_size, "mtime": st.st_mtime_ns, **what},
                       sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
-
-
-def flat_metrics(metrics: Mapping) -> dict[str, float]:
-    return {k: float(v) for k, v in metrics.items() if isinstance(v, (int, float))}

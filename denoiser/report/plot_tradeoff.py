@@ -19,17 +19,13 @@ from denoiser.atomic import atomic_save_figure
 
 
 def pareto_front(points: Mapping[str, tuple[float, float]]) -> list[str]:
-    """Labels of the points ``{label: (ms, psnr)}`` that no other point dominates, fastest first.
+    """Labels of the points ``{label: (ms, psnr)}`` that no other point dominates, fastest first:
+    :func:`denoiser.report.pareto.front_indices` (the one front rule: another point at least as
+    fast and at least as good, strictly better in one, dominates)."""
+    from denoiser.report.pareto import front_indices
 
-    A point is dominated when another is at least as fast and at least as good, and strictly
-    better in one of the two.
-    """
-    front = []
-    for a, (ta, qa) in points.items():
-        dominated = any((tb <= ta and qb >= qa) and (tb < ta or qb > qa) for b, (tb, qb) in points.items() if b != a)
-        if not dominated:
-            front.append(a)
-    return sorted(front, key=lambda k: points[k][0])
+    labels = list(points)
+    return [labels[i] for i in front_indices([(points[k][1], points[k][0]) for k in labels])]
 
 
 def fastest_rows(rows: Sequence[Mapping], size: tuple[int, int], device: str = "cpu") -> dict[str, Mapping]:

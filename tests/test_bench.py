@@ -30,6 +30,14 @@ def setup(tmp_path_factory):
 compose = compose_command
 
 
+def base_label(label: str) -> str:
+    """A backend label without the graph OpenVINO ran (``openvino f32 (fused)`` -> ``openvino f32``)."""
+    for graph in (" (fused)", " (plain)"):
+        if label.endswith(graph):
+            return label[: -len(graph)]
+    return label
+
+
 def test_bench_end_to_end(setup, tmp_path):
     from denoiser.commands.bench import run as bench
     from denoiser.commands.evaluate import run as evaluate
@@ -184,7 +192,8 @@ def test_bench_openvino_rows(setup, tmp_path):
     rows = bench(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
                                    "sizes=[[16,24]]", "repeats=2", "warmup=1", "use_backends=[openvino_f32,openvino_bf16]",
                                    "baselines={}", f"out_dir={tmp_path}"]))
-    by = {r["backend"]: r for r in rows}
+    assert all(r["backend"].endswith((" (fused)", " (plain)")) for r in rows)  # which graph ran, on every row
+    by = {base_label(r["backend"]): r for r in rows}
     assert by["openvino f32"]["status"] == "ok" and by["openvino f32"]["ms_median"] > 0
     assert by["openvino f32"]["dtype"] == "fp32" and by["openvino bf16"]["dtype"] == "bf16"
     assert by["openvino bf16"]["status"] == "ok" or by["openvino bf16"]["status"].startswith("skipped: ")
@@ -201,12 +210,12 @@ def test_bench_profile_says_where_the_time_goes(setup, tmp_path):
     rows = bench(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
                                    "sizes=[[16,24]]", "repeats=1", "warmup=1", "use_backends=[eager,openvino_f32]",
                                    "profile=true", "quality=false", "baselines={}", f"out_dir={tmp_path}"]))
-    by = {r["backend"]: r for r in rows}
+    by = {base_label(r["backend"]): r for r in rows}
     assert "profile" not in by["eager fp32"]
     ops = by["openvino f32"]["profile"]
     assert "Convolution" in ops and all(ms >= 0 for ms in ops.values()) and list(ops.values()) == sorted(ops.values(), reverse=True)
     table = read_csv(tmp_path / "profile.csv")
-    assert {r["backend"] for r in table} == {"openvino f32"} and {r["op_type"] for r in table} == set(ops)
+    assert {base_label(r["backend"]) for r in table} == {"openvino f32"} and {r["op_type"] for r in table} == set(ops)
     assert abs(sum(float(r["share"]) for r in table) - 1.0) < 1e-6
     assert "## Where the time goes" in (tmp_path / "report.md").read_text()
 
@@ -330,7 +339,7 @@ def test_bench_openvino_bf16_psnr_through_the_backend(tmp_path):
     rows = bench(compose("bench", ["data=tiny", f"data.root={tmp_path / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
                                    "sizes=[[32,32]]", "repeats=1", "warmup=0", "use_backends=[eager,openvino_bf16]",
                                    "baselines={}", f"out_dir={tmp_path / 'bench'}"]))
-    by = {r["backend"]: r for r in rows}
+    by = {base_label(r["backend"]): r for r in rows}
     assert by["openvino bf16"]["status"] == "ok" and by["openvino bf16"]["psnr_from"] == "backend"
     eager, bf16 = by["eager fp32"]["psnr"], by["openvino bf16"]["psnr"]
     assert math.isfinite(eager) and math.isfinite(bf16)

@@ -147,6 +147,18 @@ def test_backend_exports_heads_per_precision(tiny):
     assert convs["bf16"] - convs["f32"] == heads
 
 
+def test_fused_option_forces_the_graph(monkeypatch):
+    """fused=false: the plain graph, said in the label, without building the extension; fused=true
+    without the extension: available() says why."""
+    monkeypatch.setattr(ovext, "_status", lambda: (None, "no C++ compiler ($CXX, g++ or c++)"))
+    plain = OpenVinoBackend("openvino f32", precision="f32", fused=False)
+    assert plain.label == "openvino f32 (plain)" and plain.fused_kernels is False
+    forced = OpenVinoBackend("openvino bf16", precision="bf16", fused=True)
+    assert forced.label == "openvino bf16 (fused)"
+    if OpenVinoBackend(precision="f32").available() is None:
+        assert "fused=true: the OpenVINO extension is unavailable" in OpenVinoBackend(precision="f32", fused=True).available()
+
+
 @pytest.mark.parametrize("extension", [True, False])
 def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, capsys, extension):
     """Both precisions export denoiser::PyramidFilter when the extension is available; without it
@@ -161,6 +173,7 @@ def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, caps
     backend = OpenVinoBackend("openvino f32", precision="f32")
     runner = RecurrentRunner(backend.prepare(net, frames[0], threads=1).step)
     assert backend.fused_kernels is extension
+    assert backend.label == f"openvino f32 ({'fused' if extension else 'plain'})"  # the graph that ran, in every row
     nodes = onnx.load(backend._export(net)).graph.node
     assert sum(n.op_type == "PyramidFilter" for n in nodes) == int(extension)
     assert ("plain kernel filter graph (no C++ compiler" in capsys.readouterr().err) is not extension

@@ -27,7 +27,7 @@ TINY = ["data=tiny", "net=tiny", "threads=1", "trainer.enable_progress_bar=false
         "trainer.limit_val_batches=1", "model.image_interval=0", "hydra/job_logging=disabled",
         "hydra/hydra_logging=disabled"]
 #: the time objective at a test size on eager PyTorch
-TIME = "objectives.time={size:[32,32],backend:{_target_:denoiser.inference.backends.TorchBackend},warmup:1,repeats:2}"
+TIME = "objectives.time={size:[32,32],backend:eager,warmup:1,repeats:2}"
 
 
 def plain_front(points):

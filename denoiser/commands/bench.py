@@ -9,9 +9,10 @@ For every method (OIDN fast/balanced/high from ``baselines``, denoiser-eval's li
 ``conf/baselines/default.yaml`` whose noisy input ``conf/bench.yaml`` sets to null, as it costs
 nothing to time; each checkpoint of ``ckpt`` and each untrained config variant of
 ``variants``), every size of ``sizes`` ``[H, W]`` and, for networks, every backend of
-``use_backends`` (Hydra ``_target_`` entries of ``backends``: PyTorch eager fp32, channels_last,
-bfloat16 autocast, ``torch.compile``, ONNX Runtime, OpenVINO f32 and bf16; and CUDA backends that run only where a GPU
-is present), the benchmark measures:
+``use_backends`` (names of the config group ``conf/backends/``, one YAML each, loaded by
+:func:`denoiser.inference.backends.load_backend`: PyTorch eager fp32, channels_last, bfloat16 autocast,
+``torch.compile``, ONNX Runtime, OpenVINO f32 and bf16, whose labels say ``(fused)`` or ``(plain)`` graph;
+and CUDA backends that run only where a GPU is present), the benchmark measures:
 
 * **ms per frame** (median, min and max) of ``repeats`` recurrent steps after ``warmup`` steps
   (state carried, as in real use), with one thread count asked of everyone (``threads``; torch,
@@ -134,6 +135,21 @@ def baselines_use_samples(nodes) -> bool:
 
 # ----------------------------------------------------------------------------- backends
 
+
+def load_backends(cfg: DictConfig) -> OrderedDict:
+    """``{name: backend}`` of ``use_backends``: names of the group ``conf/backends/``
+    (:func:`denoiser.inference.backends.load_backend`); ``profile: true`` turns on the counters of the
+    backends that take ``profile``."""
+    from denoiser.inference.backends import backend_config, backend_names, load_backend
+
+    names = backend_names()
+    backends = OrderedDict()
+    for key in cfg.use_backends:
+        if key not in names:
+            raise ConfigError(f"use_backends: {key!r} is not one of {', '.join(names)} (conf/backends/)")
+        extra = {"profile": True} if cfg.get("profile") and "profile" in backend_config(key) else {}
+        backends[key] = load_backend(key, f"use_backends: {key}", **extra)
+    return backends
 
 # ----------------------------------------------------------------------------- measuring
 
@@ -332,7 +348,6 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, versions: d
     ``repeats`` timed steps are interleaved (:func:`~denoiser.measure.round_robin`: each round
     times every method once, in a rotated order), so a slow phase of the machine falls on every
     method alike and the speed-up vs the baseline is paired per round."""
-    from denoiser.configs import instantiate_config
     from denoiser.methods.baselines import OidnDenoiser, build_baselines
 
     versions = versions if versions is not None else engine_versions()
@@ -340,11 +355,7 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, versions: d
     sizes = [tuple(int(v) for v in s) for s in cfg.sizes]
     nets = network_methods(cfg)
     baselines = build_baselines(cfg.get("baselines"))
-    backends = OrderedDict()
-    for key in cfg.use_backends:
-        if key not in cfg.backends:
-            raise ConfigError(f"use_backends: {key!r} is not in backends ({', '.join(cfg.backends)})")
-        backends[key] = instantiate_config(cfg.backends[key], f"backends.{key}")
+    backends = load_backends(cfg)
     warmup, repeats = int(cfg.warmup), int(cfg.repeats)
     if repeats < 1 or warmup < 0:
         raise ConfigError(f"repeats must be >= 1 and warmup >= 0, got {repeats} and {warmup}")

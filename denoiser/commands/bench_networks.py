@@ -17,23 +17,28 @@ and that as a fraction of the fp32 matmul peak measured in the same run (best of
 ``F.unfold``) at 1080p (``kernels``), and the student before and after the CPU optimisations.
 The tables are Markdown, padded for the console.
 
-Variants (how a network is prepared and run; ``VARIANTS``):
+Variants (how a network is prepared and run; ``VARIANTS``). These are backends of the config
+group ``conf/backends/`` of the same name (:func:`~denoiser.inference.backends.load_backend`, as
+``denoiser-bench`` runs them; any other option of the group is a variant too, e.g. ``compile``):
 
 * ``eager``: float32, NCHW, as trained (the baseline);
 * ``channels_last``: float32, weights and inputs in channels-last (NHWC) memory format;
 * ``channels_last_bf16``: channels-last and ``torch.autocast("cpu", bfloat16)`` for the U-Net
   (uses AMX/AVX512-BF16 through oneDNN where the CPU has it); inputs, softmax and filtering stay
   float32 (see ``denoiser/nn``), so the output keeps its HDR range;
+* ``openvino_f32``, ``openvino_bf16``: the exported step graph compiled by OpenVINO
+  (:class:`~denoiser.inference.backends.OpenVinoBackend`, fused or plain graph; export and compilation
+  happen before and in the warm-up steps; bf16 needs AVX512-BF16/AMX).
+
+These two are not backends but weight-format experiments (they convert the network's weights):
+
 * ``channels_last_bf16_weights``: channels-last with the network's weights converted to
   bfloat16 (no autocast: no per-call weight casts); the Denoiser feeds the U-Net in its weights'
   dtype and still filters in float32;
 * ``channels_last_bf16_weights_compiled``: the same with ``torch.compile(net.step)`` (inductor
   fuses the elementwise work); compiling takes minutes on 2 cores, so it is not in the default
   ``variants`` and its warm-up (3 steps, compiling both the first-frame and the recurrent
-  graph) is reported separately as ``warm-up s``;
-* ``openvino_f32``, ``openvino_bf16``: the exported step graph compiled by OpenVINO
-  (:class:`~denoiser.inference.backends.OpenVinoBackend`; export and compilation happen before and in the
-  warm-up steps; bf16 needs AVX512-BF16/AMX).
+  graph) is reported separately as ``warm-up s``.
 
 Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant. ``repeats``
 applies to the student; the teacher always runs 1 warm-up + 1 timed step, it takes many seconds
@@ -58,51 +63,16 @@ from denoiser.errors import ConfigError, first_line
 from denoiser.measure import Clock, PeakRss, clock_steps, markdown_table, summarize
 
 
-def _eager(net, frame):
-    return net, frame, nullcontext
-
-
-def _channels_last(net, frame):
-    import torch
-
-    net = net.to(memory_format=torch.channels_last)
-    frame = {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v
-             for k, v in frame.items()}
-    return net, frame, nullcontext
-
-
-def _channels_last_bf16(net, frame):
-    import torch
-
-    net, frame, _ = _channels_last(net, frame)
-    return net, frame, lambda: torch.autocast("cpu", dtype=torch.bfloat16)
-
-
-def _channels_last_bf16_weights(net, frame):
-    import torch
-
-    net, frame, _ = _channels_last(net, frame)
-    return net.to(torch.bfloat16), frame, nullcontext
-
-
-def _channels_last_bf16_weights_compiled(net, frame):
-    import types
-
-    import torch
-
-    net, frame, context = _channels_last_bf16_weights(net, frame)
-    return types.SimpleNamespace(step=torch.compile(net.step, dynamic=False)), frame, context
-
-
-def _openvino(precision):
+def _backend(name):
+    """A variant that is the backend ``conf/backends/<name>.yaml`` (:func:`~denoiser.inference.backends.load_backend`)."""
     def prepare(net, frame):
         import types
 
         import torch
 
-        from denoiser.inference.backends import OpenVinoBackend
+        from denoiser.inference.backends import load_backend
 
-        backend = OpenVinoBackend(f"openvino {precision}", precision=precision)
+        backend = load_backend(name, "variants")
         reason = backend.available()
         if reason:
             raise RuntimeError(reason)
@@ -112,11 +82,38 @@ def _openvino(precision):
     return prepare
 
 
-#: variant name -> prepare(net, frame) -> (net, frame, context factory)
-VARIANTS = {"eager": _eager, "channels_last": _channels_last, "channels_last_bf16": _channels_last_bf16,
+def _channels_last_bf16_weights(net, frame):
+    """Not a backend: a weight-format experiment (the weights stored as bfloat16, no autocast), channels-last."""
+    import torch
+
+    net = net.to(memory_format=torch.channels_last).to(torch.bfloat16)
+    frame = {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v
+             for k, v in frame.items()}
+    return net, frame, nullcontext
+
+
+def _channels_last_bf16_weights_compiled(net, frame):
+    """Not a backend: the weight-format experiment above under ``torch.compile(net.step)``."""
+    import types
+
+    import torch
+
+    net, frame, context = _channels_last_bf16_weights(net, frame)
+    return types.SimpleNamespace(step=torch.compile(net.step, dynamic=False)), frame, context
+
+
+#: the variants that are backends of the group ``conf/backends/`` (the same name there)
+BACKEND_VARIANTS = ("eager", "channels_last", "channels_last_bf16", "openvino_f32", "openvino_bf16")
+#: variant name -> prepare(net, frame) -> (net, frame, context factory); the two weight-format
+#: experiments are not backends (they change the network's weights, not how it is run)
+VARIANTS = {**{name: _backend(name) for name in BACKEND_VARIANTS},
             "channels_last_bf16_weights": _channels_last_bf16_weights,
-            "channels_last_bf16_weights_compiled": _channels_last_bf16_weights_compiled,
-            "openvino_f32": _openvino("f32"), "openvino_bf16": _openvino("bf16")}
+            "channels_last_bf16_weights_compiled": _channels_last_bf16_weights_compiled}
+def variant(name: str):
+    """The prepare function of a variant: :data:`VARIANTS`, else any other backend of ``conf/backends/``."""
+    return VARIANTS.get(name) or _backend(name)
+
+
 #: warm-up steps per variant (default 1): a compiled step compiles one graph for the first
 #: frame (no state) and one for later frames; OpenVINO compiles in the first step
 WARMUP = {"channels_last_bf16_weights_compiled": 3, "openvino_f32": 2, "openvino_bf16": 2}
@@ -139,7 +136,7 @@ def run_net(job: dict) -> dict:
     torch.set_flush_denormal(True)
     net = build_net(compose_net_config(job["net"])).eval()
     frame = random_frame(1, job["height"], job["width"])
-    net, frame, context = VARIANTS[job["variant"]](net, frame)
+    net, frame, context = variant(job["variant"])(net, frame)
     with PeakRss(method="hwm") as mem, torch.inference_mode(), context():
         warm, timed = clock_steps(Stepper(net.step), [frame], job["warmup"], job["repeats"])
     return {"ms": [c.wall * 1e3 for c in timed], "cpu_ms": [c.cpu * 1e3 for c in timed], "peak_mb": mem.megabytes,
@@ -284,11 +281,13 @@ def run(cfg: DictConfig) -> list[dict]:
     from tqdm import tqdm
 
     from denoiser.configs import build_net, compose_net_config
+    from denoiser.inference.backends import backend_names
     from denoiser.measure import count_flops, matmul_peak
 
-    unknown = [v for v in cfg.variants if v not in VARIANTS]
+    names = [*backend_names(), *(v for v in VARIANTS if v not in BACKEND_VARIANTS)]
+    unknown = [v for v in cfg.variants if v not in names]
     if unknown:
-        raise ConfigError(f"variants: unknown {unknown}, choose from {list(VARIANTS)}")
+        raise ConfigError(f"variants: unknown {unknown}, choose from {names}")
     sizes = {str(s): parse_size(s) for s in cfg.sizes}
     flops, params = {}, {}
     for name in cfg.nets:

@@ -24,7 +24,9 @@ rename). Before anything is written every frame to be processed is decoded once 
 so a damaged input frame stops the command with one error line and no output; this costs a
 few percent of the run (decoding is ~1 % of a CPU network step).
 
-Backend (``backend``): ``eager`` (PyTorch, ``Denoiser.step``), ``onnxruntime`` or ``openvino``
+Backend (``backend``): a name of the config group ``conf/backends/`` (one YAML per backend, the same
+names as ``denoiser-bench``'s ``use_backends``; :func:`~denoiser.inference.backends.load_backend`), e.g.
+``eager`` (PyTorch, ``Denoiser.step``), ``onnxruntime`` or ``openvino`` (``openvino_f32``/``openvino_bf16`` by ``precision``)
 (the exported step graph, :mod:`denoiser.inference.step_graph`; exported once at start, OpenVINO compiles
 it once for the frame size); null (default) picks ``openvino`` when it is installed (with
 ``onnx`` for the export) and the device is the CPU, else ``eager``. ``precision``: ``f32``
@@ -62,8 +64,6 @@ from denoiser.runner import RecurrentRunner
 log = logging.getLogger(__name__)
 
 WRITE_MODES = ("buffers", "rgb")
-BACKENDS = ("eager", "onnxruntime", "openvino", "cuda", "cuda_compiled")
-PRECISIONS = ("f32", "bf16", "fp16")  # fp16: the CUDA backends only
 
 
 def openvino_installed() -> bool:
@@ -72,40 +72,54 @@ def openvino_installed() -> bool:
     return all(importlib.util.find_spec(m) is not None for m in ("openvino", "onnx"))
 
 
-def make_backend(name: str | None, precision: str, device: torch.device):
-    """The backend of ``backend=`` / ``precision=`` (:mod:`denoiser.inference.backends`); ``name`` None:
-    ``openvino`` when installed and ``device`` is the CPU, else ``eager``."""
-    from denoiser.inference.backends import OnnxRuntimeBackend, OpenVinoBackend, TorchBackend
+def make_backend(name: str | None, precision: str | None, device: torch.device):
+    """The backend of ``backend=`` / ``precision=``: an option of the config group ``conf/backends/``
+    (:func:`~denoiser.inference.backends.load_backend`), the precision mapped by
+    :func:`~denoiser.inference.backends.resolve_backend` (``openvino`` + ``bf16`` -> ``openvino_bf16``);
+    ``name`` None: ``openvino`` when installed and ``device`` is the CPU, else ``eager``. Torch backends run
+    on ``device``. ``precision`` None: f32 for the names that take a precision (``eager``, ``openvino``,
+    ``cuda``, ``cuda_compiled``), any other option its own. Returns ``(name, backend)``."""
+    from denoiser.inference.backends import (
+        PRECISION_ARGUMENT,
+        PRECISION_OPTIONS,
+        PRECISIONS,
+        backend_config,
+        load_backend,
+        resolve_backend,
+    )
 
-    if precision not in PRECISIONS:
+    if precision is not None and precision not in PRECISIONS:
         raise ConfigError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
     if name is None:
         name = "openvino" if device.type == "cpu" and openvino_installed() else "eager"
-    if name not in BACKENDS:
-        raise ConfigError(f"backend: {name!r} is not one of {', '.join(BACKENDS)}")
-    if name in ("onnxruntime", "openvino") and device.type != "cpu":
-        raise ConfigError(f"backend={name} runs on the CPU; use device=cpu or backend=eager")
-    if name.startswith("cuda"):  # denoiser/inference/cuda_backend.py: cast weights, Triton filter, CUDA graph
-        from denoiser.inference.cuda_backend import CudaBackend, CudaGraphBackend
-
-        if device.type != "cuda":
+    if precision is None and (name in PRECISION_OPTIONS or name in PRECISION_ARGUMENT):
+        precision = "f32"
+    option, overrides = resolve_backend(name, precision)
+    config = backend_config(option)
+    if _torch_backend(config["_target_"]):
+        if str(config.get("device", "cpu")).startswith("cuda") and device.type != "cuda":
             raise ConfigError(f"backend={name} needs device=cuda")
-        backend = (CudaGraphBackend if name == "cuda_compiled" else CudaBackend)(
-            name, precision={"f32": "fp32"}.get(precision, precision), device=str(device))
-    elif precision == "fp16":
-        raise ConfigError("precision=fp16 needs backend=cuda or backend=cuda_compiled")
-    elif name == "eager":
-        backend = TorchBackend("eager", device=str(device), autocast="bfloat16" if precision == "bf16" else None)
-    elif name == "onnxruntime":
-        if precision != "f32":
-            raise ConfigError("backend=onnxruntime runs precision=f32 only")
-        backend = OnnxRuntimeBackend("onnxruntime")
-    else:
-        backend = OpenVinoBackend(f"openvino {precision}", precision=precision)
+        overrides.setdefault("device", str(device))
+    elif device.type != "cpu":
+        raise ConfigError(f"backend={name} runs on the CPU; use device=cpu or backend=eager")
+    backend = load_backend(option, "backend", **overrides)
     reason = backend.available()
     if reason:
         raise ConfigError(f"backend={name} precision={precision}: {reason}")
     return name, backend
+
+
+def _torch_backend(target: str) -> bool:
+    """Whether a backend class steps torch modules on a torch device (its ``device`` argument)."""
+    from hydra.utils import get_class
+
+    from denoiser.inference.backends import TorchBackend
+    from denoiser.inference.cuda_backend import CudaBackend
+
+    try:
+        return issubclass(get_class(target), (TorchBackend, CudaBackend))
+    except Exception:  # noqa: BLE001 - an unknown _target_ is load_backend's one-line error
+        return False
 
 
 def to_hwc(output) -> np.ndarray:
@@ -194,7 +208,7 @@ def run(cfg: DictConfig) -> dict:
     device = torch.device(cfg.get("device") or "cpu")
     for stale in remove_stale_temporaries(out_dir):  # frames whose write was killed
         log.warning("removed %s (a frame write that was killed)", stale)
-    backend_name, backend = make_backend(cfg.get("backend"), str(cfg.get("precision") or "f32"), device)
+    backend_name, backend = make_backend(cfg.get("backend"), cfg.get("precision"), device)
 
     net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
     layout = instantiate_config(cfg.layout, "layout")
@@ -237,7 +251,7 @@ def run(cfg: DictConfig) -> dict:
     seconds = time.perf_counter() - started
     print(f"denoised {counts['written']} frame(s) of {src_dir} into {out_dir} in {seconds:.1f} s "
           f"({counts['skipped']} already there, {counts['replayed']} replayed for the recurrent history; "
-          f"backend {backend_name}, precision {cfg.get('precision') or 'f32'})")
+          f"backend {backend_name}, precision {backend.dtype})")
     return counts
 
 

@@ -8,7 +8,7 @@ measured) and ``<out>/rows.csv``:
 1. the device: GPU, driver, torch, CUDA, cuDNN and Triton versions
    (:func:`denoiser.inference.cuda_backend.device_report`), and the card's fp16/bf16 matmul and copy
    bandwidth measured now (:func:`~denoiser.inference.cuda_backend.gpu_peaks`);
-2. inference at ``inference.size`` (1080p): each row a backend of ``conf/bench.yaml`` (the
+2. inference at ``inference.size`` (1080p): each row a backend of ``conf/backends/`` (the
    eager autocast baseline, ``cuda`` and ``cuda_compiled`` with the torch and the Triton filter,
    the teacher) timed with CUDA events (:func:`~denoiser.inference.cuda_backend.cuda_event_times`, median
    of ``repeats`` after ``warmup`` steps on frames already on the GPU), GFLOP per frame
@@ -38,7 +38,7 @@ import traceback
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,15 +73,15 @@ def error_line(exc: BaseException) -> str:
 
 
 def inference_rows(cfg: DictConfig, peaks: dict, deadline: float, report: Report) -> list[dict]:
-    from denoiser.configs import build_net, compose_config, compose_net_config, instantiate_config
+    from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
+    from denoiser.inference.backends import load_backend
     from denoiser.inference.cuda_backend import cuda_event_times, step_traffic
     from denoiser.measure import count_flops, markdown_table, summarize
     from denoiser.runner import RecurrentRunner
 
     inf = cfg.inference
     h, w = (int(v) for v in inf.size)
-    backends = compose_config([], "bench").backends
     frames = [{k: v.cuda() for k, v in random_frame(1, h, w, seed=s).items()} for s in range(2)]
     parity = [(frames[i % 2], i == 0) for i in range(int(inf.parity_frames))]
     nets, flops, references, traffic, rows = {}, {}, {}, {}, []
@@ -107,7 +107,7 @@ def inference_rows(cfg: DictConfig, peaks: dict, deadline: float, report: Report
                     del fp32
                 torch.cuda.empty_cache()
             key = spec.pop("backend")
-            backend = instantiate_config({**OmegaConf.to_container(backends[key], resolve=True), **spec}, f"inference.rows: {key}")
+            backend = load_backend(key, f"inference.rows: {key}", **spec)
             row["backend"] = backend.label
             reason = backend.available()
             if reason:

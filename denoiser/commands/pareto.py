@@ -8,8 +8,8 @@ multirun of ``denoiser-train -m experiment=pareto``, grid or Optuna): its overri
 (``.hydra/overrides.yaml``), its final validation metrics (``metrics.json``, written by
 denoiser-train) and its checkpoint (``checkpoints/last.ckpt``, the weights those metrics
 describe). Then, one network after another in this process (never two timings side by side),
-it counts parameters and GFLOP and times each network on one CPU backend (``backend``; OpenVINO
-by default) at each of ``sizes``, as ``denoiser-bench`` does (:func:`denoiser.report.pareto.time_network`).
+it counts parameters and GFLOP and times each network on one CPU backend (``backend``: a name of the
+config group ``conf/backends/``; ``openvino_f32`` by default) at each of ``sizes``, as ``denoiser-bench`` does (:func:`denoiser.report.pareto.time_network`).
 Timings are cached in ``out_dir/cache/`` per checkpoint file version and settings, so a rerun
 only times new or changed checkpoints.
 
@@ -32,7 +32,6 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from denoiser.atomic import atomic_write_text
-from denoiser.configs import instantiate_config
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import count_flops, markdown_table, read_csv, write_csv
 from denoiser.report.evaluation import eval_means
@@ -186,6 +185,20 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
     return rows
 
 
+def select_backend(cfg: DictConfig):
+    """The backend named by ``backend`` (an option of ``conf/backends/``, or ``openvino``/``eager`` for their f32
+    option: :func:`denoiser.inference.backends.resolve_backend`), instantiated; one-line ConfigError when it
+    is unknown or cannot run here."""
+    from denoiser.inference.backends import load_backend, resolve_backend
+
+    name, overrides = resolve_backend(str(cfg.backend))
+    backend = load_backend(name, "backend", **overrides)
+    reason = backend.available()
+    if reason:
+        raise ConfigError(f"backend={cfg.backend}: {reason}")
+    return backend
+
+
 def run(cfg: DictConfig) -> list[dict]:
     """The ``denoiser-pareto`` task; returns the table rows (variants, then baselines)."""
     import torch
@@ -196,12 +209,7 @@ def run(cfg: DictConfig) -> list[dict]:
     sizes = [tuple(int(v) for v in s) for s in cfg.sizes]
     if not sizes:
         raise ConfigError("sizes: at least one [H, W]")
-    if cfg.backend not in cfg.backends:
-        raise ConfigError(f"backend: {cfg.backend!r} is not in backends ({', '.join(cfg.backends)})")
-    backend = instantiate_config(cfg.backends[cfg.backend], f"backends.{cfg.backend}")
-    reason = backend.available()
-    if reason:
-        raise ConfigError(f"backend={cfg.backend}: {reason}")
+    backend = select_backend(cfg)
     groups = group_seeds(read_jobs(sweep_dirs))
     labels = varying_overrides([[o for o in g[0]["overrides"] if o.partition("=")[0].lstrip("+") != "seed"]
                                 for g in groups])

@@ -77,13 +77,19 @@ def final_metrics(trainer) -> dict[str, float]:
 
 def measure_time(cfg: DictConfig, net) -> dict[str, float]:
     """The time objective (``objectives.time``): ms per frame of the trained ``net`` at
-    ``objectives.time.size`` on its backend; ``{}`` when not configured."""
+    ``objectives.time.size`` on its backend (a name of the config group ``conf/backends/``, as
+    ``denoiser-pareto``'s ``backend``); ``{}`` when not configured."""
+    from denoiser.inference.backends import backend_names, load_backend, resolve_backend
     from denoiser.report.pareto import time_network
 
     spec = (cfg.get("objectives") or {}).get("time")
     if not spec:
         return {}
-    backend = instantiate_config(spec.backend, "objectives.time.backend")
+    if not isinstance(spec.get("backend"), str):
+        raise ConfigError(f"objectives.time.backend: a name of conf/backends/ ({', '.join(backend_names())}), "
+                          f"got {spec.get('backend')!r}")
+    name, overrides = resolve_backend(spec.backend, key="objectives.time.backend")
+    backend = load_backend(name, "objectives.time.backend", **overrides)
     row = time_network(net, backend, list(spec.size), threads=spec.get("threads"), warmup=int(spec.get("warmup", 1)),
                        repeats=int(spec.get("repeats", 3)))
     if row["status"] != "ok":

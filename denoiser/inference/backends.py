@@ -5,7 +5,17 @@ A backend's ``prepare(net, example, threads)`` returns a :class:`~denoiser.runne
 ``step(frame, state, reset) -> (output, state)`` the recurrent runner
 (:mod:`denoiser.runner`) drives over a sequence. ``available()`` says why a backend cannot
 run here (None when it can); ``dtype`` is the precision of its convolutions (``fp32``,
-``bf16``, ``fp16``) for the tables. Backends are instantiated from ``conf/bench.yaml``'s ``backends``.
+``bf16``, ``fp16``) for the tables.
+
+Backends are chosen by name from the config group ``conf/backends/`` (one YAML per backend:
+``_target_`` and its options): :func:`load_backend` composes ``conf/backends/<name>.yaml`` and
+instantiates it, :func:`backend_names` lists the group. ``denoiser-bench`` (``use_backends``),
+``denoiser-pareto`` and ``denoiser-denoise`` (``backend``, with :func:`resolve_backend` mapping
+``precision`` in one place) and ``denoiser-train``'s time objective (``objectives.time.backend``)
+all select from it. A new backend: a class here (or anywhere importable) with ``label``,
+``device``, ``dtype``, ``available()`` and ``prepare()``, plus ``conf/backends/<name>.yaml``.
+Directories given with ``hydra.searchpath`` on a command line (or in :data:`SEARCHPATH`) add
+options to the group.
 The CUDA backends with cast weights, the Triton filter and CUDA graphs are in :mod:`denoiser.inference.cuda_backend`.
 """
 
@@ -20,7 +30,106 @@ from pathlib import Path
 
 import torch
 
+from denoiser.errors import ConfigError, first_line
 from denoiser.runner import Stepper
+
+#: the config group of the backends: ``conf/backends/<name>.yaml``
+GROUP = "backends"
+#: extra config search path entries (``file:///dir`` or ``pkg://pkg``; each may hold ``backends/<name>.yaml``),
+#: searched beside a running Hydra app's own ``hydra.searchpath``
+SEARCHPATH: list[str] = []
+#: the precisions of ``precision=`` (denoise)
+PRECISIONS = ("f32", "bf16", "fp16")
+#: ``backend=`` + ``precision=`` shorthands (denoise, pareto) -> the group's option: the one place they map
+PRECISION_OPTIONS = {"eager": {"f32": "eager", "bf16": "bf16"},
+                     "openvino": {"f32": "openvino_f32", "bf16": "openvino_bf16"}}
+#: options whose class takes ``precision`` (fp32, bf16, fp16) as an argument: the CUDA backends
+PRECISION_ARGUMENT = ("cuda", "cuda_compiled")
+
+
+def _searchpath() -> list[str]:
+    from hydra.core.hydra_config import HydraConfig
+
+    app = list(HydraConfig.get().searchpath) if HydraConfig.initialized() else []
+    return [*SEARCHPATH, *(p for p in app if p not in SEARCHPATH)]
+
+
+def _searchpath_override() -> list[str]:
+    path = _searchpath()
+    return [f"hydra.searchpath=[{','.join(path)}]"] if path else []
+
+
+def backend_names() -> list[str]:
+    """The options of the group ``conf/backends/`` (and of the search path's ``backend/`` directories), sorted."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from denoiser.conf import CONF_DIR
+
+    def options():
+        return GlobalHydra.instance().config_loader().get_group_options(GROUP, overrides=_searchpath_override())
+
+    if GlobalHydra.instance().is_initialized():
+        return sorted(options())
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return sorted(options())
+
+
+def backend_config(name: str, key: str = "backend") -> dict:
+    """The resolved ``conf/backends/<name>.yaml`` (a plain dict with ``_target_``); an unknown name is a
+    one-line ConfigError naming ``key`` and the group's options."""
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from denoiser.configs import compose_config
+
+    names = backend_names()
+    if name not in names:
+        raise ConfigError(f"{key}: {name!r} is not one of {', '.join(names)}")
+    try:
+        cfg = compose_config([f"+{GROUP}={name}", *_searchpath_override()])
+        return OmegaConf.to_container(cfg[GROUP], resolve=True)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(f"{key}: {GROUP}/{name}.yaml: {first_line(exc)}") from None
+
+
+def load_backend(name: str, key: str = "backend", **overrides):
+    """The backend ``conf/backends/<name>.yaml`` instantiated, with ``overrides`` of its arguments
+    (e.g. ``profile=True``). Mistakes are one-line ConfigErrors naming ``key``: an unknown name
+    (with the group's options), a bad argument."""
+    from denoiser.configs import instantiate_config
+
+    return instantiate_config({**backend_config(name, key), **overrides}, f"{key}={name}")
+
+
+def resolve_backend(name: str, precision: str | None = None, key: str = "backend") -> tuple[str, dict]:
+    """``backend=`` and ``precision=`` (denoise, pareto) -> ``(option of the group, overrides)``.
+
+    ``eager`` and ``openvino`` are shorthands taking a precision (:data:`PRECISION_OPTIONS`:
+    ``openvino`` + ``bf16`` is ``openvino_bf16``), ``cuda`` and ``cuda_compiled`` take it as an
+    argument (f32 -> fp32); any other option runs its own precision only (``precision`` None: no check)."""
+    if precision is not None and precision not in PRECISIONS:
+        raise ConfigError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
+    if name in PRECISION_OPTIONS:
+        options = PRECISION_OPTIONS[name]
+        p = precision or "f32"
+        if p not in options:
+            if p == "fp16":
+                raise ConfigError(f"precision=fp16 needs backend={' or backend='.join(PRECISION_ARGUMENT)}")
+            raise ConfigError(f"backend={name} runs precision={' or precision='.join(options)} only")
+        return options[p], {}
+    if name in PRECISION_ARGUMENT and precision is not None and name in backend_names():
+        p = {"f32": "fp32"}.get(precision, precision)
+        return name, {"precision": p, "label": f"{name.replace('_', ' ')} {p}"}
+    if precision is not None and name in backend_names():
+        dtype = load_backend(name, key).dtype
+        if dtype != {"f32": "fp32"}.get(precision, precision):
+            if precision == "fp16":
+                raise ConfigError(f"precision=fp16 needs backend={' or backend='.join(PRECISION_ARGUMENT)}")
+            own = {"fp32": "f32"}.get(dtype, dtype)
+            raise ConfigError(f"backend={name} runs precision={own} only")
+    return name, {}
 
 
 class TorchBackend:
@@ -150,6 +259,10 @@ class OpenVinoBackend(_ExportedGraphBackend):
         label: backend name in tables.
         precision: ``f32`` or ``bf16`` (OpenVINO's ``INFERENCE_PRECISION_HINT``).
         device: OpenVINO device (``CPU``).
+        fused: the kernel filter and ``log1p`` as the project's OpenVINO extension's fused
+            operations (True: required, ``available()`` says why not), the plain graph (False),
+            or the extension when it builds, else plain (None). ``label`` ends in ``(fused)`` or
+            ``(plain)``: the graph that runs (deciding None builds the extension once).
         profile: turn on OpenVINO's per-node performance counters, so the prepared
             :class:`Stepper` says where a step's time goes (``profile()``: ms per node type of
             the last step). The counters cost a little time: profile runs are not headline timings.
@@ -161,23 +274,41 @@ class OpenVinoBackend(_ExportedGraphBackend):
     reorder in OpenVINO), in bf16 as 1x1 convolutions (docs/export.md). In both, the kernel
     filter is one ``denoiser::PyramidFilter`` node and the ``log1p`` transforms
     ``denoiser::Log1p`` nodes (``export_onnx(fused_kernels=True)``) when the project's OpenVINO
-    extension builds (:mod:`denoiser.inference.ovext`), else the plain graph (one line on stderr says why).
+    extension builds (:mod:`denoiser.inference.ovext`), else the plain graph (one line on stderr says why);
+    ``fused`` forces either.
     """
 
     def __init__(self, label: str = "openvino f32", precision: str = "f32", device: str = "CPU",
-                 profile: bool = False):
+                 profile: bool = False, fused: bool | None = None):
         from denoiser.inference.step_graph import OPENVINO_PRECISIONS
 
         if precision not in OPENVINO_PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
-        self.label = label
+        if fused not in (None, True, False):
+            raise ConfigError(f"fused: {fused!r} is not null, true or false")
+        self.base_label = label
         self.precision = precision
+        self.fused = fused
         self.dtype = {"f32": "fp32"}.get(precision, precision)
         self.ov_device = device
         self.device = device.lower()
         self.profile = bool(profile)
         self.matmul_heads = precision == "f32"
-        self.fused_kernels = None  # decided on first use: the extension builds (denoiser.inference.ovext)
+        self.fused_kernels = None if fused is None else fused  # None: decided on first use (the extension builds)
+
+    def _fused(self) -> bool:
+        if self.fused_kernels is None:
+            from denoiser.inference import ovext
+
+            self.fused_kernels = ovext.kernel_extension() is not None
+            if not self.fused_kernels:
+                print(f"{self.base_label}: plain kernel filter graph ({ovext.unavailable_reason()})", file=sys.stderr)
+        return self.fused_kernels
+
+    @property
+    def label(self) -> str:
+        """``<label> (fused)`` or ``<label> (plain)``: which graph runs."""
+        return f"{self.base_label} ({'fused' if self._fused() else 'plain'})"
 
     def available(self) -> str | None:
         try:
@@ -190,16 +321,17 @@ class OpenVinoBackend(_ExportedGraphBackend):
             return f"OpenVINO device {self.ov_device} not available"
         if self.precision == "bf16" and "BF16" not in core.get_property(self.ov_device, "OPTIMIZATION_CAPABILITIES"):
             return f"{self.ov_device} has no bf16 support (OpenVINO would run f32)"
+        if self.fused:
+            from denoiser.inference import ovext
+
+            if ovext.kernel_extension() is None:
+                return f"fused=true: the OpenVINO extension is unavailable ({ovext.unavailable_reason()})"
         return None
 
     def prepare(self, net, example, threads: int) -> Stepper:
-        from denoiser.inference import ovext
         from denoiser.inference.step_graph import OpenVinoStep
 
-        if self.fused_kernels is None:
-            self.fused_kernels = ovext.kernel_extension() is not None
-            if not self.fused_kernels:
-                print(f"{self.label}: plain kernel filter graph ({ovext.unavailable_reason()})", file=sys.stderr)
+        self._fused()
         runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device,
                               profile=self.profile)
         return Stepper(runner.step, profile=runner.last_profile if self.profile else None,

@@ -36,7 +36,7 @@ TEACHER_STEPS=${PARETO_TEACHER_STEPS:-300}
 STEPS=${PARETO_STEPS:-150}
 JOBS=${PARETO_JOBS:-2}
 THREADS=${PARETO_THREADS:-1}          # torch threads per training job (JOBS x THREADS <= cores)
-BACKEND=${PARETO_BACKEND:-openvino}   # a key of denoiser-pareto's backends: openvino | onnxruntime | eager
+BACKEND=${PARETO_BACKEND:-openvino}   # denoiser-pareto's backend=: a name of conf/backends/ (openvino = openvino_f32, onnxruntime, eager, ...)
 AXES=${PARETO_AXES:-"net=demo_student_w05,demo_student kernel.sizes=[3,5,5],[5,5,5] ablation=none,no_temporal"}
 EVAL=${PARETO_EVAL:-1}                # 1: denoiser-eval of the variants on the test split (test PSNR column)
 FRONT_SEEDS=${PARETO_FRONT_SEEDS:-"1 2"}   # more seeds for the front's variants ("" : none)

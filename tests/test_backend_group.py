@@ -180,3 +180,12 @@ def test_a_new_backend_through_hydra_searchpath_on_the_command_line(fake_backend
                            f"output={tmp_path / 'out2'}", "backend=fake", f"hydra.run.dir={tmp_path / 'run2'}"],
                           check=False, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode != 0 and "backend: 'fake' is not one of" in proc.stderr
+
+
+def test_summaries_find_the_labels_with_the_graph():
+    """ablation_summary's configured labels (openvino f32) find bench.csv's (openvino f32 (fused))."""
+    from denoiser.commands.ablation_summary import bench_label
+
+    labels = {"openvino f32 (fused)", "openvino bf16 (plain)", "eager fp32"}
+    assert [bench_label(b, labels) for b in ("openvino f32", "openvino bf16", "eager fp32", "onnxruntime")] == [
+        "openvino f32 (fused)", "openvino bf16 (plain)", "eager fp32", "onnxruntime"]

@@ -130,6 +130,12 @@ def bench_times(csv_path: Path, size: tuple[int, int]) -> tuple[dict[tuple[str, 
     return timed, {b: w for b, w in why.items() if not any(k[1] == b for k in timed)}
 
 
+def bench_label(name: str, labels: set[str]) -> str:
+    """The bench.csv label of a configured backend label: itself, or with the graph OpenVINO ran
+    (``openvino f32`` -> ``openvino f32 (fused)``)."""
+    return next((label for label in sorted(labels) if label == name or label.startswith(f"{name} (")), name)
+
+
 def variant_time(timed: dict, name: str, seeds: list[int], backend: str) -> dict | None:
     """A variant's bench row on ``backend``: its first timed seed's (a variant's seeds are the same network)."""
     return next((timed[(f"{name}_s{s}", backend)] for s in seeds if (f"{name}_s{s}", backend) in timed), None)
@@ -379,7 +385,8 @@ def run(cfg: DictConfig) -> Path:
     groups, per_sequence = evaluated_groups(metrics_csv, names, seeds)
     size = (int(cfg.bench_size[0]), int(cfg.bench_size[1]))
     timed, why = bench_times(bench_csv, size)
-    backends = [str(b) for b in cfg.backends if any(k[1] == str(b) for k in timed)]
+    configured = [bench_label(str(b), {k[1] for k in timed} | set(why)) for b in cfg.backends]
+    backends = [b for b in configured if any(k[1] == b for k in timed)]
     runs = run_table_rows(cfg, names, seeds)
     test_dir = Path(cfg.data_root) / "test"
     n_seq = statistics.median(len(per_sequence[n].get(str(cfg.decide_metric), {})) for n in names)
@@ -413,7 +420,7 @@ def run(cfg: DictConfig) -> Path:
                   "with its distribution-free interval where the per-round times are there):"), "",
                   time_table(figure_names, timed, seeds, ref, backends, size).rstrip(), "",
                   *noise_lines(cfg, figure, per_sequence, metrics, runs),
-                  runtime_line(cfg, timed, why, seeds, [str(b) for b in cfg.backends]) if cfg.figure.runtime_variant in figure
+                  runtime_line(cfg, timed, why, seeds, configured) if cfg.figure.runtime_variant in figure
                   else f"- The paper: \"{cfg.figure.runtime_claim}\": not measured ({cfg.figure.runtime_variant} not reported).",
                   ""]
         skipped = [f"{b}: {why[b]}" for b in cfg.backends if str(b) in why]

@@ -189,3 +189,12 @@ def test_summaries_find_the_labels_with_the_graph():
     labels = {"openvino f32 (fused)", "openvino bf16 (plain)", "eager fp32"}
     assert [bench_label(b, labels) for b in ("openvino f32", "openvino bf16", "eager fp32", "onnxruntime")] == [
         "openvino f32 (fused)", "openvino bf16 (plain)", "eager fp32", "onnxruntime"]
+
+
+def test_gpu_check_rows_name_options_of_the_group():
+    """make gpu-check's rows (conf/gpu_check.yaml) are options of the group with argument overrides."""
+    rows = OmegaConf.to_container(compose_command("gpu_check", []).inference.rows)
+    for spec in rows:
+        spec = {k: v for k, v in spec.items() if k not in ("method", "net", "target_ms")}
+        backend = backends.load_backend(spec.pop("backend"), "inference.rows", **spec)
+        assert backend.label == spec.get("label", backend.label) and backend.device.startswith("cuda")

@@ -136,6 +136,9 @@ def run_net(job: dict) -> dict:
     torch.set_flush_denormal(True)
     net = build_net(compose_net_config(job["net"])).eval()
     frame = random_frame(1, job["height"], job["width"])
+    from denoiser.inference import backends
+
+    backends.SEARCHPATH[:] = job.get("searchpath", [])
     net, frame, context = variant(job["variant"])(net, frame)
     with PeakRss(method="hwm") as mem, torch.inference_mode(), context():
         warm, timed = clock_steps(Stepper(net.step), [frame], job["warmup"], job["repeats"])
@@ -202,6 +205,8 @@ def parse_size(name: str) -> tuple[int, int]:
 
 
 def net_jobs(cfg: DictConfig) -> list[dict]:
+    from denoiser.inference.backends import searchpath
+
     jobs = []
     for name in cfg.nets:
         slow = name == SLOW_NET
@@ -209,7 +214,8 @@ def net_jobs(cfg: DictConfig) -> list[dict]:
             h, w = parse_size(size)
             for variant in (["eager"] if slow else cfg.variants):
                 jobs.append({"kind": "net", "net": name, "height": h, "width": w, "variant": variant,
-                             "warmup": WARMUP.get(variant, 1), "repeats": 1 if slow else int(cfg.repeats)})
+                             "warmup": WARMUP.get(variant, 1), "repeats": 1 if slow else int(cfg.repeats),
+                             "searchpath": searchpath()})  # the worker finds the same backend group
     return jobs
 
 

@@ -47,7 +47,9 @@ PRECISION_OPTIONS = {"eager": {"f32": "eager", "bf16": "bf16"},
 PRECISION_ARGUMENT = ("cuda", "cuda_compiled")
 
 
-def _searchpath() -> list[str]:
+def searchpath() -> list[str]:
+    """Where the group's options are looked up besides ``conf/``: :data:`SEARCHPATH`, then the running
+    Hydra app's ``hydra.searchpath``."""
     from hydra.core.hydra_config import HydraConfig
 
     app = list(HydraConfig.get().searchpath) if HydraConfig.initialized() else []
@@ -55,7 +57,7 @@ def _searchpath() -> list[str]:
 
 
 def _searchpath_override() -> list[str]:
-    path = _searchpath()
+    path = searchpath()
     return [f"hydra.searchpath=[{','.join(path)}]"] if path else []
 
 

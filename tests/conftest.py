@@ -114,3 +114,18 @@ def compose_command(name: str, overrides, threads: int | None = None):
     from denoiser.configs import compose_config
 
     return compose_config([*overrides, *([f"threads={threads}"] if threads else [])], name)
+
+
+def stub_pipeline(tmp_path: Path, script: str, commands, stub: str) -> Path:
+    """``tmp_path`` as a checkout holding only ``scripts/<script>`` and a ``venv/bin`` whose
+    ``commands`` are all the executable ``stub`` (a shell script that logs its calls): a pipeline
+    script run there calls nothing real."""
+    import shutil
+
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / script, tmp_path / "scripts")
+    (tmp_path / "venv" / "bin").mkdir(parents=True)
+    for name in commands:
+        (tmp_path / "venv" / "bin" / name).write_text(stub)
+        (tmp_path / "venv" / "bin" / name).chmod(0o755)
+    return tmp_path

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import stub_pipeline
 from hydra import compose, initialize_config_dir
 
 from denoiser.conf import CONF_DIR
@@ -356,13 +357,7 @@ def _ablations_sh(root: Path, **env: str) -> tuple[subprocess.CompletedProcess, 
 
 @pytest.fixture
 def tree(tmp_path):
-    (tmp_path / "scripts").mkdir()
-    shutil.copy(ROOT / "scripts" / "ablations.sh", tmp_path / "scripts")
-    (tmp_path / "venv" / "bin").mkdir(parents=True)
-    for name in ("python", "denoiser-train", "denoiser-eval", "denoiser-bench"):
-        (tmp_path / "venv" / "bin" / name).write_text(STUB)
-        (tmp_path / "venv" / "bin" / name).chmod(0o755)
-    return tmp_path
+    return stub_pipeline(tmp_path, "ablations.sh", ("python", "denoiser-train", "denoiser-eval", "denoiser-bench"), STUB)
 
 
 def _demo(root: Path, seeds=SEEDS) -> None:

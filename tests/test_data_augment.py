@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from denoiser.buffers import FRAME_INPUTS
+from denoiser.buffers import FRAME_INPUTS, native_channels
 from denoiser.data import augment as aug
 from denoiser.data.augment import Augment
 from denoiser.data.dataset import WindowDataset, index_split
@@ -20,9 +20,7 @@ from denoiser.data.layouts import NativeLayout
 from denoiser.data.synthetic import write_synthetic_sequence
 from denoiser.errors import ConfigError
 
-NATIVE = {"color": ["color.R", "color.G", "color.B"], "albedo": ["albedo.R", "albedo.G", "albedo.B"],
-          "normal": ["normal.X", "normal.Y", "normal.Z"], "depth": ["depth.Z"], "motion": ["motion.X", "motion.Y"],
-          "reference": ["reference.R", "reference.G", "reference.B"]}
+NATIVE = {b: list(native_channels(b)) for b in (*FRAME_INPUTS, "reference")}  # the native layout's channels
 INPUTS = list(FRAME_INPUTS)
 
 

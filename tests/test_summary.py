@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import stub_pipeline
 from omegaconf import OmegaConf
 
 from denoiser.conf import CONF_DIR
@@ -158,14 +159,7 @@ def _demo_sh(root: Path, **env: str) -> list[list[str]]:
 
 
 def test_demo_sh_evaluates_its_networks_on_the_blender_sequences_when_they_exist(tmp_path):
-    import shutil
-
-    (tmp_path / "scripts").mkdir()
-    shutil.copy(ROOT / "scripts" / "demo.sh", tmp_path / "scripts")
-    (tmp_path / "venv" / "bin").mkdir(parents=True)
-    for name in ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"):
-        (tmp_path / "venv" / "bin" / name).write_text(DEMO_STUB)
-        (tmp_path / "venv" / "bin" / name).chmod(0o755)
+    stub_pipeline(tmp_path, "demo.sh", ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"), DEMO_STUB)
 
     def evals(calls):
         return {next(a for a in c if a.startswith("out_dir=")): c for c in calls if c[0] == "denoiser-eval"}

@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: gpu-check setup test demo readme-results readme-pareto readme-check pareto compare lint clean-cache blender blender-val
+.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-check pareto compare ablations paper lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -35,8 +35,8 @@ readme-results:
 		python3 scripts/readme_results.py --summary reports/demo/summary.md --readme README.md --marker blender; \
 	else echo "reports/demo/summary.md: no Blender table (make blender, then make demo): README's left as it is"; fi
 
-# Fail (one line per block) when a README results block names a commit older than the last change to
-# what it measures (denoiser/nn, conf/net, conf/kernel, conf/experiment, conf/dataset): rerun, then copy.
+# Fail (one line per block) when what a README results block measures (denoiser/nn, conf/net, conf/kernel,
+# conf/experiment, conf/dataset) changed since its commit (a pure move does not count): rerun, then copy.
 readme-check:
 	python3 scripts/readme_check.py --readme README.md
 
@@ -58,6 +58,30 @@ pareto: setup
 # Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml). Resumable.
 compare: setup
 	VENV=$(VENV) bash scripts/compare.sh
+
+# The paper's Fig. A.1 (the pyramid against no_pyramid and direct) and its distillation ablations
+# (no_kd, no_unlabeled, no_adversarial, no_param_transfer, kernels k3 and k7) on the demo's held-out
+# scenes: reuses make demo's data, teacher and students (none = its distilled students, no_kd = its
+# students on references alone; run make demo first), trains the other variants with 3 seeds each
+# (same steps and teacher), evaluates and times them -> reports/ablations/summary.md (paired intervals
+# against the full recipe, one sentence per claim of the paper). Resumable. Knobs: ABLATION_* in
+# scripts/ablations.sh.
+ablations: setup
+	VENV=$(VENV) bash scripts/ablations.sh
+
+# Copy the ablations' block of reports/ablations/summary.md and its crop figure (docs/images/ablations_a1.png)
+# into README.md.
+readme-ablations:
+	python3 scripts/readme_results.py --summary reports/ablations/summary.md --marker ablations \
+		--image reports/ablations/crops_a1.png:docs/images/ablations_a1.png
+
+# Every figure of the paper after make demo, in order: make ablations, make compare, make pareto
+# (scripts/paper.sh; each stage resumable, its wall time in reports/paper/timings.md), then the
+# README copies. About 5.5-6 hours on 2 idle cores, estimated from make demo's stage times, not measured
+# (README, "Every figure: make paper").
+paper: setup
+	VENV=$(VENV) bash scripts/paper.sh
+	$(MAKE) readme-ablations readme-pareto
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py

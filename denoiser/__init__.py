@@ -1,5 +1,26 @@
 """Real-time Monte Carlo denoising with render-aware knowledge distillation.
 
+Layout: the package root holds the shared vocabulary (at most ten modules, each imported from
+anywhere, importing only each other and :mod:`denoiser.conf`): :mod:`~denoiser.buffers`,
+:mod:`~denoiser.nonfinite`, :mod:`~denoiser.errors`, :mod:`~denoiser.atomic`,
+:mod:`~denoiser.configs`, :mod:`~denoiser.checkpoint`, :mod:`~denoiser.runner`,
+:mod:`~denoiser.frames`, :mod:`~denoiser.metrics`, :mod:`~denoiser.measure`. Everything else
+lives in a wing, and a wing imports only the wings named after it (docs/architecture.md;
+checked by tests/test_house.py):
+
+* ``nn/``         the networks in plain PyTorch                   -> root
+* ``data/``       EXR I/O, layouts, datasets, the data module       -> root
+* ``render/``     the Mitsuba scene simulator                       -> root, data
+* ``inference/``  backends, ONNX step graph, CUDA/Triton, OpenVINO  -> root, nn
+* ``methods/``    the compared methods (OIDN, networks, ONND)       -> root, nn, inference
+* ``report/``     evaluation, summaries, statistics, plots          -> root, nn, inference, methods, data
+* ``lit/``        Lightning training modules, losses, transfer      -> root, nn, data
+* ``commands/``   one module per console script                     -> everything; nothing imports it
+* ``conf/``       the Hydra configs (YAML), shipped in the package
+
+Modules that moved from the root into a wing still import by their old paths (checkpoints and
+old configs name them): :mod:`denoiser._aliases`, installed below.
+
 Conventions (stated once, used everywhere):
 
 * Tensors are float32 ``[B, T, C, H, W]`` (per-sample radiance ``[B, T, S, 3, H, W]``),
@@ -12,3 +33,7 @@ Conventions (stated once, used everywhere):
 """
 
 __version__ = "0.1.0"
+
+from denoiser import _aliases
+
+_aliases.install()

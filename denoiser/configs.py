@@ -1,4 +1,4 @@
-"""Configs from ``denoiser/conf`` (:data:`denoiser.conf.CONF_DIR`): composing a net config and
+"""Configs from ``conf/`` (:data:`denoiser.conf.CONF_DIR`): composing a net config and
 instantiating any ``_target_`` config, with one-line errors.
 
 * :func:`instantiate_config`: ``hydra.utils.instantiate`` where a config mistake (a missing

@@ -31,16 +31,12 @@ from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
 from denoiser.atomic import atomic_write_text
 from denoiser.errors import UserError
-from denoiser.runner import RecurrentRunner
-
-if TYPE_CHECKING:
-    from denoiser.backends import Stepper
+from denoiser.runner import RecurrentRunner, Stepper
 
 # ----------------------------------------------------------------------------- memory
 

@@ -14,8 +14,8 @@ Step function contract::
 ``frame`` is ``{buffer: [B, C, H, W]}`` (tensors or arrays, :mod:`denoiser.buffers`),
 ``state`` the previous call's ``new_state`` or None, which means "no history": the first frame
 of a sequence or a camera cut. :meth:`Denoiser.step <denoiser.nn.denoiser.Denoiser.step>`,
-the exported graph's :class:`~denoiser.step_graph.OnnxStep` and every backend's
-:class:`~denoiser.backends.Stepper` follow it.
+the exported graph's :class:`~denoiser.inference.step_graph.OnnxStep` and every backend's
+:class:`Stepper` (what a backend prepares, :mod:`denoiser.inference.backends`) follow it.
 """
 
 from __future__ import annotations
@@ -24,6 +24,25 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any
 
 StepFn = Callable[..., tuple]
+
+
+class Stepper:
+    """A prepared network: ``step(frame, state) -> (output, state)`` (the contract above:
+    ``state=None`` starts a sequence); ``sync()`` waits for the device.
+    ``profile()``, where the backend can say, gives the last step's time per operation type:
+    ``{op type: ms}``; None where it cannot. ``threads()``, where the engine can say, is the
+    thread count it actually uses, read back from it (after a step: OpenVINO resolves it when
+    compiling); ``engine`` names the library that runs the step (``torch``, ``onnxruntime``,
+    ``openvino``, ``oidn``), for its version in the tables."""
+
+    def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
+                 profile: Callable[[], dict[str, float]] | None = None,
+                 threads: Callable[[], int] | None = None, engine: str = ""):
+        self.step = step
+        self.sync = sync
+        self.profile = profile
+        self.threads = threads
+        self.engine = engine
 
 
 class RecurrentRunner:

@@ -6,7 +6,7 @@
 Writes ``<out>/<sequence>_f<frame>.png`` (noisy, output, reference, warped history; the history
 blend weights a and b, the disocclusion gate and the coverage; the squared tonemapped errors of
 the noisy input, the warped history and the output; the motion magnitude) and ``.md`` (region
-statistics: :mod:`denoiser.history_diagnosis`). Default frame: the one >= 2 with the largest
+statistics: :mod:`denoiser.report.history_diagnosis`). Default frame: the one >= 2 with the largest
 mean motion. ``key=value`` arguments are accepted for every option as well as ``--key value``.
 """
 
@@ -35,7 +35,7 @@ def parse_args(argv):
 def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
     from denoiser.errors import UserError
-    from denoiser.history_diagnosis import diagnose
+    from denoiser.report.history_diagnosis import diagnose
 
     try:
         result = diagnose(args.ckpt, args.sequence, args.layout, args.out, args.frame, trust=args.trust_checkpoint)

@@ -3,11 +3,15 @@
 
 Every block ``<!-- NAME:begin --> ... <!-- NAME:end -->`` that ``scripts/readme_results.py``
 copied names, in its ``copied by`` line, the commit of the run that wrote it. A block is stale
-when that commit does not contain the last commit that changed what the numbers measure
-(:data:`MEASURED`: the networks, their configs and the dataset; ``git log -1 -- <paths>`` and
-``git merge-base --is-ancestor``), when it names no commit, or a commit git does not know. A
-``-dirty`` commit counts as its base commit. One line per stale block on stderr, then exit 1;
-exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
+when what the numbers measure (:data:`MEASURED`: the networks, their configs and the dataset)
+differs between that commit and ``HEAD``: ``git diff -M --name-status <commit> HEAD -- <paths>``
+lists a file added or deleted, or a file whose meaning changed. Meaning, not bytes: a Python file
+is compared as its syntax tree without docstrings (comments are not in the tree), a YAML file as
+the data it parses to (comments dropped), anything else byte for byte; so a comment, a docstring
+or a file that only moved (a rename, e.g. the configs from ``denoiser/conf/`` to ``conf/``, both
+locations listed) leaves a block current, and a changed value, default or line of code does not. Also stale: a block that names no commit, or a commit git does not
+know. A ``-dirty`` commit counts as its base commit. One line per stale block on stderr, then
+exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
     python scripts/readme_check.py [--readme README.md] [--repo DIR]   # DIR: the README's directory
 """
@@ -15,14 +19,19 @@ exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a bl
 from __future__ import annotations
 
 import argparse
+import ast
 import re
 import subprocess
 import sys
 from pathlib import Path
 
-#: what the README's numbers measure: a change under one of these makes every block stale
-MEASURED = ("denoiser/nn/", "denoiser/conf/net/", "denoiser/conf/kernel/", "denoiser/conf/experiment/",
-            "denoiser/conf/dataset/")
+#: what the README's numbers measure: a change under one of these makes every block stale (the
+#: config groups at both of their locations: conf/ at the top level, denoiser/conf/ before)
+MEASURED = ("denoiser/nn/", *(f"{root}{group}/" for root in ("conf/", "denoiser/conf/")
+                              for group in ("net", "kernel", "experiment", "dataset")))
+#: a file deleted at the first location and added at the second is the same file moved (paired
+#: even when git's rename detection, which goes by similarity, does not pair a small edited file)
+MOVED = (("denoiser/conf/", "conf/"),)
 
 BLOCK = re.compile(r"<!-- (?P<name>[\w.-]+):begin -->(?P<body>.*?)<!-- (?P=name):end -->", re.DOTALL)
 COPIED_COMMIT = re.compile(r"<!-- copied by scripts/readme_results\.py from [^\n]*?, commit (?P<commit>[0-9a-f]{7,40})"
@@ -33,13 +42,70 @@ def git(repo: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, check=False)
 
 
+def _without_docstrings(tree: ast.AST) -> ast.AST:
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def meaning(path: str, text: str) -> object:
+    """What a measured file means: a Python file's syntax tree less docstrings, a YAML file's
+    data, else its text (unparsable files fall back to their text)."""
+    try:
+        if path.endswith(".py"):
+            return ast.dump(_without_docstrings(ast.parse(text)))
+        if path.endswith((".yaml", ".yml")):
+            import yaml
+
+            return yaml.safe_load(text)
+    except Exception as exc:  # noqa: BLE001 - a syntax or YAML error: compare the text itself
+        return ("unparsable", type(exc).__name__, text)
+    return text
+
+
+def _blob(repo: Path, commit: str, path: str) -> str:
+    shown = git(repo, "show", f"{commit}:{path}")
+    if shown.returncode != 0:
+        raise SystemExit(f"error: {repo}: git show {commit}:{path} failed: {shown.stderr.strip()}")
+    return shown.stdout
+
+
+def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASURED) -> list[str]:
+    """``git diff -M --name-status`` lines between ``commit`` and ``HEAD`` under ``measured`` whose
+    file was added, deleted, or changed in :func:`meaning` (pure moves, comments and docstrings
+    drop out)."""
+    diff = git(repo, "diff", "-M", "--name-status", commit, "HEAD", "--", *measured)
+    if diff.returncode != 0:
+        raise SystemExit(f"error: {repo}: git diff {commit} HEAD failed: {diff.stderr.strip()}")
+    entries = [line.split("\t") for line in diff.stdout.splitlines() if line]
+    added = {e[1] for e in entries if e[0] == "A"}
+    moved = {}  # deleted old path -> added new path
+    for e in entries:
+        if e[0] == "D":
+            for before, after in MOVED:
+                if e[1].startswith(before) and after + e[1][len(before):] in added:
+                    moved[e[1]] = after + e[1][len(before):]
+    changed = []
+    for status, *paths in entries:
+        if status[0] in "RM" or (status == "D" and paths[0] in moved):
+            # renamed (maybe edited), modified, or moved between the locations: compare meanings
+            old, new = paths[0], moved.get(paths[0], paths[-1])
+            if meaning(old, _blob(repo, commit, old)) == meaning(new, _blob(repo, "HEAD", new)):
+                continue
+        elif status == "A" and paths[0] in moved.values():
+            continue  # judged with its deleted twin
+        changed.append("\t".join([status, *paths]))
+    return changed
+
+
 def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED) -> list[str]:
     """One line per stale block of ``readme`` (empty when all are current); ``repo``: the git checkout."""
-    last = git(repo, "log", "-1", "--format=%H", "--", *measured)
-    if last.returncode != 0:
-        raise SystemExit(f"error: {repo}: git log failed there (not a git checkout?)")
-    last_sha = last.stdout.strip()
-    paths = ", ".join(measured)
+    if git(repo, "rev-parse", "--verify", "--quiet", "HEAD").returncode != 0:
+        raise SystemExit(f"error: {repo}: not a git checkout with a commit")
     lines = []
     for block in BLOCK.finditer(readme.read_text()):
         name, found = block["name"], COPIED_COMMIT.search(block["body"])
@@ -50,9 +116,12 @@ def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED)
         commit = found["commit"]
         if git(repo, "rev-parse", "--verify", "--quiet", f"{commit}^{{commit}}").returncode != 0:
             lines.append(f"{where} names commit {commit}, which this checkout does not have")
-        elif last_sha and git(repo, "merge-base", "--is-ancestor", last_sha, commit).returncode != 0:
-            lines.append(f"{where} (commit {commit}) is older than {last_sha[:10]}, the last change to {paths}: "
-                         "rerun what wrote it")
+            continue
+        changed = measured_changes(repo, commit, measured)
+        if changed:
+            files = ", ".join(line.split("\t")[-1] for line in changed[:3]) + (" ..." if len(changed) > 3 else "")
+            lines.append(f"{where} (commit {commit}): what it measures changed since ({len(changed)} file(s): "
+                         f"{files}): rerun what wrote it")
     return lines
 
 
@@ -68,7 +137,7 @@ def main() -> None:
         print(line, file=sys.stderr)
     if stale:
         sys.exit(1)
-    print(f"{args.readme}: every results block is at or after the last change to what it measures")
+    print(f"{args.readme}: what every results block measures is unchanged since its commit")
 
 
 if __name__ == "__main__":

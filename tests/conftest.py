@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-# built artefacts (the OpenVINO extension, denoiser.ovext) go to a per-session folder, not ~/.cache
+# built artefacts (the OpenVINO extension, denoiser.inference.ovext) go to a per-session folder, not ~/.cache
 os.environ.setdefault("DENOISER_CACHE", tempfile.mkdtemp(prefix="denoiser-test-cache-"))
 
 
@@ -42,9 +42,9 @@ def skip_or_fail(reason: str):
 
 
 def extension_or_skip() -> Path:
-    """The OpenVINO extension's library (:func:`denoiser.ovext.kernel_extension`, built on first
+    """The OpenVINO extension's library (:func:`denoiser.inference.ovext.kernel_extension`, built on first
     use); skips the test naming why it is unavailable (fails it under ``$DENOISER_REQUIRE_OVEXT``)."""
-    from denoiser import ovext
+    from denoiser.inference import ovext
 
     path = ovext.kernel_extension()
     if path is None:

@@ -12,11 +12,11 @@ from conftest import compose_command, tiny_checkpoint
 sys.path.insert(0, str(Path(__file__).parent))
 from test_eval_data import write_dataset
 
-from denoiser.backends import Stepper
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, read_csv, time_steps
-from denoiser.plot_tradeoff import pareto_front, pareto_front_of_rows
+from denoiser.report.plot_tradeoff import pareto_front, pareto_front_of_rows
+from denoiser.runner import Stepper
 
 
 @pytest.fixture(scope="module")
@@ -319,8 +319,8 @@ def test_bench_openvino_bf16_psnr_through_the_backend(tmp_path):
     (bf16 keeps 8 mantissa bits; tests/test_openvino.py bounds the output error at 3e-2)."""
     pytest.importorskip("openvino", reason="openvino is not installed")
     pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
-    from denoiser.backends import OpenVinoBackend
     from denoiser.commands.bench import run as bench
+    from denoiser.inference.backends import OpenVinoBackend
 
     reason = OpenVinoBackend(precision="bf16").available()
     if reason:

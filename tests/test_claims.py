@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from denoiser.metrics import COLUMNS, METRICS, MetricAccumulator, psnr
-from denoiser.stats import paired_interval
-from denoiser.summary import (
+from denoiser.report.stats import paired_interval
+from denoiser.report.summary import (
     group_sequences,
     group_timing,
     merge_identical,
@@ -29,7 +29,7 @@ from denoiser.summary import (
 ROOT = Path(__file__).resolve().parents[1]
 
 
-# --- denoiser.stats -------------------------------------------------------------------------------
+# --- denoiser.report.stats -------------------------------------------------------------------------------
 
 
 def hand_bootstrap(a, b, confidence, resamples, seed):
@@ -234,7 +234,7 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     (repo / "README.md").write_text(README.format(commit=old))
     proc = readme_check(repo)
     assert proc.returncode == 1 and proc.stderr.count("\n") == 1
-    assert "block 'results'" in proc.stderr and f"commit {old}" in proc.stderr and "denoiser/nn/" in proc.stderr
+    assert "block 'results'" in proc.stderr and f"commit {old}" in proc.stderr and "denoiser/nn/unet.py" in proc.stderr
     (repo / "README.md").write_text(README.format(commit=new + "-dirty"))
     assert readme_check(repo).returncode == 0  # at the change (or after it): current
     (repo / "README.md").write_text(README.format(commit=git(repo, "rev-parse", "HEAD")))
@@ -244,6 +244,28 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     assert proc.returncode == 1 and "names no commit" in proc.stderr
     (repo / "README.md").write_text(README.format(commit="abcdef1"))
     assert "does not have" in readme_check(repo).stderr
+
+    # a move with identical content (the configs to the top level) measures the same thing ...
+    (repo / "denoiser" / "conf" / "net").mkdir(parents=True)
+    (repo / "denoiser" / "conf" / "net" / "student.yaml").write_text("width: 32\n")
+    git(repo, "add", ".")
+    git(repo, "commit", "-qm", "net config")
+    at = git(repo, "rev-parse", "HEAD")
+    (repo / "conf").mkdir()
+    git(repo, "mv", "denoiser/conf/net", "conf/net")
+    git(repo, "commit", "-qm", "conf at the top level")
+    (repo / "README.md").write_text(README.format(commit=at))
+    assert readme_check(repo).returncode == 0
+    # ... and so do a comment, a docstring and a YAML comment ...
+    (repo / "denoiser" / "nn" / "unet.py").write_text('"""The U-Net."""\nwidth = 32  # channels\n')
+    (repo / "conf" / "net" / "student.yaml").write_text("# the student\nwidth: 32   # channels\n")
+    git(repo, "commit", "-qam", "words only")
+    assert readme_check(repo).returncode == 0
+    # ... a change of a value after the move does not
+    (repo / "conf" / "net" / "student.yaml").write_text("width: 48\n")
+    git(repo, "commit", "-qam", "wider config")
+    proc = readme_check(repo)
+    assert proc.returncode == 1 and "conf/net/student.yaml" in proc.stderr
 
 
 def test_readme_results_fills_a_pending_block_and_names_its_commit(tmp_path):
@@ -272,7 +294,7 @@ def test_results_table_puts_fp32_beside_bf16_with_the_paired_speedup(tmp_path):
     """The student's fastest fp32 row and fastest bf16 row each get their own columns; the speed-up
     is the bench's paired one with its interval (not a ratio of the fastest of any precision)."""
     from denoiser.commands.demo_summary import bench_rows, results_table
-    from denoiser.summary import seed_groups
+    from denoiser.report.summary import seed_groups
 
     rows = [
         {"method": "OIDN-fast", "backend": "oidn", "dtype": "fp32", "kind": "baseline", "ms": 1400.0, "sp": (1.0, 1.0, 1.0)},

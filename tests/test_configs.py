@@ -136,7 +136,7 @@ SHARED_MODEL = {
     "scheduler_interval": "step", "detach_every": 0, "warmup_frames": 2, "image_interval": 100, "grad_clip": 1.0, "logit_penalty": 1e-4,
     "performance": {"channels_last": False, "fused_optimizer": True, "compile": None},
 }
-DENOISE_LOSS = {"_target_": "denoiser.losses.DenoiseLoss", "smape_weight": 1.0, "gradient_weight": 0.5,
+DENOISE_LOSS = {"_target_": "denoiser.lit.losses.DenoiseLoss", "smape_weight": 1.0, "gradient_weight": 0.5,
                 "temporal_weight": 0.25}
 SUPERVISED_MODEL = {**SHARED_MODEL, "_target_": "denoiser.lit.supervised.SupervisedModule", "loss": DENOISE_LOSS}
 DISTILL_MODEL = {
@@ -146,10 +146,10 @@ DISTILL_MODEL = {
              "kd": DENOISE_LOSS, "gt": DENOISE_LOSS},
     "critic": {"_target_": "denoiser.nn.critic.PatchCritic", "in_channels": 3, "widths": [32, 64, 128],
                "spectral_norm": True},
-    "adversarial": {"_target_": "denoiser.losses.HingeAdversarial"},
+    "adversarial": {"_target_": "denoiser.lit.losses.HingeAdversarial"},
     "critic_optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 2e-4, "betas": [0.5, 0.9]},
     "critic_steps": 1,
-    "param_transfer": {"_target_": "denoiser.transfer.L1ChannelTransfer", "probe_size": 32, "outer_tap_logit": None},
+    "param_transfer": {"_target_": "denoiser.lit.transfer.L1ChannelTransfer", "probe_size": 32, "outer_tap_logit": None},
 }
 
 
@@ -241,7 +241,7 @@ def test_one_baseline_list_for_eval_and_bench():
     assert options("baselines") == ["compare", "default"]  # compare = default + ONND (tests/test_onnd.py)
     ev, bench = compose_entry("eval", "threads=3"), compose_entry("bench", "threads=3")
     assert list(ev.baselines) == ["noisy", "oidn_fast", "oidn_balanced", "oidn_high"]
-    assert ev.baselines.noisy._target_ == "denoiser.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"
+    assert ev.baselines.noisy._target_ == "denoiser.methods.baselines.NoisyInput" and ev.baselines.noisy.label == "noisy input"
     assert bench.baselines.noisy is None
     for key in ("oidn_fast", "oidn_balanced", "oidn_high"):
         assert ev.baselines[key] == bench.baselines[key]

@@ -1,4 +1,4 @@
-"""The CUDA backends (denoiser/cuda_backend.py): on the CPU their logic (weights cast once,
+"""The CUDA backends (denoiser/inference/cuda_backend.py): on the CPU their logic (weights cast once,
 channels-last, the state carried, static buffers with copy-in, the reset flag, one set of
 buffers per frame size) against the eager float32 runner over a sequence with motion and a
 camera cut; on a GPU (``-m gpu``) the same parity for fp16 and the CUDA graph replay."""
@@ -9,8 +9,14 @@ import pytest
 import torch
 
 from denoiser.configs import build_net, compose_net_config
-from denoiser.cuda_backend import CudaBackend, CudaGraphBackend, StaticStep, cuda_event_times, device_report
 from denoiser.frames import random_frame
+from denoiser.inference.cuda_backend import (
+    CudaBackend,
+    CudaGraphBackend,
+    StaticStep,
+    cuda_event_times,
+    device_report,
+)
 from denoiser.runner import RecurrentRunner
 
 #: max |difference| / max |reference| per precision over the sequence (measured on the CPU:
@@ -178,7 +184,7 @@ def test_denoise_command_offers_the_cuda_backends():
 
 def test_step_traffic_counts_what_a_step_must_move(net):
     from denoiser.buffers import CHANNELS, FRAME_INPUTS
-    from denoiser.cuda_backend import step_traffic
+    from denoiser.inference.cuda_backend import step_traffic
 
     h, w = 16, 24
     fp32 = step_traffic(net, h, w, "fp32", channels_last=False)

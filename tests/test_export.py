@@ -14,7 +14,7 @@ from denoiser.checkpoint import save_checkpoint
 from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
-from denoiser.step_graph import OnnxStep, StepGraph, check_export, uses_extension
+from denoiser.inference.step_graph import OnnxStep, StepGraph, check_export, uses_extension
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -175,7 +175,7 @@ def test_export_config_errors(tiny, tmp_path):
 def test_export_refuses_non_finite_weights(tmp_path):
     """The graph leaves out the logits' non-finite replacement (denoiser.nn.kernels.scale_logits),
     so it relies on finite weights: a diverged network is refused with one line, nothing written."""
-    from denoiser.step_graph import export_onnx
+    from denoiser.inference.step_graph import export_onnx
 
     net = build_net(compose_net_config("tiny", "student")).eval()
     with torch.no_grad():

@@ -1,4 +1,4 @@
-"""The history diagnosis (denoiser/history_diagnosis.py, scripts/diagnose_history.py) and the
+"""The history diagnosis (denoiser/report/history_diagnosis.py, scripts/diagnose_history.py) and the
 temporal probe it reads (denoiser/nn/temporal.py): the probe changes nothing, the captured
 weights are the network's, the regions and statistics match a plain per-pixel computation."""
 
@@ -18,7 +18,7 @@ from denoiser.configs import build_net, compose_net_config
 from denoiser.data.synthetic import write_synthetic_sequence
 from denoiser.errors import ConfigError, UserError
 from denoiser.frames import random_frame
-from denoiser.history_diagnosis import EDGE_PX, Capture, diagnose, regions, statistics
+from denoiser.report.history_diagnosis import EDGE_PX, Capture, diagnose, regions, statistics
 from denoiser.runner import RecurrentRunner
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,16 +1,24 @@
 """House rules that keep the tree navigable, checked on the source itself:
 
+* the package root holds at most ten modules, the shared vocabulary; everything else lives in
+  a wing (``nn``, ``data``, ``render``, ``inference``, ``methods``, ``report``, ``lit``,
+  ``commands``), and each wing imports only the parts :data:`MAY_IMPORT` lists for it;
 * library code never imports a command (``denoiser/commands`` imports the library, not back);
 * the buffer vocabulary is written once (:mod:`denoiser.buffers`);
 * one recurrent runner (:mod:`denoiser.runner`): no module loops over a network's ``step`` by
   itself, and every consumer's steps reach ``Denoiser.step`` through the runner;
-* checkpoints written by earlier layouts still load, and give the same outputs.
+* checkpoints written by earlier layouts still load, and give the same outputs; module paths
+  they or old configs may name still import (:mod:`denoiser._aliases`).
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 import inspect
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -38,6 +46,82 @@ def imported_modules(path: Path) -> set[str]:
             names.add(node.module)
             names.update(f"{node.module}.{a.name}" for a in node.names)
     return names
+
+
+#: the private module that keeps old module paths importable: not part of the root's vocabulary
+ALIASES = "_aliases.py"
+ROOT_MODULES_AT_MOST = 10
+#: what each part of the package may import besides itself; ``root`` is the modules at the
+#: package root and ``denoiser.conf`` (the shipped configs' folder). ``commands`` may import
+#: every part and no part imports it (the test above).
+MAY_IMPORT = {
+    "root": {"root"},
+    "nn": {"root"},
+    "data": {"root"},
+    "render": {"root", "data"},
+    "inference": {"root", "nn"},
+    "methods": {"root", "nn", "inference"},
+    "report": {"root", "nn", "inference", "methods", "data"},
+    "lit": {"root", "nn", "data"},
+}
+
+
+def part_of(module: str) -> str | None:
+    """The part of the package a dotted module name belongs to (None: outside the package)."""
+    bits = module.split(".")
+    if bits[0] != "denoiser" or len(bits) == 1:
+        return None
+    return "root" if bits[1] == "conf" or (PACKAGE / f"{bits[1]}.py").is_file() else bits[1]
+
+
+def test_the_root_holds_at_most_ten_modules():
+    root = sorted(p.name for p in PACKAGE.glob("*.py") if p.name not in ("__init__.py", ALIASES))
+    assert len(root) <= ROOT_MODULES_AT_MOST, f"{len(root)} modules at the root, move some into a wing: {root}"
+
+
+def test_conf_is_at_the_top_level_and_every_package_ships():
+    """The configs live in ``conf/`` beside the package (docs/design.md), ``denoiser.conf`` is that
+    directory in a checkout, and pyproject's explicit package list (setuptools' find cannot add the
+    mapped ``denoiser.conf``) names every package directory, so none is left out of the wheel."""
+    import tomllib
+
+    import denoiser.conf
+
+    checkout = PACKAGE.parent
+    assert not (PACKAGE / "conf").exists() and (checkout / "conf" / "train.yaml").is_file()
+    assert Path(denoiser.conf.CONF_DIR) == checkout / "conf"
+    tool = tomllib.loads((checkout / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert tool["package-dir"] == {"denoiser.conf": "conf"}
+    found = {"denoiser.conf"} | {
+        ".".join(d.relative_to(checkout).parts) for top in ("denoiser", "hydra_plugins")
+        for d in [checkout / top, *(checkout / top).rglob("*")]
+        if d.is_dir() and d.name != "__pycache__" and any(d.glob("*.py"))}
+    assert set(tool["packages"]) == found
+
+
+def test_every_part_of_the_package_has_an_import_rule():
+    parts = {part_of("denoiser." + p.relative_to(PACKAGE).with_suffix("").parts[0]) for p in modules()
+             if p.name != "__init__.py" or p.parent != PACKAGE}
+    assert parts - {"commands"} == set(MAY_IMPORT)
+
+
+def test_each_part_imports_only_what_its_rule_allows():
+    offenders = {}
+    for p in modules(skip=("commands",)):
+        here = part_of("denoiser." + p.relative_to(PACKAGE).with_suffix("").parts[0])
+        allowed = MAY_IMPORT.get(here, set()) | {here}
+        bad = sorted(m for m in imported_modules(p) if part_of(m) not in (None, *allowed))
+        if bad:
+            offenders[str(p.relative_to(PACKAGE))] = bad
+    assert not offenders
+
+
+def test_the_import_rule_check_is_not_blind(tmp_path):
+    """An ``nn`` module importing from ``lit`` or ``inference`` is seen by the check above."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("from denoiser.lit.losses import DenoiseLoss\nfrom denoiser.inference import ovext\n")
+    found = {part_of(m) for m in imported_modules(bad)} - {None}
+    assert found == {"lit", "inference"} and not found <= MAY_IMPORT["nn"]
 
 
 def test_library_never_imports_a_command():
@@ -130,10 +214,10 @@ def frames(count: int = 3, size: int = 16):
 def test_consumers_step_through_the_runner(step_callers, tmp_path):
     """Evaluation's network method, the benchmark's backends and timing, the FLOP count, the
     ONNX export check, and the training/validation unroll all reach Denoiser.step via the runner."""
-    from denoiser.backends import TorchBackend
-    from denoiser.baselines import NetworkMethod
+    from denoiser.inference.backends import TorchBackend
+    from denoiser.inference.step_graph import check_export, export_onnx
     from denoiser.measure import count_flops, time_steps
-    from denoiser.step_graph import check_export, export_onnx
+    from denoiser.methods.baselines import NetworkMethod
 
     net = tiny_net()
     method = NetworkMethod(net, "tiny")
@@ -171,3 +255,79 @@ def test_a_checkpoint_of_the_first_layout_still_loads_and_gives_the_same_outputs
     with torch.no_grad():
         for i, (frame, expected) in enumerate(zip(io["frames"], io["outputs"])):
             torch.testing.assert_close(runner(frame, reset=i == 0), expected, rtol=1e-5, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- old module paths
+
+
+def test_every_old_module_path_imports_the_module_at_its_new_path():
+    """In a fresh interpreter (old names imported first, before their new ones): each old name
+    of the alias table is the same module object as its new path, loaded from this package (not
+    from a stale copy elsewhere on the path), and no longer a file at the root."""
+    from denoiser._aliases import MOVED
+
+    assert MOVED
+    code = ("import importlib, sys, denoiser._aliases as a\n"
+            "for old, new in a.MOVED.items():\n"
+            "    module = importlib.import_module(old)\n"
+            "    assert module is importlib.import_module(new) is sys.modules[old] is sys.modules[new], old\n"
+            "    assert module.__name__ == new, (old, module.__name__)\n"
+            "    print(old, module.__file__)\n"
+            "from denoiser import ovext\n"
+            "from denoiser.inference import ovext as moved\n"
+            "assert ovext is moved\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert run.returncode == 0, run.stderr[-3000:]
+    files = dict(line.split(" ", 1) for line in run.stdout.splitlines())
+    assert set(files) == set(MOVED)
+    for old, file in files.items():
+        assert Path(file).resolve().is_relative_to(PACKAGE), (old, file)
+        assert not (PACKAGE / (old.split(".")[1] + ".py")).exists() and not (PACKAGE / old.split(".")[1]).exists()
+    for old, new in MOVED.items():  # and in this process, in either order
+        assert importlib.import_module(new) is importlib.import_module(old)
+
+
+def test_an_unknown_module_is_still_an_import_error():
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("denoiser.no_such_module")
+
+
+def test_old_targets_resolve_through_hydra():
+    from hydra.utils import get_class, instantiate
+
+    from denoiser.lit.losses import DenoiseLoss
+    from denoiser.lit.transfer import L1ChannelTransfer
+    from denoiser.methods.baselines import NoisyInput
+
+    assert get_class("denoiser.losses.DenoiseLoss") is DenoiseLoss
+    assert get_class("denoiser.transfer.L1ChannelTransfer") is L1ChannelTransfer
+    assert type(instantiate({"_target_": "denoiser.losses.DenoiseLoss"})) is DenoiseLoss
+    assert type(instantiate({"_target_": "denoiser.baselines.NoisyInput"})) is NoisyInput
+
+
+def test_the_configs_name_the_new_paths():
+    """Every ``_target_`` under conf resolves, and none names a moved module's old path."""
+    from hydra.utils import get_object
+
+    from denoiser._aliases import new_name
+    from denoiser.conf import CONF_DIR
+
+    targets = {t for p in Path(CONF_DIR).rglob("*.yaml")
+               for t in re.findall(r"_target_:\s*([A-Za-z_][\w.]*)", p.read_text())}
+    assert targets
+    assert not {t: new_name(t) for t in targets if new_name(t)}
+    for target in sorted(targets):
+        get_object(target)
+
+
+def test_the_first_layout_checkpoint_loads_as_a_training_module():
+    """``student_v0.ckpt`` stores ``denoiser.losses.DenoiseLoss`` (the loss's old path): its
+    training module is rebuilt from the stored hyper-parameters with the loss at its new path."""
+    from denoiser.lit.losses import DenoiseLoss
+    from denoiser.lit.supervised import SupervisedModule
+
+    stored = torch.load(FIXTURES / "student_v0.ckpt", map_location="cpu", weights_only=True)["hyper_parameters"]
+    assert stored["loss"]["_target_"] == "denoiser.losses.DenoiseLoss"
+    module = SupervisedModule.load_from_checkpoint(FIXTURES / "student_v0.ckpt", map_location="cpu",
+                                                   weights_only=True)
+    assert type(module.loss) is DenoiseLoss

@@ -320,7 +320,7 @@ def test_flops_are_counted(name):
 @pytest.mark.parametrize("name", ["nppd_demo", "ws_demo"])
 def test_onnx_export_matches_pytorch(name, tmp_path):
     pytest.importorskip("onnxruntime")
-    from denoiser.step_graph import check_export, export_onnx
+    from denoiser.inference.step_graph import check_export, export_onnx
 
     net = make_net(name, None, "none").eval()
     path = export_onnx(net, tmp_path / f"{name}.onnx", trace_size=(13, 21))

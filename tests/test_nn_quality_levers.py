@@ -150,7 +150,7 @@ def test_non_finite_albedo_gives_finite_output():
 
 
 def test_demodulation_and_gate_export_to_onnx(tmp_path):
-    from denoiser.step_graph import check_export, export_onnx
+    from denoiser.inference.step_graph import check_export, export_onnx
 
     net = tiny(demodulate=True, reject_threshold=0.1, seed=8)
     path = tmp_path / "net.onnx"
@@ -379,7 +379,7 @@ def test_filtered_remodulation_keeps_a_flat_albedo_and_starts_near_the_identity(
 
 
 def test_filtered_remodulation_exports_with_the_same_numbers(tmp_path):
-    from denoiser.step_graph import check_export, export_onnx
+    from denoiser.inference.step_graph import check_export, export_onnx
 
     net, _ = filtered(seed=8)
     path = export_onnx(net, tmp_path / "f.onnx")
@@ -390,7 +390,7 @@ def test_filtered_remodulation_exports_with_the_same_numbers(tmp_path):
 def test_parameter_transfer_reads_the_remodulation_taps():
     """The remodulation logits are the last 9 level-0 head channels, row-major taps; a teacher
     without them transfers nothing into them (the student keeps its near-identity start)."""
-    from denoiser.transfer import head_meanings, transfer_parameters
+    from denoiser.lit.transfer import head_meanings, transfer_parameters
 
     net, plain = filtered(seed=9)
     meanings = head_meanings(net)[0]
@@ -469,7 +469,7 @@ def test_log_domain_output_is_convex_and_finite_on_hard_inputs():
 
 
 def test_log_domain_exports_with_the_same_numbers(tmp_path):
-    from denoiser.step_graph import check_export, export_onnx
+    from denoiser.inference.step_graph import check_export, export_onnx
 
     net = in_domain("log", seed=6)
     path = export_onnx(net, tmp_path / "log.onnx")

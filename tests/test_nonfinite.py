@@ -96,7 +96,7 @@ def test_frame_read_from_exr_equals_raw_frame(net, tmp_path):
 
 def test_onnx_export_applies_the_rule(net, tmp_path):
     pytest.importorskip("onnxruntime")
-    from denoiser.step_graph import OnnxStep, export_onnx
+    from denoiser.inference.step_graph import OnnxStep, export_onnx
 
     path = export_onnx(net, tmp_path / "tiny.onnx")
     runner = OnnxStep(path, threads=1)

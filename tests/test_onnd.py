@@ -1,4 +1,4 @@
-"""ONND baseline (denoiser/onnd.py): cross-regression against a loop, the online step, robustness."""
+"""ONND baseline (denoiser/methods/onnd.py): cross-regression against a loop, the online step, robustness."""
 
 import itertools
 import math
@@ -9,7 +9,7 @@ import torch
 
 from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
-from denoiser.onnd import OnlineCrossRegression, cross_regression, half_buffers, half_variance
+from denoiser.methods.onnd import OnlineCrossRegression, cross_regression, half_buffers, half_variance
 
 
 def loop_cross_regression(y, guide, var, feats, radius, ridge):
@@ -193,7 +193,7 @@ def test_compare_is_default_plus_onnd():
     assert list(ev.baselines) == [*default.baselines, "onnd"]
     assert all(ev.baselines[k] == default.baselines[k] for k in default.baselines)
     assert bench.baselines.noisy is None and bench.baselines.onnd == ev.baselines.onnd
-    assert ev.baselines.onnd._target_ == "denoiser.onnd.OnlineCrossRegression" and ev.baselines.onnd.threads == 3
+    assert ev.baselines.onnd._target_ == "denoiser.methods.onnd.OnlineCrossRegression" and ev.baselines.onnd.threads == 3
 
 
 def test_resize_frame_resamples_each_sample():

@@ -19,12 +19,12 @@ from conftest import extension_or_skip
 pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
 pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
 
-from denoiser import ovext
-from denoiser.backends import OpenVinoBackend, TorchBackend
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import random_frame
+from denoiser.inference import ovext
+from denoiser.inference.backends import OpenVinoBackend, TorchBackend
+from denoiser.inference.step_graph import OpenVinoStep, export_onnx
 from denoiser.runner import RecurrentRunner
-from denoiser.step_graph import OpenVinoStep, export_onnx
 
 F32_RTOL = 1e-4
 BF16_RTOL = 0.03

@@ -1,4 +1,4 @@
-"""The OpenVINO extension (denoiser.ovext): each operation against what it replaces.
+"""The OpenVINO extension (denoiser.inference.ovext): each operation against what it replaces.
 
 ``denoiser::KernelApply`` against a plain loop over pixels (the definition in
 ``denoiser/nn/kernels.py``) and eager :func:`~denoiser.nn.kernels.apply_kernels`, at odd sizes,
@@ -23,8 +23,8 @@ import pytest
 import torch
 from conftest import extension_or_skip
 
-from denoiser import ovext
 from denoiser.errors import UserError
+from denoiser.inference import ovext
 from denoiser.nn.kernels import apply_kernels, kernels_as_op
 from denoiser.nn.pyramid import PyramidFilter
 
@@ -298,7 +298,7 @@ def test_add_upsampled_matches_interpolate(tmp_path, mode, hw, half):
 def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):
     pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
     pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
-    from denoiser.step_graph import OpenVinoStep
+    from denoiser.inference.step_graph import OpenVinoStep
 
     x, logits = torch.rand(1, 4, 8, 8), torch.randn(1, 9, 8, 8)
     path = export_filter(tmp_path / "m.onnx", None, x, logits)
@@ -395,7 +395,7 @@ def test_a_bad_timeout_is_a_reason_not_a_failed_build(fake, monkeypatch):
 
 def test_a_foreign_library_is_not_loaded(fake, capfd):
     """A real shared library (OpenVINO's TBB) planted at the exact path the cache loads from is
-    refused: by :func:`~denoiser.ovext.load_into` in the process that checked the build, and by the
+    refused: by :func:`~denoiser.inference.ovext.load_into` in the process that checked the build, and by the
     next process, which builds the library again; likewise with the recorded hash removed."""
     import openvino as ov
 

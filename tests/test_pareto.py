@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from denoiser.data.synthetic import write_synthetic_sequence
-from denoiser.pareto import dominates, front_indices, group_seeds, seed_of, varying_overrides
+from denoiser.report.pareto import dominates, front_indices, group_seeds, seed_of, varying_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 #: tiny, quiet training jobs: 2 steps of net=tiny on 16x16 crops, one validation at the end
@@ -27,7 +27,7 @@ TINY = ["data=tiny", "net=tiny", "threads=1", "trainer.enable_progress_bar=false
         "trainer.limit_val_batches=1", "model.image_interval=0", "hydra/job_logging=disabled",
         "hydra/hydra_logging=disabled"]
 #: the time objective at a test size on eager PyTorch
-TIME = "objectives.time={size:[32,32],backend:{_target_:denoiser.backends.TorchBackend},warmup:1,repeats:2}"
+TIME = "objectives.time={size:[32,32],backend:{_target_:denoiser.inference.backends.TorchBackend},warmup:1,repeats:2}"
 
 
 def plain_front(points):
@@ -278,9 +278,9 @@ def test_optuna_sweeper_runs_and_resumes_after_a_kill(data_root, tmp_path):
 @pytest.mark.parametrize("backend", ["openvino", "onnxruntime"])
 def test_a_network_without_recurrence_times_on_the_graph_backends(backend):
     """Without temporal recurrence the exported graph has no ``motion`` input: the feed leaves it out."""
-    from denoiser.backends import OnnxRuntimeBackend, OpenVinoBackend
     from denoiser.configs import build_net, compose_net_config
-    from denoiser.pareto import time_network
+    from denoiser.inference.backends import OnnxRuntimeBackend, OpenVinoBackend
+    from denoiser.report.pareto import time_network
 
     impl = OpenVinoBackend() if backend == "openvino" else OnnxRuntimeBackend()
     if impl.available():

@@ -63,7 +63,7 @@ ENTRIES = {
 PRELOAD = {
     "train": ["lightning.pytorch", "lightning.pytorch.loggers", "torch.utils.tensorboard", "tensorboard",
               "denoiser.lit.supervised", "denoiser.lit.distill", "denoiser.data.datamodule", "denoiser.checkpoint"],
-    "eval": ["denoiser.baselines", "denoiser.data.dataset", "pyoidn"],
+    "eval": ["denoiser.methods.baselines", "denoiser.data.dataset", "pyoidn"],
     "denoise": ["denoiser.data.dataset", "denoiser.checkpoint"],
     "export": ["onnx", "onnxruntime", "denoiser.checkpoint"],
     "render": ["mitsuba"],

@@ -152,10 +152,10 @@ def test_slurm_ddp_preset_makes_the_expected_sbatch_script(tmp_path, monkeypatch
     a placeholder ``srun`` on PATH satisfies submitit's cluster check; nothing is submitted)."""
     import submitit
     from hydra import compose, initialize_config_dir
-    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
     from omegaconf import OmegaConf
 
     from denoiser.conf import CONF_DIR
+    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", overrides=["hydra/launcher=slurm_ddp", "trainer=ddp", "trainer.num_nodes=2",

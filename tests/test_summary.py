@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from denoiser.conf import CONF_DIR
 from denoiser.render.catalog import load_scene_config
 from denoiser.render.effects import EFFECTS
-from denoiser.summary import format_mean_std, method_means, seed_groups, split_seed, tree_hash
+from denoiser.report.summary import format_mean_std, method_means, seed_groups, split_seed, tree_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 FIELDS = ["method", "scene", "sequence", "frames", "psnr", "ssim", "tpsnr", "flip", "relmse", "smape", "ms_per_frame"]

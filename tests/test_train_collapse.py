@@ -88,7 +88,7 @@ def freeze_into_the_identity(net, gap: float = GAP) -> None:
     partition ``gap`` on level 0, every kernel ``gap`` on its centre tap, the blends ``-gap``,
     every other logit 0. The rows of the recurrent state features keep their weights (with the
     blends at 0 the output does not depend on them)."""
-    from denoiser.transfer import head_meanings
+    from denoiser.lit.transfer import head_meanings
 
     logits = {("partition", 0): gap, ("history_in", 0): -gap, ("history_out", 0): -gap}
     with torch.no_grad():
@@ -236,7 +236,7 @@ def test_head_outputs_stay_bounded_with_the_logit_penalty(data, tmp_path, seed):
 
 def filter_rows(net) -> list[tuple[torch.nn.Conv2d, list[int]]]:
     """``(head conv, its rows of filter logits: partition and kernel taps)`` per U-Net level."""
-    from denoiser.transfer import head_meanings
+    from denoiser.lit.transfer import head_meanings
 
     return [(head, [row for row, m in enumerate(meanings) if m[0] in ("partition", "tap")])
             for head, meanings in zip(net.unet.heads, head_meanings(net))]

@@ -1,11 +1,11 @@
-"""Training losses (denoiser.losses): formulas, masking, warping convention, adversarial objectives."""
+"""Training losses (denoiser.lit.losses): formulas, masking, warping convention, adversarial objectives."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from denoiser.losses import (
+from denoiser.lit.losses import (
     DenoiseLoss,
     HingeAdversarial,
     WassersteinGP,

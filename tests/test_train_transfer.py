@@ -1,4 +1,4 @@
-"""Parameter transfer teacher -> student (denoiser.transfer): the L1 rule for hidden layers, the
+"""Parameter transfer teacher -> student (denoiser.lit.transfer): the L1 rule for hidden layers, the
 meaning of the head channels and U-Net inputs, and data-flow consistency."""
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ import torch
 from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
+from denoiser.lit.transfer import L1ChannelTransfer, plan_transfer, transfer_parameters
 from denoiser.nn.filters import SingleKernelFilter
 from denoiser.nn.inputs import GUIDE_CHANNELS
 from denoiser.nn.kernels import kernel_weights
 from denoiser.nn.pyramid import PyramidFilter
 from denoiser.runner import RecurrentRunner
-from denoiser.transfer import L1ChannelTransfer, plan_transfer, transfer_parameters
 
 STUDENT = ["net.embed.hidden=4", "net.embed.out_channels=4", "net.unet.encoder=[4,6,8]",
            "net.unet.bottleneck=8", "net.unet.decoder=[6,4]"]
@@ -118,7 +118,7 @@ def test_other_architectures_are_refused():
 
 # --- the meaning of the head channels and of the U-Net inputs -------------------------------------
 # Written out here from the documented layouts (denoiser.nn.pyramid, filters, temporal), independently
-# of denoiser.transfer: level-0 head = [partition logits (pyramid only), k0*k0 taps, h_in, h_out,
+# of denoiser.lit.transfer: level-0 head = [partition logits (pyramid only), k0*k0 taps, h_in, h_out,
 # F state features]; level i >= 1 = k_i*k_i taps; U-Net input = [embed, history output (3),
 # history color (3), guide, F state features, valid].
 

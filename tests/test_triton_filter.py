@@ -1,4 +1,4 @@
-"""The Triton pyramid filter (denoiser/triton_filter.py) against the torch module and a plain
+"""The Triton pyramid filter (denoiser/inference/triton_filter.py) against the torch module and a plain
 loop over pixels in float64, at odd sizes, k = 3 and 5, with hard values (large logits, NaN and
 Inf logits, zero input, fp16 and channels-last heads). Without a GPU the kernels run under
 Triton's interpreter (``TRITON_INTERPRET=1``) on CPU tensors; without triton the tests skip."""
@@ -53,11 +53,11 @@ def test_in_a_fresh_interpreter():
 
 @pytest.fixture(scope="module")
 def tf():
-    """denoiser.triton_filter with its kernels built for this machine (interpreted on the CPU;
+    """denoiser.inference.triton_filter with its kernels built for this machine (interpreted on the CPU;
     a module imported before the environment variable was set is reloaded)."""
     if not IN_PROCESS:
         pytest.skip("triton was imported uninterpreted: test_in_a_fresh_interpreter runs this in a child process")
-    import denoiser.triton_filter as module
+    import denoiser.inference.triton_filter as module
 
     if (DEVICE == "cpu") != isinstance(module._kernel_apply, InterpretedFunction):
         module = importlib.reload(module)
@@ -163,8 +163,8 @@ def test_pyramid_filter_matches_module(tf, sizes, scale):
 def test_denoiser_with_the_triton_filter_matches(tf):
     """Wired in by the CUDA backend (triton_filter=true): a recurrent sequence with a cut."""
     from denoiser.configs import build_net, compose_net_config
-    from denoiser.cuda_backend import CudaBackend
     from denoiser.frames import random_frame
+    from denoiser.inference.cuda_backend import CudaBackend
     from denoiser.runner import RecurrentRunner
 
     torch.manual_seed(0)

@@ -1,5 +1,6 @@
-"""A non-editable install runs the commands: the wheel ships the configs (``denoiser/conf``,
-package data), and the console scripts compose them from any directory.
+"""A non-editable install runs the commands: the wheel ships the configs (``denoiser/conf``) and
+the OpenVINO extension's C++ source (package data), and the console scripts compose the configs
+from any directory.
 
 The wheel is built from this checkout and installed with ``--no-deps`` into a fresh virtual
 environment in a temporary directory. That environment sees the project's dependencies (torch,
@@ -42,15 +43,21 @@ def test_wheel_install_runs_the_commands_outside_the_checkout(tmp_path):
     src.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(REPO / name, src / name)
-    shutil.copytree(REPO / "denoiser", src / "denoiser", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("denoiser", "conf", "hydra_plugins"):  # conf/ ships as the package denoiser.conf
+        shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     built = run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-q",
                  "-w", tmp_path / "dist", src], tmp_path, env)
     assert built.returncode == 0, built.stderr[-3000:]
     [wheel] = (tmp_path / "dist").glob("denoiser-*.whl")
     with zipfile.ZipFile(wheel) as z:
-        shipped = {n for n in z.namelist() if n.startswith("denoiser/conf/") and n.endswith(".yaml")}
+        names = set(z.namelist())
+    shipped = {n for n in names if n.startswith("denoiser/conf/") and n.endswith(".yaml")}
     configs = {f"denoiser/conf/{p.relative_to(CONF_DIR).as_posix()}" for p in Path(CONF_DIR).rglob("*.yaml")}
     assert configs and shipped == configs, sorted(configs ^ shipped)
+    assert "denoiser/conf/__init__.py" in names and not any(n.startswith("conf/") for n in names)
+    # the OpenVINO extension's C++ source (package data of denoiser.inference.ovext, built on first use)
+    sources = {p.relative_to(REPO).as_posix() for p in (REPO / "denoiser").rglob("*.cpp")}
+    assert "denoiser/inference/ovext/kernel_apply.cpp" in sources and sources <= names, sorted(sources - names)
 
     # 2. a fresh environment that sees the dependencies but not the editable install
     venv = tmp_path / "venv"

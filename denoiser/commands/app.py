@@ -1,4 +1,4 @@
-"""Shared start-up for the console commands (each one is a Hydra app over ``denoiser/conf/``).
+"""Shared start-up for the console commands (each one is a Hydra app over ``conf/``).
 
 ``hydra_command(task, config_name)`` returns a ``main()`` suitable for a console script:
 Hydra composes ``conf/<config_name>.yaml`` with the command line, then ``task(cfg)`` runs.

@@ -57,7 +57,7 @@ the default): for every checkpoint and backend that ran, a fresh prepared networ
 ``backend.prepare``) steps through the recurrent runner over the evaluation sequences of
 ``split`` at their native size, as ``denoiser-eval`` does (state reset at the first frame and
 at cuts, the first ``quality_warmup`` frames after each reset excluded, PSNR of
-:mod:`denoiser.metrics` through :class:`denoiser.evaluation.Evaluation`); ``quality_frames``
+:mod:`denoiser.metrics` through :class:`denoiser.report.evaluation.Evaluation`); ``quality_frames``
 (first N frames of each sequence) and ``max_sequences`` keep it cheap. That is the ``psnr``
 column, the same for every size of a (method, backend) pair (``psnr_from``: ``backend``). A
 bf16 speed-up thus comes with the PSNR of bf16. ``denoiser-eval``'s eager fp32 PSNR
@@ -70,7 +70,7 @@ Outputs in ``out_dir``: ``bench.csv`` (one row per method, backend, device and s
 ``times_ms``, the speed-ups and the harness checks), ``report.md`` (machine, harness check, the
 student vs OIDN-fast table at every size: each of the student's CPU rows, fp32 first, with the
 paired speed-up and its interval) and ``accuracy_vs_time.png`` (PSNR against ms per frame at
-``plot_size`` on a log axis; see :mod:`denoiser.plot_tradeoff`).
+``plot_size`` on a log axis; see :mod:`denoiser.report.plot_tradeoff`).
 """
 
 from __future__ import annotations
@@ -86,14 +86,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from denoiser.atomic import atomic_write_text
-from denoiser.backends import Stepper
 from denoiser.buffers import FRAME_INPUTS
+from denoiser.configs import plain
 from denoiser.errors import ConfigError
-from denoiser.evaluation import eval_means
 from denoiser.frames import resize_frame
 from denoiser.measure import (
     PeakRss,
@@ -107,6 +106,8 @@ from denoiser.measure import (
     summarize,
     write_csv,
 )
+from denoiser.report.evaluation import eval_means
+from denoiser.runner import Stepper
 
 # ----------------------------------------------------------------------------- frames
 
@@ -162,11 +163,11 @@ def network_methods(cfg: DictConfig) -> OrderedDict[str, dict]:
 def backend_quality(cfg: DictConfig, nets, backends, pairs, threads: int) -> dict[tuple[str, str], dict]:
     """``{(method, backend label): {"psnr": dB} | {"error": why}}``: each checkpoint of ``pairs``
     ``(method, backend key)`` prepared afresh by its backend and run over the evaluation
-    sequences like ``denoiser-eval`` (one :class:`~denoiser.evaluation.Evaluation` per pair, so a
+    sequences like ``denoiser-eval`` (one :class:`~denoiser.report.evaluation.Evaluation` per pair, so a
     failing backend fails alone)."""
-    from denoiser.baselines import StepperMethod
     from denoiser.data.evalset import open_test_split, read_frame
-    from denoiser.evaluation import Evaluation
+    from denoiser.methods.baselines import StepperMethod
+    from denoiser.report.evaluation import Evaluation
 
     if not pairs:
         return {}
@@ -252,7 +253,7 @@ def oidn_harness_steps(method, frames: list[dict]) -> StagedStep:
     layout before the clock starts (our frames are planar ``[1, C, H, W]``; a renderer hands OIDN
     interleaved pixels), the timed call is ``method.denoise_arrays`` (the clamping copies into
     OIDN's shared images, the filter, the output copy)."""
-    from denoiser.baselines import _hwc
+    from denoiser.methods.baselines import _hwc
 
     def stage(k: int):
         frame = frames[k % len(frames)]
@@ -272,7 +273,7 @@ def oidn_direct_steps(quality: str, threads: int, frames: list[dict]) -> tuple[S
     import pyoidn.filter as oidn_filter
     from pyoidn.device import Device
 
-    from denoiser.baselines import _hwc
+    from denoiser.methods.baselines import _hwc
 
     h, w = frames[0]["color"].shape[-2:]
     images = {n: np.zeros((h, w, 3), np.float32) for n in ("color", "albedo", "normal", "output")}
@@ -331,8 +332,8 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, versions: d
     ``repeats`` timed steps are interleaved (:func:`~denoiser.measure.round_robin`: each round
     times every method once, in a rotated order), so a slow phase of the machine falls on every
     method alike and the speed-up vs the baseline is paired per round."""
-    from denoiser.baselines import OidnDenoiser, build_baselines
     from denoiser.configs import instantiate_config
+    from denoiser.methods.baselines import OidnDenoiser, build_baselines
 
     versions = versions if versions is not None else engine_versions()
     isa = isa if isa is not None else cpu_isa()
@@ -640,7 +641,7 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
     if profiled:
         parts += ["", *profiled]
     if plot is not None:
-        from denoiser.plot_tradeoff import pareto_front_of_rows
+        from denoiser.report.plot_tradeoff import pareto_front_of_rows
 
         size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
         front = pareto_front_of_rows(rows, size)
@@ -726,12 +727,12 @@ def run(cfg: DictConfig) -> list[dict]:
                                                                 "share"])
     plot_path = None
     if any(not math.isnan(r["psnr"]) for r in rows):
-        from denoiser.plot_tradeoff import plot_accuracy_vs_time
+        from denoiser.report.plot_tradeoff import plot_accuracy_vs_time
 
         plot_size = tuple(int(v) for v in (cfg.get("plot_size") or cfg.sizes[-1]))
         noisy = quality.get(cfg.get("noisy_label", "noisy input"))
         plot_path = plot_accuracy_vs_time(out_dir / "accuracy_vs_time.png", rows, plot_size,
-                                          curves=_plain(cfg.get("curves")),
+                                          curves=plain(cfg.get("curves")) or {},
                                           noisy_psnr=float(noisy["psnr"]) if noisy else None,
                                           title=f"{seq_name} frames at {plot_size[1]}x{plot_size[0]}, {threads} CPU thread(s)")
     student = cfg.compare.student or default_student(network_labels(rows))
@@ -768,11 +769,6 @@ def write_json(path: Path, data: dict) -> Path:
         return x
 
     return atomic_write_text(path, json.dumps(clean(data), indent=1) + "\n")
-
-
-def _plain(node) -> dict:
-    """A config node (or None) as a plain dict."""
-    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
 
 
 def default_student(labels: list[str]) -> str | None:

@@ -32,7 +32,7 @@ Variants (how a network is prepared and run; ``VARIANTS``):
   ``variants`` and its warm-up (3 steps, compiling both the first-frame and the recurrent
   graph) is reported separately as ``warm-up s``;
 * ``openvino_f32``, ``openvino_bf16``: the exported step graph compiled by OpenVINO
-  (:class:`~denoiser.backends.OpenVinoBackend`; export and compilation happen before and in the
+  (:class:`~denoiser.inference.backends.OpenVinoBackend`; export and compilation happen before and in the
   warm-up steps; bf16 needs AVX512-BF16/AMX).
 
 Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant. ``repeats``
@@ -100,7 +100,7 @@ def _openvino(precision):
 
         import torch
 
-        from denoiser.backends import OpenVinoBackend
+        from denoiser.inference.backends import OpenVinoBackend
 
         backend = OpenVinoBackend(f"openvino {precision}", precision=precision)
         reason = backend.available()
@@ -132,9 +132,9 @@ def run_net(job: dict) -> dict:
     """Worker: time ``step`` of one net/size/variant; returns ms per run and the RSS growth."""
     import torch
 
-    from denoiser.backends import Stepper
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
+    from denoiser.runner import Stepper
 
     torch.set_flush_denormal(True)
     net = build_net(compose_net_config(job["net"])).eval()

@@ -7,7 +7,7 @@ Usage::
 A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its end. It reads
 
 * ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the test split; students labelled
-  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.summary`), one row
+  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.report.summary`), one row
   for methods with identical per-sequence values (``OIDN-balanced = OIDN-high``), and the
   paired claims of ``claims`` (network minus baseline per sequence, a bootstrap interval over
   sequences and a verdict from it), with a per-family table of the same differences;
@@ -28,7 +28,7 @@ claims) into the README.
     python -m denoiser.commands.demo_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
 
 which adds the figure tables declared under ``tables`` (the paper's Fig. A.2 and A.3, with
-their ranking lines; :mod:`denoiser.figure_tables`) above the table of every method.
+their ranking lines; :mod:`denoiser.report.figure_tables`) above the table of every method.
 """
 
 from __future__ import annotations
@@ -39,12 +39,11 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from denoiser.atomic import atomic_write_text
-from denoiser.checkpoint import read_checkpoint
 from denoiser.errors import ConfigError, UserError
-from denoiser.figure_tables import figure_sections
 from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS
-from denoiser.summary import (
+from denoiser.report.figure_tables import figure_sections
+from denoiser.report.summary import (
     SUMMARY_COLUMNS,
     check_claims,
     claim_lines,
@@ -55,9 +54,9 @@ from denoiser.summary import (
     group_timing,
     merge_identical,
     method_means,
+    run_row,
     seed_groups,
     sequence_values,
-    split_seed,
     tree_hash,
 )
 
@@ -67,19 +66,7 @@ BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 
 def run_rows(runs: Path) -> list[dict]:
     """One row per run directory: name, seed, steps (last.ckpt), best val PSNR (best.ckpt)."""
-    rows = []
-    for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir()):
-        row: dict = {"run": run.name, "seed": split_seed(run.name)[1]}
-        last, best = run / "checkpoints" / "last.ckpt", run / "checkpoints" / "best.ckpt"
-        if last.exists():
-            row["steps"] = int(read_checkpoint(last)["global_step"])
-        if best.exists():
-            for key, state in read_checkpoint(best)["callbacks"].items():
-                if "val/psnr" in key and isinstance(state, dict) and state.get("best_model_score") is not None:
-                    row["val_psnr"] = float(state["best_model_score"])
-        row["collapsed"] = "yes" if (run / "COLLAPSED").exists() else "no"
-        rows.append(row)
-    return rows
+    return [run_row(run) for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir())]
 
 
 #: the precisions a summary shows time columns for, in order (f32 first: like with like against OIDN)
@@ -126,7 +113,7 @@ def metric_row(group: dict) -> dict:
 
 
 def merged_note(groups: list[dict]) -> list[str]:
-    """A paragraph under a table naming its merged rows (:func:`denoiser.summary.merge_identical`)."""
+    """A paragraph under a table naming its merged rows (:func:`denoiser.report.summary.merge_identical`)."""
     merged = [g["method"] for g in groups if len(g.get("members", [])) > 1]
     note = (f"`{' `, `'.join(merged)}`: the same value on every sequence and metric, one row (OIDN's qualities "
             "run the same weights where its large weights are not installed, as on this CPU).")
@@ -134,8 +121,8 @@ def merged_note(groups: list[dict]) -> list[str]:
 
 
 def evaluation(path: Path) -> tuple[list[dict], dict]:
-    """A metrics.csv's seed groups (:func:`denoiser.summary.seed_groups`) and its per-sequence
-    values per group (:func:`denoiser.summary.group_sequences`)."""
+    """A metrics.csv's seed groups (:func:`denoiser.report.summary.seed_groups`) and its per-sequence
+    values per group (:func:`denoiser.report.summary.group_sequences`)."""
     rows = read_csv(path)
     return seed_groups(method_means(rows)), group_sequences(sequence_values(rows))
 

@@ -25,13 +25,13 @@ so a damaged input frame stops the command with one error line and no output; th
 few percent of the run (decoding is ~1 % of a CPU network step).
 
 Backend (``backend``): ``eager`` (PyTorch, ``Denoiser.step``), ``onnxruntime`` or ``openvino``
-(the exported step graph, :mod:`denoiser.step_graph`; exported once at start, OpenVINO compiles
+(the exported step graph, :mod:`denoiser.inference.step_graph`; exported once at start, OpenVINO compiles
 it once for the frame size); null (default) picks ``openvino`` when it is installed (with
 ``onnx`` for the export) and the device is the CPU, else ``eager``. ``precision``: ``f32``
 (default: the outputs match eager PyTorch within float32 rounding, see ``tests/test_openvino.py``)
 or ``bf16`` (OpenVINO's bf16 inference precision, eager's bfloat16 autocast; faster on CPUs with
 AVX512-BF16/AMX, errors of a few 1e-3 relative). With ``device=cuda``: ``cuda`` and
-``cuda_compiled`` (:mod:`denoiser.cuda_backend`: weights cast once to ``precision`` f32, bf16 or
+``cuda_compiled`` (:mod:`denoiser.inference.cuda_backend`: weights cast once to ``precision`` f32, bf16 or
 fp16, the Triton filter; ``cuda_compiled`` replays a CUDA graph per frame size; docs/gpu.md).
 Every backend steps through the one recurrent runner (:class:`~denoiser.runner.RecurrentRunner`).
 
@@ -73,9 +73,9 @@ def openvino_installed() -> bool:
 
 
 def make_backend(name: str | None, precision: str, device: torch.device):
-    """The backend of ``backend=`` / ``precision=`` (:mod:`denoiser.backends`); ``name`` None:
+    """The backend of ``backend=`` / ``precision=`` (:mod:`denoiser.inference.backends`); ``name`` None:
     ``openvino`` when installed and ``device`` is the CPU, else ``eager``."""
-    from denoiser.backends import OnnxRuntimeBackend, OpenVinoBackend, TorchBackend
+    from denoiser.inference.backends import OnnxRuntimeBackend, OpenVinoBackend, TorchBackend
 
     if precision not in PRECISIONS:
         raise ConfigError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
@@ -85,8 +85,8 @@ def make_backend(name: str | None, precision: str, device: torch.device):
         raise ConfigError(f"backend: {name!r} is not one of {', '.join(BACKENDS)}")
     if name in ("onnxruntime", "openvino") and device.type != "cpu":
         raise ConfigError(f"backend={name} runs on the CPU; use device=cpu or backend=eager")
-    if name.startswith("cuda"):  # denoiser/cuda_backend.py: cast weights, Triton filter, CUDA graph
-        from denoiser.cuda_backend import CudaBackend, CudaGraphBackend
+    if name.startswith("cuda"):  # denoiser/inference/cuda_backend.py: cast weights, Triton filter, CUDA graph
+        from denoiser.inference.cuda_backend import CudaBackend, CudaGraphBackend
 
         if device.type != "cuda":
             raise ConfigError(f"backend={name} needs device=cuda")

@@ -8,7 +8,7 @@
 
 Config: ``conf/eval.yaml`` (composes the groups ``data``: root and test split, ``layout``, and
 ``baselines``). Methods: the baselines of ``baselines`` (``conf/baselines/default.yaml``, Hydra
-``_target_`` entries: the noisy input and OIDN fast/balanced/high, see :mod:`denoiser.baselines`)
+``_target_`` entries: the noisy input and OIDN fast/balanced/high, see :mod:`denoiser.methods.baselines`)
 followed by the checkpoints, in the order given. Every method sees the same frames; networks
 run recurrently over each whole sequence in order (state carried, reset at the first frame and
 at camera cuts).
@@ -45,14 +45,14 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from denoiser.atomic import atomic_write_text, remove_stale_temporaries
-from denoiser.baselines import NetworkMethod, build_baselines
 from denoiser.checkpoint import checkpoint_paths, load_denoiser
 from denoiser.data.evalset import open_test_split
 from denoiser.errors import ConfigError
-from denoiser.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
 from denoiser.measure import markdown_table, write_csv
+from denoiser.methods.baselines import NetworkMethod, build_baselines
 from denoiser.metrics import METRICS
-from denoiser.plot_crops import save_crops
+from denoiser.report.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
+from denoiser.report.plot_crops import save_crops
 
 log = logging.getLogger(__name__)
 

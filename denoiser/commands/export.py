@@ -5,13 +5,13 @@
     denoiser-export ckpt=runs/student.ckpt out=student.onnx
     denoiser-export ckpt=s.ckpt out=s.onnx check_size=[720,1280]     # check at 720p
 
-The graph and its inputs and outputs are described in :mod:`denoiser.step_graph` and
+The graph and its inputs and outputs are described in :mod:`denoiser.inference.step_graph` and
 ``docs/export.md``. The result is checked by ONNX Runtime against PyTorch at ``check_size``, a
 different resolution from ``trace_size``, over two recurrent steps (reset, then with the
 returned state); the largest absolute error of every output is printed and must stay below
 ``tolerance * max(1, max |value|)``. ``kernels=fused`` writes the kernel filter and the
 ``log1p`` transforms as operations of the project's OpenVINO extension (``denoiser::PyramidFilter``,
-``denoiser::Log1p``), which only OpenVINO with that extension runs (:mod:`denoiser.ovext`); that
+``denoiser::Log1p``), which only OpenVINO with that extension runs (:mod:`denoiser.inference.ovext`); that
 graph is checked with OpenVINO f32 instead.
 """
 
@@ -24,7 +24,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from denoiser.errors import ConfigError, UserError
-from denoiser.step_graph import check_export, export_onnx, trtexec_command
+from denoiser.inference.step_graph import check_export, export_onnx, trtexec_command
 
 
 def default_output(ckpt: str | os.PathLike) -> Path:
@@ -51,7 +51,7 @@ def run(cfg: DictConfig) -> dict:
     if kernels not in ("graph", "fused"):
         raise ConfigError(f"kernels: {kernels!r} is not graph or fused")
     if kernels == "fused":
-        from denoiser import ovext
+        from denoiser.inference import ovext
 
         if ovext.kernel_extension() is None:
             raise UserError(f"kernels=fused needs the OpenVINO extension: {ovext.unavailable_reason()}")

@@ -6,14 +6,14 @@ A Hydra app over ``conf/gpu_check.yaml``. In one process, within ``budget_s``, i
 measured) and ``<out>/rows.csv``:
 
 1. the device: GPU, driver, torch, CUDA, cuDNN and Triton versions
-   (:func:`denoiser.cuda_backend.device_report`), and the card's fp16/bf16 matmul and copy
-   bandwidth measured now (:func:`~denoiser.cuda_backend.gpu_peaks`);
+   (:func:`denoiser.inference.cuda_backend.device_report`), and the card's fp16/bf16 matmul and copy
+   bandwidth measured now (:func:`~denoiser.inference.cuda_backend.gpu_peaks`);
 2. inference at ``inference.size`` (1080p): each row a backend of ``conf/bench.yaml`` (the
    eager autocast baseline, ``cuda`` and ``cuda_compiled`` with the torch and the Triton filter,
-   the teacher) timed with CUDA events (:func:`~denoiser.cuda_backend.cuda_event_times`, median
+   the teacher) timed with CUDA events (:func:`~denoiser.inference.cuda_backend.cuda_event_times`, median
    of ``repeats`` after ``warmup`` steps on frames already on the GPU), GFLOP per frame
    (:func:`denoiser.measure.count_flops`), achieved TFLOP/s and its share of the measured matmul
-   peak, the bytes a step must move (:func:`~denoiser.cuda_backend.step_traffic`: ``floor``) and
+   peak, the bytes a step must move (:func:`~denoiser.inference.cuda_backend.step_traffic`: ``floor``) and
    the time that takes at the measured bandwidth as a share of the step, the op-by-op traffic of
    eager execution, peak GPU memory, and the largest relative difference from eager fp32 on the
    GPU over ``parity_frames`` frames;
@@ -74,8 +74,8 @@ def error_line(exc: BaseException) -> str:
 
 def inference_rows(cfg: DictConfig, peaks: dict, deadline: float, report: Report) -> list[dict]:
     from denoiser.configs import build_net, compose_config, compose_net_config, instantiate_config
-    from denoiser.cuda_backend import cuda_event_times, step_traffic
     from denoiser.frames import random_frame
+    from denoiser.inference.cuda_backend import cuda_event_times, step_traffic
     from denoiser.measure import count_flops, markdown_table, summarize
     from denoiser.runner import RecurrentRunner
 
@@ -154,7 +154,7 @@ def inference_text(rows, columns, h, w, markdown_table) -> str:
 def train_step_rows(cfg: DictConfig, deadline: float, report: Report) -> list[dict]:
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
-    from denoiser.losses import DenoiseLoss
+    from denoiser.lit.losses import DenoiseLoss
     from denoiser.measure import markdown_table, summarize
 
     ts = cfg.train_step
@@ -282,7 +282,7 @@ def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report)
 
 
 def run(cfg: DictConfig) -> dict:
-    from denoiser.cuda_backend import device_report, gpu_peaks
+    from denoiser.inference.cuda_backend import device_report, gpu_peaks
     from denoiser.measure import write_csv
 
     out = Path(cfg.out)

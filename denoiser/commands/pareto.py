@@ -9,7 +9,7 @@ multirun of ``denoiser-train -m experiment=pareto``, grid or Optuna): its overri
 denoiser-train) and its checkpoint (``checkpoints/last.ckpt``, the weights those metrics
 describe). Then, one network after another in this process (never two timings side by side),
 it counts parameters and GFLOP and times each network on one CPU backend (``backend``; OpenVINO
-by default) at each of ``sizes``, as ``denoiser-bench`` does (:func:`denoiser.pareto.time_network`).
+by default) at each of ``sizes``, as ``denoiser-bench`` does (:func:`denoiser.report.pareto.time_network`).
 Timings are cached in ``out_dir/cache/`` per checkpoint file version and settings, so a rerun
 only times new or changed checkpoints.
 
@@ -34,9 +34,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from denoiser.atomic import atomic_write_text
 from denoiser.configs import instantiate_config
 from denoiser.errors import ConfigError, UserError
-from denoiser.evaluation import eval_means
 from denoiser.measure import count_flops, markdown_table, read_csv, write_csv
-from denoiser.pareto import (
+from denoiser.report.evaluation import eval_means
+from denoiser.report.pareto import (
     cache_key,
     dominates,
     front_indices,
@@ -47,8 +47,8 @@ from denoiser.pareto import (
     time_network,
     varying_overrides,
 )
-from denoiser.plot_tradeoff import plot_accuracy_vs_time
-from denoiser.summary import git_commit
+from denoiser.report.plot_tradeoff import plot_accuracy_vs_time
+from denoiser.report.summary import git_commit
 
 NAN = float("nan")
 
@@ -146,10 +146,10 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
 
     import torch
 
-    from denoiser.backends import Stepper
-    from denoiser.baselines import build_baselines
     from denoiser.measure import summarize, time_steps
-    from denoiser.pareto import random_frames
+    from denoiser.methods.baselines import build_baselines
+    from denoiser.report.pareto import timing_frames
+    from denoiser.runner import Stepper
 
     torch.set_num_threads(threads)
 
@@ -171,7 +171,7 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
             times = {}
             for size in sizes:
                 print(f"[baseline] {label} at {size_tag(size)}", flush=True)
-                frames = random_frames(*size)
+                frames = timing_frames(*size)
                 stepper = Stepper(lambda f, s, m=method: (m(f, s is None), None))
                 times[f"ms_{size_tag(size)}"] = 1000 * summarize(time_steps(stepper, frames, int(cfg.warmup),
                                                                             int(cfg.repeats)))["median"]

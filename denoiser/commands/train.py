@@ -78,7 +78,7 @@ def final_metrics(trainer) -> dict[str, float]:
 def measure_time(cfg: DictConfig, net) -> dict[str, float]:
     """The time objective (``objectives.time``): ms per frame of the trained ``net`` at
     ``objectives.time.size`` on its backend; ``{}`` when not configured."""
-    from denoiser.pareto import time_network
+    from denoiser.report.pareto import time_network
 
     spec = (cfg.get("objectives") or {}).get("time")
     if not spec:
@@ -91,17 +91,33 @@ def measure_time(cfg: DictConfig, net) -> dict[str, float]:
     return {"time/ms": row["ms_median"], "time/ms_min": row["ms_min"]}
 
 
+def same_overrides(a: list[str], b: list[str]) -> bool:
+    """Whether two command lines' overrides ask for the same run: the same set of (key, value)
+    as Hydra parses them, so ``skip_done=true`` (a single run, as typed) equals ``skip_done=True``
+    (the same value in a multirun job, which Hydra writes back) and the order does not count."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    def canonical(overrides: list[str]) -> list[str]:
+        parser = OverridesParser.create()
+        return sorted(repr((o.type.name, o.key_or_group, o.package, o.value())) for o in parser.parse_overrides(overrides))
+
+    try:
+        return canonical(list(a)) == canonical(list(b))
+    except Exception:  # noqa: BLE001 - an override Hydra cannot parse: the strings decide
+        return list(a) == list(b)
+
+
 def stored_run(cfg: DictConfig) -> dict[str, float] | None:
     """With ``skip_done``, the metrics of a finished run of the same overrides in this run
     directory (DONE and metrics.json); a run of other overrides there is an error."""
-    from denoiser.pareto import DONE_FILE, METRICS_FILE, read_json
+    from denoiser.report.pareto import DONE_FILE, METRICS_FILE, read_json
 
     out = Path(cfg.output_dir)
     if not cfg.get("skip_done") or not (out / DONE_FILE).is_file():
         return None
     stored = read_json(out / METRICS_FILE)
     overrides = hydra_runtime()[0]
-    if stored.get("overrides") is not None and stored["overrides"] != overrides:
+    if stored.get("overrides") is not None and not same_overrides(stored["overrides"], overrides):
         raise ConfigError(f"skip_done: {out} holds a finished run of other overrides ({' '.join(stored['overrides'])}); "
                           "use another hydra.sweep.dir")
     print(f"{out}: finished before, skipped (skip_done=true)", file=sys.stderr)
@@ -110,7 +126,7 @@ def stored_run(cfg: DictConfig) -> dict[str, float] | None:
 
 def write_done(cfg: DictConfig, metrics: dict[str, float]) -> None:
     from denoiser.atomic import atomic_write_text
-    from denoiser.pareto import DONE_FILE, METRICS_FILE
+    from denoiser.report.pareto import DONE_FILE, METRICS_FILE
 
     out = Path(cfg.output_dir)
     atomic_write_text(out / METRICS_FILE, json.dumps({"overrides": hydra_runtime()[0], "metrics": metrics}, indent=1))

@@ -8,13 +8,13 @@ is not computed, not logged and absent from :meth:`DistillationModule.loss_terms
 
 * ``kd_*`` (``loss.kd_weight``): pixel-level distillation, the student output against the
   teacher output on *every* frame of *every* item (labeled or not), with the terms of
-  ``loss.kd`` (:class:`denoiser.losses.DenoiseLoss`: SMAPE, gradient, and the temporal term
+  ``loss.kd`` (:class:`denoiser.lit.losses.DenoiseLoss`: SMAPE, gradient, and the temporal term
   on warped consecutive frames);
 * ``gt_*`` (``loss.gt_weight``): the same kind of terms (``loss.gt``) against the reference on
   items that have one (batch ``labeled`` flag). Unlabeled sequences (data ``use_unlabeled``)
   therefore learn from the teacher's output alone;
 * ``feature`` (``loss.feature_weight``): feature distillation, mean over the paired U-Net
-  levels and frames of :func:`denoiser.losses.feature_loss` between 1x1-adapted student maps
+  levels and frames of :func:`denoiser.lit.losses.feature_loss` between 1x1-adapted student maps
   (:class:`denoiser.lit.adapters.FeatureAdapters`, trained with the student) and teacher maps;
 * ``adversarial`` (``loss.adversarial_weight``): image-level term, the generator loss of a
   patch critic (``critic``, e.g. :class:`denoiser.nn.critic.PatchCritic`) that learns to tell
@@ -27,7 +27,7 @@ is not computed, not logged and absent from :meth:`DistillationModule.loss_terms
   (so ``max_steps`` and resuming mean the same as in supervised training). ``grad_clip``
   clips the student's gradients after unscaling (``on_before_optimizer_step``).
 
-``param_transfer`` (a ``_target_`` config such as :class:`denoiser.transfer.L1ChannelTransfer`,
+``param_transfer`` (a ``_target_`` config such as :class:`denoiser.lit.transfer.L1ChannelTransfer`,
 or null) initializes the student from the teacher's weights before training.
 
 The teacher is loaded only when a term or the transfer needs it (``no_kd`` trains the student
@@ -47,10 +47,10 @@ from denoiser.configs import plain
 from denoiser.errors import ConfigError
 from denoiser.lit.adapters import FeatureAdapters
 from denoiser.lit.common import DenoiserModule, labeled_mask
-from denoiser.losses import feature_loss, log_compress, masked_mean
+from denoiser.lit.losses import feature_loss, log_compress, masked_mean
 
 DEFAULT_LOSS = {"kd_weight": 1.0, "gt_weight": 1.0, "feature_weight": 0.0, "adversarial_weight": 0.0,
-                "kd": {"_target_": "denoiser.losses.DenoiseLoss"}, "gt": {"_target_": "denoiser.losses.DenoiseLoss"}}
+                "kd": {"_target_": "denoiser.lit.losses.DenoiseLoss"}, "gt": {"_target_": "denoiser.lit.losses.DenoiseLoss"}}
 
 
 def _no_closure() -> None:

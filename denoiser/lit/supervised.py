@@ -4,7 +4,7 @@ Truncated backpropagation through time: each batch is a window of ``T`` consecut
 (``T`` is the data config's window length); the network is unrolled over the window from an
 empty history (``reset`` is True on the window's first frame) and the recurrent state is
 detached every ``detach_every`` frames (model config; 0 = backpropagate through the whole
-window). The loss (:class:`denoiser.losses.DenoiseLoss`, weights in config) is taken on every
+window). The loss (:class:`denoiser.lit.losses.DenoiseLoss`, weights in config) is taken on every
 frame of the window against the reference; unlabeled items (``labeled`` False) are masked out.
 
 Logged: ``train/loss`` and ``train/loss_<term>`` (weighted terms), validation metrics
@@ -21,7 +21,7 @@ import torch
 
 from denoiser.configs import plain
 from denoiser.lit.common import DenoiserModule, labeled_mask
-from denoiser.losses import DenoiseLoss, masked_mean
+from denoiser.lit.losses import DenoiseLoss, masked_mean
 
 
 class SupervisedModule(DenoiserModule):

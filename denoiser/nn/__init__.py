@@ -16,5 +16,9 @@ Parts, each in its own module:
 * :mod:`.denoiser` - :class:`Denoiser` with the one ``step`` used everywhere;
 * :mod:`.critic`   - :class:`PatchCritic` for adversarial distillation.
 
+Imports only the root vocabulary (:mod:`denoiser.nonfinite`, :mod:`denoiser.errors`,
+:mod:`denoiser.buffers`, :mod:`denoiser.runner`, ...) and itself; every other part may import
+it (``inference``, ``methods``, ``report``, ``lit``, the commands), ``data`` and ``render`` do not.
+
 See ``docs/architecture.md`` for how the parts fit together.
 """

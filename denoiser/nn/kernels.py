@@ -89,7 +89,7 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
     Non-finite logits are replaced first (NaN -> 0, +-Inf -> +-1e4; float16 autocast can
     overflow a head). Traced or exported, that replacement is left out: a graph's inputs are
     sanitised once per frame, bounded by their transforms, and its weights are checked finite at
-    export (:func:`denoiser.step_graph.export_onnx`), so its logits are finite (a float32 or
+    export (:func:`denoiser.inference.step_graph.export_onnx`), so its logits are finite (a float32 or
     bfloat16 engine has float32's range); the replacement cost 3% of the demo student's time at
     1080p in OpenVINO. Computed in float32.
     """
@@ -173,7 +173,7 @@ def kernels_as_op(enabled: bool = True) -> Iterator[None]:
     node (attributes ``scale`` float, ``has_scale`` int) instead of slices, a softmax and k*k
     multiply-adds, a :class:`~denoiser.nn.pyramid.PyramidFilter` one ``denoiser::PyramidFilter``
     node and :func:`denoiser.nn.inputs.log1p` one ``denoiser::Log1p`` node: the fused operations
-    of the OpenVINO extension :mod:`denoiser.ovext`. Only an engine with that extension loaded can
+    of the OpenVINO extension :mod:`denoiser.inference.ovext`. Only an engine with that extension loaded can
     run such a graph."""
     token = _KERNEL_OP.set(bool(enabled))
     try:

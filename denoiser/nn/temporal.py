@@ -55,7 +55,7 @@ change) is pulled to what the current frame shows, whatever the learned blend pr
 history that agrees with the current frame passes unchanged. Noise widens the box, so on a
 noisy input it rejects only gross disagreement; the filtered frame's box is tighter.
 
-Probe (diagnostics, :mod:`denoiser.history_diagnosis`): ``TemporalRecurrence.probe`` is None
+Probe (diagnostics, :mod:`denoiser.report.history_diagnosis`): ``TemporalRecurrence.probe`` is None
 (the default: nothing recorded, one attribute test per step). Set to a dict, every
 :meth:`~TemporalRecurrence.warp` puts into it the tensors of that step it does not return
 otherwise: ``"cover" [B, 1, H, W]`` (bilinear coverage, 0 where history was reset) and

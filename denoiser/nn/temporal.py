@@ -44,6 +44,17 @@ largest of three disagreements between the warped previous guide ``P`` and the c
 The depth term also compares ``log m`` of the two frames (the per-frame mean hit depth):
 changes of ``m`` by less than ``t`` between two frames do not reject anything.
 
+History clamp (``history_clamp`` ``k``; None = off, the behaviour of configs from before it
+existed): before each blend, the warped history is clamped per channel to the box
+``[mu - k sigma, mu + k sigma]`` of the frame it is blended into, over each pixel's 3x3
+neighbourhood (mean and standard deviation of the in-image part): the history color to the box
+of the current color, the history output to the box of the filtered frame. It is the
+neighbourhood clamp of temporal anti-aliasing: history that the current frame cannot explain (a
+turning object's interior, whose warped history the motion vectors cannot line up, or a shading
+change) is pulled to what the current frame shows, whatever the learned blend predicts, while
+history that agrees with the current frame passes unchanged. Noise widens the box, so on a
+noisy input it rejects only gross disagreement; the filtered frame's box is tighter.
+
 Probe (diagnostics, :mod:`denoiser.report.history_diagnosis`): ``TemporalRecurrence.probe`` is None
 (the default: nothing recorded, one attribute test per step). Set to a dict, every
 :meth:`~TemporalRecurrence.warp` puts into it the tensors of that step it does not return
@@ -90,6 +101,35 @@ def _box_excess(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
     return torch.maximum(previous - hi, lo - previous).clamp_min(0).amax(dim=1, keepdim=True)
 
 
+def neighbourhood_clamp(history: torch.Tensor, current: torch.Tensor, k: float) -> torch.Tensor:
+    """``history [B, C, H, W]`` clamped per channel to ``[mu - k sigma, mu + k sigma]``, the mean
+    and (population) standard deviation of ``current [B, C, H, W]`` over each pixel's 3x3
+    neighbourhood, the edges replicated. float32; finite for finite inputs.
+
+    The moments are taken of the differences to the centre pixel, ``d = x_n - x_c`` (mean
+    ``x_c + E[d]``, variance ``E[d^2] - E[d]^2``), as nine shifted slices: the variance then does
+    not lose the small spread of a bright neighbourhood to float32 cancellation, as
+    ``E[x^2] - E[x]^2`` would."""
+    x = current.float()
+    h, w = x.shape[-2:]
+    xp = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    total = torch.zeros_like(x)
+    squares = torch.zeros_like(x)
+    for dy in range(3):
+        for dx in range(3):
+            if dy == 1 and dx == 1:
+                continue
+            d = xp[..., dy:dy + h, dx:dx + w] - x
+            total = total + d
+            squares = squares + d * d
+    mean_d = total / 9.0
+    var = (squares / 9.0 - mean_d * mean_d).clamp_min(0.0)
+    mean = x + mean_d
+    # the epsilon keeps the square root's gradient finite where the neighbourhood is constant
+    spread = k * torch.sqrt(var + 1e-12)
+    return torch.minimum(torch.maximum(history.float(), mean - spread), mean + spread)
+
+
 def _log_depth_ratio(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
     """``|logit(p) - logit(c)|`` of two depth features ``d / (d + m)`` (``[B, 1, H, W]`` each),
     i.e. the absolute log ratio of ``d / m`` between the frames, with one logarithm:
@@ -123,10 +163,16 @@ class TemporalRecurrence(nn.Module):
         state_features: channels F of the learned recurrent features.
         reject_threshold: ``t`` of the disocclusion gate (module docstring), > 0; None (the
             default, and what a stored config without the key means) switches the gate off.
+        history_clamp: ``k`` of the history clamp (module docstring), > 0; None (the default,
+            and what a stored config without the key means) switches it off.
     """
 
-    def __init__(self, state_features: int = 8, reject_threshold: float | None = None):
+    def __init__(self, state_features: int = 8, reject_threshold: float | None = None,
+                 history_clamp: float | None = None):
         super().__init__()
+        if history_clamp is not None and not float(history_clamp) > 0:
+            raise ConfigError(f"net.temporal.history_clamp: must be > 0 or null, got {history_clamp}")
+        self.history_clamp = None if history_clamp is None else float(history_clamp)
         self.state_features = int(state_features)
         if reject_threshold is not None and not float(reject_threshold) > 0:
             raise ConfigError(f"net.temporal.reject_threshold: must be > 0 or null, got {reject_threshold}")
@@ -218,13 +264,19 @@ class TemporalRecurrence(nn.Module):
         Returns ``(filter input [B, 3, H, W], weight a [B, 1, H, W])``.
         """
         a = torch.sigmoid(head[:, self._head["history_in"]].float()) * history["valid"]
-        return color + a * (history["color"] - color), a
+        previous = history["color"]
+        if self.history_clamp is not None:
+            previous = neighbourhood_clamp(previous, color, self.history_clamp)
+        return color + a * (previous - color), a
 
     def blend_out(self, filtered: torch.Tensor, history: dict[str, torch.Tensor], head: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """Blend the history output into the filtered frame; returns ``(output, weight b)``."""
         b = torch.sigmoid(head[:, self._head["history_out"]].float()) * history["valid"]
-        return filtered + b * (history["output"] - filtered), b
+        previous = history["output"]
+        if self.history_clamp is not None:
+            previous = neighbourhood_clamp(previous, filtered, self.history_clamp)
+        return filtered + b * (previous - filtered), b
 
     def next_state(self, output: torch.Tensor, color: torch.Tensor, head: torch.Tensor,
                    guide: torch.Tensor) -> dict[str, torch.Tensor]:

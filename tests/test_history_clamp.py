@@ -13,7 +13,6 @@ from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.nn.temporal import TemporalRecurrence, neighbourhood_clamp
-
 from tests.test_nn_quality_levers import max_blend_identity_filter, moving_object_sequence
 
 

@@ -92,7 +92,9 @@ def test_conf_is_at_the_top_level_and_every_package_ships():
     assert Path(denoiser.conf.CONF_DIR) == checkout / "conf"
     tool = tomllib.loads((checkout / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert tool["package-dir"] == {"denoiser.conf": "conf"}
-    found = {"denoiser.conf"} | {
+    # hydra_plugins: the namespace Hydra scans for plugins; an editable install adds this checkout's
+    # directory to its __path__ only when it is listed
+    found = {"denoiser.conf", "hydra_plugins"} | {
         ".".join(d.relative_to(checkout).parts) for top in ("denoiser", "hydra_plugins")
         for d in [checkout / top, *(checkout / top).rglob("*")]
         if d.is_dir() and d.name != "__pycache__" and any(d.glob("*.py"))}

@@ -308,6 +308,13 @@ def test_levers_on_hard_inputs_stay_finite_with_finite_gradients(dtype):
     f1["color"][:, 0, 0, 0] = float("nan")
     f1["albedo"][:, :, 3] = float("inf")
     f1["depth"][:, :, 5] = float("nan")
+    two_steps_stay_finite(net, f0, f1, dtype)
+
+
+def two_steps_stay_finite(net, f0, f1, dtype):
+    """``net.step`` over ``f0`` then ``f1`` (under ``dtype`` autocast unless float32): both
+    outputs finite float32, and the gradients of their means finite for ``f1``'s colour and for
+    every parameter."""
     f1["color"].requires_grad_(True)
     with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
         out0, state, _ = net.step(f0, None)

@@ -116,6 +116,19 @@ def compose_command(name: str, overrides, threads: int | None = None):
     return compose_config([*overrides, *([f"threads={threads}"] if threads else [])], name)
 
 
+# The first lines of every stub executable: it appends its name and arguments as one record
+# (NUL-separated, newline-ended) to $STUB_LOG. Pipeline scripts run stubs side by side, so the
+# record is written under an exclusive lock: two unlocked writers interleave and lose calls.
+STUB_HEADER = """#!/usr/bin/env bash
+{ flock 9; printf '%s\\0' "$(basename "$0")" "$@" >&9; printf '\\n' >&9; } 9>> "$STUB_LOG"
+"""
+
+
+def stub_calls(log: Path) -> list[list[str]]:
+    """The calls :data:`STUB_HEADER` logged to ``log``, in order: ``[command, *args]`` each."""
+    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
+
+
 def stub_pipeline(tmp_path: Path, script: str, commands, stub: str) -> Path:
     """``tmp_path`` as a checkout holding only ``scripts/<script>`` and a ``venv/bin`` whose
     ``commands`` are all the executable ``stub`` (a shell script that logs its calls): a pipeline

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import stub_pipeline
+from conftest import STUB_HEADER, stub_calls, stub_pipeline
 from hydra import compose, initialize_config_dir
 
 from denoiser.conf import CONF_DIR
@@ -327,9 +327,7 @@ def test_the_bench_and_eval_overrides_of_the_script_compose():
 
 # --- scripts/ablations.sh with stub executables ----------------------------------------------------
 
-STUB = """#!/usr/bin/env bash
-printf '%s\\0' "$(basename "$0")" "$@" >> "$STUB_LOG"; printf '\\n' >> "$STUB_LOG"
-for arg in "$@"; do case "$arg" in
+STUB = STUB_HEADER + """for arg in "$@"; do case "$arg" in
   hydra.run.dir=*) d=${arg#hydra.run.dir=}; mkdir -p "$d/checkpoints"; [ -f "$d/checkpoints/last.ckpt" ] || touch "$d/checkpoints/last.ckpt"
     [ -n "${STUB_FAIL:-}" ] && [ "$d" = "$STUB_FAIL" ] && exit 1;;
   out_dir=*) mkdir -p "${arg#out_dir=}";;
@@ -337,9 +335,6 @@ esac; done
 exit 0
 """
 
-
-def _calls(log: Path) -> list[list[str]]:
-    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
 
 
 def _arg(call: list[str], key: str) -> str:
@@ -352,7 +347,7 @@ def _ablations_sh(root: Path, **env: str) -> tuple[subprocess.CompletedProcess, 
     log.touch()
     proc = subprocess.run(["bash", str(root / "scripts" / "ablations.sh")], capture_output=True, text=True, check=False,
                           env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), **env})
-    return proc, _calls(log)
+    return proc, stub_calls(log)
 
 
 @pytest.fixture

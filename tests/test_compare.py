@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import STUB_HEADER, stub_calls
 from hydra import compose, initialize_config_dir
 
 from denoiser.commands.render import plan
@@ -181,15 +182,10 @@ def test_ranking_by_a_lower_is_better_metric(tmp_path):
 
 # --- scripts/compare.sh, with stub commands ------------------------------------------------------
 
-STUB = """#!/usr/bin/env bash
-printf '%s\\0' "$(basename "$0")" "$@" >> "$STUB_LOG"; printf '\\n' >> "$STUB_LOG"
-for arg in "$@"; do case "$arg" in hydra.run.dir=*)
+STUB = STUB_HEADER + """for arg in "$@"; do case "$arg" in hydra.run.dir=*)
   mkdir -p "${arg#hydra.run.dir=}/checkpoints"; touch "${arg#hydra.run.dir=}/checkpoints/last.ckpt";; esac; done
 """
 
-
-def _calls(log: Path) -> list[list[str]]:
-    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
 
 
 def _arg(call: list[str], key: str) -> str:
@@ -203,7 +199,7 @@ def _compare_sh(root: Path, **env: str) -> list[list[str]]:
     log.unlink(missing_ok=True)
     subprocess.run(["bash", str(root / "scripts" / "compare.sh")], check=True, capture_output=True, text=True,
                    env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), **env})
-    return _calls(log)
+    return stub_calls(log)
 
 
 def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import stub_pipeline
+from conftest import STUB_HEADER, stub_calls, stub_pipeline
 from omegaconf import OmegaConf
 
 from denoiser.conf import CONF_DIR
@@ -137,9 +137,7 @@ def test_demo_dataset_splits():
 
 # --- scripts/demo.sh with stub commands: the Blender stage ----------------------------------------
 
-DEMO_STUB = """#!/usr/bin/env bash
-printf '%s\\0' "$(basename "$0")" "$@" >> "$STUB_LOG"; printf '\\n' >> "$STUB_LOG"
-for arg in "$@"; do case "$arg" in
+DEMO_STUB = STUB_HEADER + """for arg in "$@"; do case "$arg" in
   hydra.run.dir=*) mkdir -p "${arg#hydra.run.dir=}/checkpoints"; touch "${arg#hydra.run.dir=}/checkpoints/last.ckpt";;
   out_dir=*) d="${arg#out_dir=}"; mkdir -p "$d/images"; touch "$d/metrics.md" "$d/report.md";;
   report=*) touch "${arg#report=}/summary.md";;
@@ -155,7 +153,7 @@ def _demo_sh(root: Path, **env: str) -> list[list[str]]:
     proc = subprocess.run(["bash", str(root / "scripts" / "demo.sh")], capture_output=True, text=True, check=False,
                           env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), "DEMO_SEEDS": "0", **env})
     assert proc.returncode == 0, proc.stderr
-    return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
+    return stub_calls(log)
 
 
 def test_demo_sh_evaluates_its_networks_on_the_blender_sequences_when_they_exist(tmp_path):

@@ -21,6 +21,10 @@ one line naming the file and the first refused globals (listed by torch's own
 ``trust=True`` (config ``trust_checkpoint=true``): then it is loaded with
 ``weights_only=False`` and a warning, as one would load any pickle from a trusted source.
 ``train.py ckpt_path=`` goes through :func:`resume_weights_only` before Lightning reads the file.
+
+Every loader also takes a training run directory (``hydra.run.dir`` of ``denoiser-train``) for a
+file: its ``checkpoints/best.ckpt`` (best validation PSNR), else its ``checkpoints/last.ckpt``
+(:func:`resolve_checkpoint`), so ``ckpt=reports/demo/runs/teacher`` works in every command.
 """
 
 from __future__ import annotations
@@ -83,12 +87,28 @@ def resume_weights_only(path: str | os.PathLike | None, trust: bool = False, tru
     return _load_safe(_check_file(path), "cpu", trust, trust_key) is not None
 
 
-def _check_file(path: str | os.PathLike) -> Path:
+#: the files of a run directory a loader takes, in order of preference
+RUN_CHECKPOINTS = ("checkpoints/best.ckpt", "checkpoints/last.ckpt")
+
+
+def resolve_checkpoint(path: str | os.PathLike) -> Path:
+    """``path`` itself, or for a training run directory the checkpoint it is evaluated with:
+    ``checkpoints/best.ckpt``, else ``checkpoints/last.ckpt``. UserError naming ``path`` when it
+    does not exist or is a directory holding neither."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: checkpoint file does not exist")
     if path.is_dir():
-        raise UserError(f"{path}: is a directory, not a checkpoint file")
+        for name in RUN_CHECKPOINTS:
+            if (path / name).is_file():
+                return path / name
+        raise UserError(f"{path}: is a directory with no {' or '.join(RUN_CHECKPOINTS)} "
+                        "(give a checkpoint file or a training run directory)")
+    return path
+
+
+def _check_file(path: str | os.PathLike) -> Path:
+    path = resolve_checkpoint(path)
     with open(path, "rb") as fh:
         magic = fh.read(4)
     if not (magic.startswith(b"PK\x03\x04") or magic[:1] == b"\x80"):  # torch.save: zip; legacy: pickle
@@ -188,6 +208,7 @@ def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "c
     ``path``): missing file, not a checkpoint, refused by the safe loader (without ``trust``,
     see :func:`read_checkpoint`), no net config, another architecture.
     """
+    path = resolve_checkpoint(path)
     ckpt = read_checkpoint(path, map_location, trust=trust, trust_key=trust_key)
     cfg = net_config(ckpt, path)
     state = net_state_dict(ckpt, path)
@@ -238,8 +259,10 @@ def _lightning_version() -> str:
 def checkpoint_paths(spec) -> OrderedDict[str, Path]:
     """``ckpt`` config -> ordered ``{name: path}``.
 
-    ``spec``: None/empty, one path, a list of paths (names are the file stems, made unique
-    with the parent directory when two stems clash) or a mapping ``{name: path}``.
+    ``spec``: None/empty, one path, a list of paths (names are the file stems, or a run
+    directory's name; made unique with the run directory, else the parent directory, when two
+    stems clash) or a mapping ``{name: path}``. A path may be a run directory
+    (:func:`resolve_checkpoint`); the loaders resolve it.
     """
     spec = plain(spec)
     if spec is None or spec == "" or spec == []:
@@ -254,7 +277,9 @@ def checkpoint_paths(spec) -> OrderedDict[str, Path]:
     stems = [p.stem for p in paths]
     out: OrderedDict[str, Path] = OrderedDict()
     for p in paths:
-        name = p.stem if stems.count(p.stem) == 1 else f"{p.parent.name}/{p.stem}"
+        # <run>/checkpoints/best.ckpt of two runs: named by their run directories
+        parent = p.parent.parent if p.parent.name == "checkpoints" else p.parent
+        name = p.stem if stems.count(p.stem) == 1 else f"{parent.name}/{p.stem}"
         if name in out:
             raise ConfigError(f"ckpt: {p} is given twice")
         out[name] = p

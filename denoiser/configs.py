@@ -17,7 +17,7 @@ the tests.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -131,6 +131,27 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
         return OmegaConf.to_container(cfg.net, resolve=True)
     except (HydraException, OmegaConfBaseException) as exc:
         raise ConfigError(f"{groups}: {first_line(exc)}") from None
+
+
+def load_layout(name: str, buffers: Mapping[str, Any] | None = None):
+    """The data layout of ``conf/layout/<name>.yaml`` (``native``, ``blender``), instantiated.
+
+    ``buffers``: more entries for its buffer table (``{name: {file, passes, channels}}``, as in
+    the YAML), e.g. a pass a tool reads that training does not. ConfigError naming the options
+    for an unknown ``name``.
+    """
+    from omegaconf import OmegaConf
+
+    from denoiser.conf import CONF_DIR
+
+    names = sorted(p.stem for p in (Path(CONF_DIR) / "layout").glob("*.yaml"))
+    if name not in names:
+        raise ConfigError(f"layout: unknown {name!r}; use {' or '.join(names)}")
+    node = compose_config([f"+layout={name}"]).data.layout
+    if buffers:
+        OmegaConf.set_struct(node, False)
+        node = OmegaConf.merge(node, {"buffers": dict(buffers)})
+    return instantiate_config(node, "layout")
 
 
 def build_net(cfg: Any, where: str = "net"):

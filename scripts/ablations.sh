@@ -51,8 +51,8 @@ VARIANTS=$(for v in $VARIANTS; do [ "$v" = none ] || [ "$v" = no_kd ] || printf 
 REPEATS=${ABLATION_REPEATS:-7}
 mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
-
-best() { if [ -f "$1/checkpoints/best.ckpt" ]; then echo "$1/checkpoints/best.ckpt"; else echo "$1/checkpoints/last.ckpt"; fi; }
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh
 need() {  # need <path> <what>: stop with one line naming make demo when it is missing
     [ -e "$1" ] || { echo "error: $1: $2 missing (run make demo first)" >&2; exit 2; }
 }
@@ -77,39 +77,23 @@ for seed in $SEEDS; do
     need "$DEMO/student_no_kd_s$seed/DONE" "make demo's no-KD student of seed $seed (DEMO_SEEDS)"
 done
 TEACHER=$(best "$DEMO/teacher")   # the checkpoint make demo's distilled students were taught by
-printf '| stage | seconds |\n|---|---|\n' > "$TIMINGS.tmp"
-START=$(date +%s)
+timings_begin
 
-train() {  # train <variant> <seed>: one run, its output in <run>.log
-    local name=$1_s$2 t0
+train() {  # train <variant>_s<seed>: one run, its output in <run>.log
+    local name=$1 variant=${1%_s*} seed=${1##*_s} t0
     t0=$(date +%s)
     echo "==> [$name]"
-    OMP_NUM_THREADS=$THREADS "$BIN/denoiser-train" experiment=demo_distill "model.teacher_ckpt=$TEACHER" \
-        "ablation=$1" "seed=$2" ${STEPS:+"trainer.max_steps=$STEPS"} skip_done=true ckpt_path=auto \
-        trainer.enable_progress_bar=false callbacks.progress=null "hydra.run.dir=$RUNS/$name" > "$RUNS/$name.log" 2>&1 \
+    OMP_NUM_THREADS=$THREADS train_run "$RUNS/$name" experiment=demo_distill "model.teacher_ckpt=$TEACHER" \
+        "ablation=$variant" "seed=$seed" ${STEPS:+"trainer.max_steps=$STEPS"} \
+        trainer.enable_progress_bar=false callbacks.progress=null > "$RUNS/$name.log" 2>&1 \
         || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
     [ -f "$RUNS/$name/COLLAPSED" ] && echo "warning: [$name] $(cat "$RUNS/$name/COLLAPSED") (kept, marked in the summary)" >&2
     echo "| $name | $(( $(date +%s) - t0 )) |" >> "$TIMINGS.tmp"
     echo "<== [$name] $(( $(date +%s) - t0 ))s"
 }
-running=0; failed=0
-for variant in $VARIANTS; do
-    for seed in $SEEDS; do
-        train "$variant" "$seed" &
-        running=$((running + 1))
-        if [ "$running" -ge "$JOBS" ]; then wait -n || failed=1; running=$((running - 1)); fi
-    done
-done
-while [ "$running" -gt 0 ]; do wait -n || failed=1; running=$((running - 1)); done
-[ "$failed" = 0 ] || exit 3
-
-stage() {  # stage <name> <command...>: run it and record its wall time
-    local name=$1 t0; shift
-    t0=$(date +%s)
-    echo "==> [$name]"
-    "$@"
-    echo "| $name | $(( $(date +%s) - t0 )) |" >> "$TIMINGS.tmp"
-}
+NAMES=()
+for variant in $VARIANTS; do for seed in $SEEDS; do NAMES+=("${variant}_s$seed"); done; done
+run_jobs "$JOBS" train "${NAMES[@]}" || exit 3
 
 CKPTS=""
 SHOWN="'noisy input'"   # the crop images: the same frame of Fig. A.1's networks
@@ -147,8 +131,7 @@ fi
 REPORTED=$(echo none no_kd $VARIANTS | tr ' ' ,)
 stage summary "$PY" -m denoiser.commands.ablation_summary "report=$REPORT" "data_root=$DATA" \
     "seeds=[${SEEDS// /,}]" "variants=[$REPORTED]" "teacher=$TEACHER"
-echo "| total | $(( $(date +%s) - START )) |" >> "$TIMINGS.tmp"
-mv "$TIMINGS.tmp" "$TIMINGS"
+timings_end
 
 cat <<EOF
 

@@ -10,9 +10,10 @@ remodulated with the noisy render's albedo, against the reference colour, with t
 
     python scripts/albedo_bound.py data/blender/test [--out reports/blender/albedo_bound.md]
 
-Reads the Blender layout (``<sequence>/noisy/*.exr`` and ``<sequence>/reference/*.exr``, each with
-``Combined`` and ``Denoising Albedo``); the first ``--warmup`` frames are skipped, as in
-``denoiser-eval``. Writes a Markdown table (noisy input, the bound) per sequence and the mean.
+Reads the splits through the Blender layout (``conf/layout/blender.yaml``: its pass aliases and
+view-layer prefixes), with one buffer more for this tool, the reference render's albedo
+(``reference_albedo``); the first ``--warmup`` frames are skipped, as in ``denoiser-eval``.
+Writes a Markdown table (noisy input, the bound) per sequence and the mean.
 """
 
 from __future__ import annotations
@@ -25,34 +26,30 @@ import numpy as np
 import torch
 
 from denoiser.atomic import atomic_write_text
-from denoiser.data import exr
-from denoiser.data.layouts.blender import exr_files
+from denoiser.configs import load_layout
 from denoiser.errors import UserError
 from denoiser.metrics import psnr
 from denoiser.nn.inputs import demodulation_albedo
 
-
-def read_rgb(path: Path, layer: str) -> torch.Tensor:
-    """``[1, 3, H, W]`` float32 of the RGB channels of ``layer`` (``ViewLayer.`` prefix optional)."""
-    names = exr.list_channels(path)
-    for prefix in ("ViewLayer.", ""):
-        want = [f"{prefix}{layer}.{c}" for c in "RGB"]
-        if all(n in names for n in want):
-            ch = exr.read_channels(path, want)
-            return torch.from_numpy(np.stack([ch[n] for n in want]))[None]
-    raise UserError(f"{path}: no {layer}.R/G/B channels; present: {', '.join(sorted(names))}")
+#: the buffer this tool reads beside the layout's own (color, albedo, reference)
+REFERENCE_ALBEDO = {"reference_albedo": {"file": "reference", "passes": ["Denoising Albedo"], "channels": ["R", "G", "B"]}}
 
 
-def sequence_bound(seq: Path, warmup: int) -> tuple[float, float, int]:
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    """``[H, W, 3]`` -> ``[1, 3, H, W]`` float32."""
+    return torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1)))[None]
+
+
+def sequence_bound(layout, seq: Path, warmup: int) -> tuple[float, float, int]:
     """Mean PSNR (noisy input, remodulation bound) over the frames of one sequence, and the frame count."""
-    noisy = exr_files(seq / "noisy")
+    source = layout.open_sequence(seq)
+    if not source.labeled:
+        raise UserError(f"{seq}: no reference/ frames; the bound needs the reference render")
     rows = []
-    for path in noisy[warmup:]:
-        ref = seq / "reference" / path.name
-        if not ref.exists():
-            raise UserError(f"{ref}: missing reference frame for {path}")
-        color, albedo = read_rgb(path, "Combined"), read_rgb(path, "Denoising Albedo")
-        ref_color, ref_albedo = read_rgb(ref, "Combined"), read_rgb(ref, "Denoising Albedo")
+    for i in range(warmup, source.frames):
+        arrays, _ = layout.read_frame(source, i, ["color", "albedo", "reference", "reference_albedo"])
+        color, albedo, ref_color, ref_albedo = (_tensor(arrays[b]) for b in
+                                                ("color", "albedo", "reference", "reference_albedo"))
         irradiance = ref_color / demodulation_albedo(ref_albedo)
         bound = irradiance * demodulation_albedo(albedo)
         rows.append((psnr(color, ref_color).item(), psnr(bound, ref_color).item()))
@@ -69,14 +66,15 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=None, help="also write the table to this Markdown file")
     args = p.parse_args(argv)
     try:
-        seqs = sorted(d for d in args.split_dir.iterdir() if (d / "noisy").is_dir()) if args.split_dir.is_dir() else []
+        layout = load_layout("blender", REFERENCE_ALBEDO)
+        seqs = layout.list_sequences(args.split_dir) if args.split_dir.is_dir() else []
         if not seqs:
             raise UserError(f"{args.split_dir}: no sequences (directories with noisy/ and reference/)")
         lines = ["| sequence | frames | noisy PSNR dB | bound PSNR dB (reference irradiance x noisy albedo) |",
                  "|---|---:|---:|---:|"]
         results = []
         for seq in seqs:
-            n, b, frames = sequence_bound(seq, args.warmup)
+            n, b, frames = sequence_bound(layout, seq, args.warmup)
             results.append((n, b))
             lines.append(f"| {seq.name} | {frames} | {n:.2f} | {b:.2f} |")
         mean = np.array(results).mean(axis=0)

@@ -11,7 +11,8 @@
 #      (baselines=compare; COMPARE_ONND=0 leaves it out: baselines=default), teacher, students, NPPD, WS
 #   4. denoiser-bench at 1080p (OpenVINO bf16 and eager) for the same methods (networks: first seed)
 #   5. summary.md with the Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml)
-# Finished runs (DONE) are skipped; an interrupted one resumes from last.ckpt.
+# denoiser-train skips a finished run (skip_done=true) and resumes an interrupted one from its
+# last.ckpt (ckpt_path=auto; scripts/lib.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${VENV:-.venv}
@@ -25,7 +26,8 @@ FIRST=${SEEDS%% *}
 BASELINES=compare
 [ "${COMPARE_ONND:-1}" = 0 ] && BASELINES=default
 mkdir -p "$RUNS"
-best() { if [ -f "$1/checkpoints/best.ckpt" ]; then echo "$1/checkpoints/best.ckpt"; else echo "$1/checkpoints/last.ckpt"; fi; }
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh
 [ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
 echo "==> [render data/demo_compare]"
 "$BIN/denoiser-render" dataset=demo_compare
@@ -42,13 +44,8 @@ for seed in $SEEDS; do
     fi
     for net in nppd_demo ws_demo; do
         dir=$RUNS/${net}_s$seed
-        if [ ! -f "$dir/DONE" ]; then
-            resume=(); [ -f "$dir/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
-            echo "==> [$net seed $seed]"
-            "$PY" train.py experiment=demo_distill "net=$net" "model.teacher_ckpt=$TEACHER" "seed=$seed" \
-                "hydra.run.dir=$dir" "${resume[@]}"
-            touch "$dir/DONE"
-        fi
+        echo "==> [$net seed $seed]"
+        train_run "$dir" experiment=demo_distill "net=$net" "model.teacher_ckpt=$TEACHER" "seed=$seed"
         CKPTS="$CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
         [ "$seed" = "$FIRST" ] && BENCH_CKPTS="$BENCH_CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
     done

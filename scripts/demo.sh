@@ -16,8 +16,9 @@
 #
 # Budgets are steps (the experiment configs' trainer.max_steps) and seeds; max_time in the
 # configs is only a safety cap, so the results do not depend on the machine's load.
-# Every stage is skipped when its result exists (a finished run leaves DONE in its directory;
-# an interrupted one resumes from its last.ckpt). DEMO_FRESH=1 retrains everything.
+# Every stage is skipped when its result exists (denoiser-train skips a finished run of the same
+# config, skip_done=true, and resumes an interrupted one from its last.ckpt, ckpt_path=auto;
+# scripts/lib.sh). DEMO_FRESH=1 retrains everything.
 # Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
 # each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
 # teacher, default: all cores), DEMO_BLENDER (Blender sequences to evaluate on when
@@ -38,70 +39,41 @@ CORES=$(nproc)
 JOB_THREADS=$(( CORES / JOBS > 0 ? CORES / JOBS : 1 ))
 mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh
 [ "${DEMO_FRESH:-0}" = 1 ] && rm -rf "$RUNS"/* "$REPORT"/eval "$REPORT"/bench
-printf '| stage | seconds |\n|---|---|\n' > "$TIMINGS.tmp"
-START=$(date +%s)
+timings_begin
 
-stage() {  # stage <name> <command...>: run and record its wall time
+demo_train() {  # demo_train <run name> <overrides...>: train (skipped when finished, resumed when interrupted)
     local name=$1; shift
-    local t0; t0=$(date +%s)
-    echo "==> [$name] $*"
-    "$@"
-    local dt=$(( $(date +%s) - t0 ))
-    echo "| $name | $dt |" >> "$TIMINGS.tmp"
-    echo "<== [$name] ${dt}s"
-}
-
-train_run() {  # train_run <run name> <overrides...>: train unless DONE; resume an interrupted run
-    local name=$1; shift
-    local dir=$RUNS/$name
-    if [ -f "$dir/DONE" ]; then
-        echo "==> [$name] done before ($dir), skipped"
-        return
-    fi
-    local resume=()
-    [ -f "$dir/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
-    stage "$name" "$PY" train.py "$@" "hydra.run.dir=$dir" "${resume[@]}"
-    if [ -f "$dir/COLLAPSED" ]; then  # written by the CollapseDetector callback
-        echo "error: [$name] $(cat "$dir/COLLAPSED")" >&2
+    stage "$name" train_run "$RUNS/$name" "$@"
+    if [ -f "$RUNS/$name/COLLAPSED" ]; then  # written by the CollapseDetector callback
+        echo "error: [$name] $(cat "$RUNS/$name/COLLAPSED")" >&2
         exit 3
     fi
-    touch "$dir/DONE"
-}
-
-ckpt_of() {  # the checkpoint evaluated: best validation PSNR, else the last one
-    if [ -f "$RUNS/$1/checkpoints/best.ckpt" ]; then echo "$RUNS/$1/checkpoints/best.ckpt"
-    else echo "$RUNS/$1/checkpoints/last.ckpt"; fi
 }
 
 # 1. data (denoiser-render keeps frames that exist, so a second run costs seconds)
 stage render "$BIN/denoiser-render" dataset=demo
 
 # 2-4. networks
-train_run teacher experiment=demo_teacher seed=0 "threads=$THREADS"
-TEACHER=$(ckpt_of teacher)
+demo_train teacher experiment=demo_teacher seed=0 "threads=$THREADS"
+TEACHER=$(best "$RUNS/teacher")
 # students: every (kind, seed) pair, DEMO_JOBS at a time, each with its share of the cores
 STUDENTS=()
 for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done
 student_run() {  # student_run <run name>
     local name=$1 seed=${1##*_s} recipe=(experiment=demo_distill "model.teacher_ckpt=$TEACHER")
     [[ $name == student_no_kd_* ]] && recipe=(experiment=demo)  # the same student on references alone
-    train_run "$name" "${recipe[@]}" "seed=$seed" "threads=$JOB_THREADS" \
-        > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
+    demo_train "$name" "${recipe[@]}" "seed=$seed" "threads=$JOB_THREADS" trainer.enable_progress_bar=false \
+        callbacks.progress=null > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
     echo "<== [$name] $(grep -h '^<== ' "$RUNS/$name.log" | tail -1 | cut -d' ' -f3-)"
 }
-running=0; failed=0
-for name in "${STUDENTS[@]}"; do
-    student_run "$name" &
-    running=$((running + 1))
-    if [ "$running" -ge "$JOBS" ]; then wait -n || failed=1; running=$((running - 1)); fi
-done
-while [ "$running" -gt 0 ]; do wait -n || failed=1; running=$((running - 1)); done
-[ "$failed" = 0 ] || exit 3
+run_jobs "$JOBS" student_run "${STUDENTS[@]}" || exit 3
 
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
 CKPTS="teacher: $TEACHER"
-for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(ckpt_of "$name")"; done
+for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(best "$RUNS/$name")"; done
 FIRST=${SEEDS%% *}
 stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
 if [ -n "$BLENDER" ] && [ -d "$BLENDER/test" ]; then  # a real renderer's sequences (make blender)
@@ -112,7 +84,7 @@ else
 fi
 # the benchmark times one seed per student (the seeds are the same network size); the teacher
 # at 256x256 only (seconds per 1080p frame on 2 cores)
-BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(ckpt_of "student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(ckpt_of "student_no_kd_s$FIRST")}"
+BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(best "$RUNS/student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(best "$RUNS/student_no_kd_s$FIRST")}"
 stage bench "$BIN/denoiser-bench" data=demo "ckpt=$BENCH_CKPTS" "eval_csv=$REPORT/eval/metrics.csv" \
     "out_dir=$REPORT/bench" "sizes=[[256,256],[1080,1920]]" "use_backends=[eager,onnxruntime,openvino_f32,openvino_bf16]" \
     "skip={teacher: [[1080,1920]]}" repeats=7
@@ -123,8 +95,7 @@ cp "$REPORT/eval/metrics.md" "$REPORT/metrics.md"
 cp "$REPORT/bench/report.md" "$REPORT/bench.md"
 rm -rf "$REPORT/crops" && cp -r "$REPORT/eval/images" "$REPORT/crops"
 for plot in "$REPORT"/bench/*.png; do [ -f "$plot" ] && cp "$plot" "$REPORT/"; done
-echo "| total | $(( $(date +%s) - START )) |" >> "$TIMINGS.tmp"
-mv "$TIMINGS.tmp" "$TIMINGS"
+timings_end
 
 cat <<EOF
 

@@ -20,15 +20,10 @@ TIMINGS=$REPORT/timings.md
 TEACHER=reports/demo/runs/teacher
 [ -f "$TEACHER/DONE" ] || { echo "error: $TEACHER: no finished demo teacher (run make demo first)" >&2; exit 2; }
 mkdir -p "$REPORT"
-printf '| stage | seconds |\n|---|---|\n' > "$TIMINGS.tmp"
-START=$(date +%s)
-for stage in ablations compare pareto; do
-    t0=$(date +%s)
-    echo "==> [paper: $stage] scripts/$stage.sh"
-    bash "scripts/$stage.sh"
-    echo "| $stage | $(( $(date +%s) - t0 )) |" >> "$TIMINGS.tmp"
-done
-echo "| total | $(( $(date +%s) - START )) |" >> "$TIMINGS.tmp"
-mv "$TIMINGS.tmp" "$TIMINGS"
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh
+timings_begin
+for name in ablations compare pareto; do stage "$name" bash "scripts/$name.sh"; done
+timings_end
 echo "==== paper finished: reports/ablations, reports/compare, reports/pareto; stage timings: $TIMINGS ===="
 cat "$TIMINGS"

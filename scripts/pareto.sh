@@ -41,21 +41,19 @@ AXES=${PARETO_AXES:-"net=demo_student_w05,demo_student kernel.sizes=[3,5,5],[5,5
 EVAL=${PARETO_EVAL:-1}                # 1: denoiser-eval of the variants on the test split (test PSNR column)
 FRONT_SEEDS=${PARETO_FRONT_SEEDS:-"1 2"}   # more seeds for the front's variants ("" : none)
 SEEDS_DIR=$REPORT/seeds
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh
 
 echo "==> [render] data/demo"
 "$BIN/denoiser-render" dataset=demo
 
-if [ -f "$TEACHER/DONE" ]; then
+if [ -f "$TEACHER/DONE" ]; then   # make demo's teacher (or an earlier one), whatever its steps
     echo "==> [teacher] $TEACHER done before, reused"
 else
-    resume=()
-    [ -f "$TEACHER/checkpoints/last.ckpt" ] && resume=(ckpt_path=last)
     echo "==> [teacher] training $TEACHER (experiment=demo_teacher, $TEACHER_STEPS steps)"
-    "$PY" train.py experiment=demo_teacher "trainer.max_steps=$TEACHER_STEPS" "hydra.run.dir=$TEACHER" "${resume[@]}"
-    touch "$TEACHER/DONE"
+    train_run "$TEACHER" experiment=demo_teacher "trainer.max_steps=$TEACHER_STEPS"
 fi
-if [ -f "$TEACHER/checkpoints/best.ckpt" ]; then TEACHER_CKPT=$TEACHER/checkpoints/best.ckpt
-else TEACHER_CKPT=$TEACHER/checkpoints/last.ckpt; fi
+TEACHER_CKPT=$(best "$TEACHER")
 
 echo "==> [sweep] $SWEEP: $AXES, $STEPS steps each"
 # shellcheck disable=SC2086 # AXES is a list of overrides

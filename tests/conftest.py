@@ -130,13 +130,14 @@ def stub_calls(log: Path) -> list[list[str]]:
 
 
 def stub_pipeline(tmp_path: Path, script: str, commands, stub: str) -> Path:
-    """``tmp_path`` as a checkout holding only ``scripts/<script>`` and a ``venv/bin`` whose
-    ``commands`` are all the executable ``stub`` (a shell script that logs its calls): a pipeline
-    script run there calls nothing real."""
+    """``tmp_path`` as a checkout holding only ``scripts/<script>`` (with the ``scripts/lib.sh`` it
+    sources) and a ``venv/bin`` whose ``commands`` are all the executable ``stub`` (a shell script
+    that logs its calls): a pipeline script run there calls nothing real."""
     import shutil
 
     (tmp_path / "scripts").mkdir()
-    shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / script, tmp_path / "scripts")
+    for name in (script, "lib.sh"):
+        shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / name, tmp_path / "scripts")
     (tmp_path / "venv" / "bin").mkdir(parents=True)
     for name in commands:
         (tmp_path / "venv" / "bin" / name).write_text(stub)

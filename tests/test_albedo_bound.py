@@ -21,18 +21,19 @@ def load():
     return mod
 
 
-def write(path: Path, color: np.ndarray, albedo: np.ndarray) -> None:
-    """One Blender-5-style multi-part frame: ``color, albedo: [H, W, 3]``."""
-    parts = [{f"ViewLayer.Combined.{c}": color[..., i] for i, c in enumerate("RGB")},
-             {f"ViewLayer.Denoising Albedo.{c}": albedo[..., i] for i, c in enumerate("RGB")}]
-    exr.write_multipart(path, parts, names=["ViewLayer.Combined", "ViewLayer.Denoising Albedo"])
+def write(path: Path, color: np.ndarray, albedo: np.ndarray, layer: str = "ViewLayer") -> None:
+    """One Blender-5-style multi-part frame of view layer ``layer``: ``color, albedo: [H, W, 3]``."""
+    parts = [{f"{layer}.Combined.{c}": color[..., i] for i, c in enumerate("RGB")},
+             {f"{layer}.Denoising Albedo.{c}": albedo[..., i] for i, c in enumerate("RGB")}]
+    exr.write_multipart(path, parts, names=[f"{layer}.Combined", f"{layer}.Denoising Albedo"])
 
 
 def chw(x: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(x).permute(2, 0, 1)[None]
 
 
-def test_bound_is_reference_irradiance_times_noisy_albedo(tmp_path):
+@pytest.mark.parametrize("layer", ["ViewLayer", "Studio"])   # any single view layer, as the Blender layout reads it
+def test_bound_is_reference_irradiance_times_noisy_albedo(tmp_path, layer):
     rng = np.random.default_rng(0)
     seq = tmp_path / "split" / "wall"
     expected_noisy, expected_bound = [], []
@@ -41,13 +42,14 @@ def test_bound_is_reference_irradiance_times_noisy_albedo(tmp_path):
         irradiance = np.full((H, W, 3), 0.5 + 0.1 * t, np.float32)          # smooth lighting
         noisy_albedo = (albedo * rng.uniform(0.5, 1.5, (H, W, 3))).astype(np.float32)
         noisy = (irradiance * noisy_albedo * rng.uniform(0.7, 1.3, (H, W, 3))).astype(np.float32)
-        write(seq / "noisy" / f"{t + 1:04d}.exr", noisy, noisy_albedo)
-        write(seq / "reference" / f"{t + 1:04d}.exr", irradiance * albedo, albedo)
+        write(seq / "noisy" / f"{t + 1:04d}.exr", noisy, noisy_albedo, layer)
+        write(seq / "reference" / f"{t + 1:04d}.exr", irradiance * albedo, albedo, layer)
         if t >= 2:  # the two warm-up frames are skipped
             ref = chw(irradiance * albedo)
             expected_noisy.append(psnr(chw(noisy), ref).item())
             expected_bound.append(psnr(chw(irradiance * noisy_albedo), ref).item())
-    n, b, frames = load().sequence_bound(seq, warmup=2)
+    mod = load()
+    n, b, frames = mod.sequence_bound(mod.load_layout("blender", mod.REFERENCE_ALBEDO), seq, warmup=2)
     assert frames == 2
     assert n == pytest.approx(np.mean(expected_noisy), abs=1e-4)
     assert b == pytest.approx(np.mean(expected_bound), abs=1e-4)
@@ -76,4 +78,4 @@ def test_missing_reference_is_one_line_and_exit_2(tmp_path, capsys):
     (seq / "reference").mkdir()
     assert load().main([str(tmp_path / "split")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "0003.exr" in err[0] and "missing reference" in err[0]
+    assert len(err) == 1 and "0003.exr" in err[0] and "no reference frame" in err[0] and str(seq) in err[0]

@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import STUB_HEADER, stub_calls
+from conftest import STUB_HEADER, stub_calls, stub_pipeline
 from hydra import compose, initialize_config_dir
 
 from denoiser.commands.render import plan
@@ -203,14 +203,8 @@ def _compare_sh(root: Path, **env: str) -> list[list[str]]:
 
 
 def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
-    import shutil
-
-    (tmp_path / "scripts").mkdir()
-    shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / "compare.sh", tmp_path / "scripts")
-    (tmp_path / "venv" / "bin").mkdir(parents=True)
-    for name in ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"):
-        (tmp_path / "venv" / "bin" / name).write_text(STUB)
-        (tmp_path / "venv" / "bin" / name).chmod(0o755)
+    stub_pipeline(tmp_path, "compare.sh", ("python", "denoiser-render", "denoiser-train", "denoiser-eval",
+                                           "denoiser-bench"), STUB)
     demo = tmp_path / "reports" / "demo" / "runs"
     for run in ("teacher", "student_distilled_s0", "student_distilled_s1", "student_distilled_s2"):
         (demo / run / "checkpoints").mkdir(parents=True)
@@ -220,8 +214,12 @@ def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
     calls = _compare_sh(tmp_path)
     names = [c[0] if c[0] != "python" else c[1] for c in calls]
     assert names[0] == "denoiser-render" and calls[0][1:] == ["dataset=demo_compare"]
-    trained = [(_arg(c, "net"), _arg(c, "seed")) for c in calls if "train.py" in c]
-    assert trained == [(net, s) for s in "012" for net in ("nppd_demo", "ws_demo")]
+    trained = [c for c in calls if c[0] == "denoiser-train"]
+    assert [(_arg(c, "net"), _arg(c, "seed")) for c in trained] == [(net, s) for s in "012" for net in ("nppd_demo", "ws_demo")]
+    for c in trained:   # a finished run is denoiser-train's to skip, an interrupted one its to resume
+        assert "skip_done=true" in c and "ckpt_path=auto" in c
+        assert _arg(c, "hydra.run.dir") == f"reports/compare/runs/{_arg(c, 'net')}_s{_arg(c, 'seed')}"
+        assert _arg(c, "model.teacher_ckpt") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
     (ev,) = [c for c in calls if c[0] == "denoiser-eval"]
     (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
     assert _arg(ev, "data") == _arg(bench, "data") == "demo_compare"
@@ -239,10 +237,9 @@ def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
     assert "--config-name" in summary and summary[summary.index("--config-name") + 1] == "compare_summary"
     assert _arg(summary, "seeds") == "[0,1,2]"
 
-    # finished runs are skipped, an interrupted one resumes from last.ckpt; ONND off on request
-    (tmp_path / "reports" / "compare" / "runs" / "ws_demo_s1" / "DONE").unlink()
+    # other seeds and ONND off on request
     calls = _compare_sh(tmp_path, COMPARE_ONND="0", COMPARE_SEEDS="1")
-    (train,) = [c for c in calls if "train.py" in c]
-    assert _arg(train, "net") == "ws_demo" and _arg(train, "ckpt_path") == "last"
+    assert [(_arg(c, "net"), _arg(c, "seed")) for c in calls if c[0] == "denoiser-train"] == \
+        [("nppd_demo", "1"), ("ws_demo", "1")]
     assert calls[0][0] == "denoiser-render"
     assert {_arg(c, "baselines") for c in calls if c[0] in ("denoiser-eval", "denoiser-bench")} == {"default"}

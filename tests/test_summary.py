@@ -145,19 +145,48 @@ esac; done
 """
 
 
-def _demo_sh(root: Path, **env: str) -> list[list[str]]:
+DEMO_COMMANDS = ("python", "denoiser-render", "denoiser-train", "denoiser-eval", "denoiser-bench")
+
+
+def _demo_sh(root: Path, status: int = 0, **env: str) -> list[list[str]]:
     import os
 
     log = root / "calls.log"
     log.unlink(missing_ok=True)
     proc = subprocess.run(["bash", str(root / "scripts" / "demo.sh")], capture_output=True, text=True, check=False,
                           env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), "DEMO_SEEDS": "0", **env})
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode == status, proc.stderr
     return stub_calls(log)
 
 
+def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_collapse(tmp_path):
+    stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
+    calls = _demo_sh(tmp_path, DEMO_SEEDS="0 1")
+    trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
+    runs = "reports/demo/runs/"
+    assert sorted(trained) == [runs + r for r in ("student_distilled_s0", "student_distilled_s1", "student_no_kd_s0",
+                                                   "student_no_kd_s1", "teacher")]
+    for run, call in trained.items():
+        assert "skip_done=true" in call and "ckpt_path=auto" in call, run
+    assert _arg(trained[runs + "teacher"], "experiment") == "demo_teacher"
+    assert _arg(trained[runs + "student_no_kd_s1"], "experiment") == "demo"
+    distilled = trained[runs + "student_distilled_s1"]
+    assert _arg(distilled, "experiment") == "demo_distill" and _arg(distilled, "seed") == "1"
+    assert _arg(distilled, "model.teacher_ckpt") == runs + "teacher/checkpoints/last.ckpt"   # no best.ckpt: last
+    timings = (tmp_path / "reports" / "demo" / "timings.md").read_text()
+    assert "| teacher |" in timings and "| student_no_kd_s1 |" in timings and "| total |" in timings
+    # a run the CollapseDetector stopped ends the demo (exit 3), before any evaluation
+    (tmp_path / "reports" / "demo" / "runs" / "student_no_kd_s0" / "COLLAPSED").write_text("collapse at step 90\n")
+    calls = _demo_sh(tmp_path, 3, DEMO_SEEDS="0 1")
+    assert not [c for c in calls if c[0] == "denoiser-eval"]
+
+
+def _arg(call: list[str], key: str) -> str:
+    return next(a.split("=", 1)[1] for a in call if a.startswith(f"{key}="))
+
+
 def test_demo_sh_evaluates_its_networks_on_the_blender_sequences_when_they_exist(tmp_path):
-    stub_pipeline(tmp_path, "demo.sh", ("python", "denoiser-render", "denoiser-eval", "denoiser-bench"), DEMO_STUB)
+    stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
 
     def evals(calls):
         return {next(a for a in c if a.startswith("out_dir=")): c for c in calls if c[0] == "denoiser-eval"}

@@ -28,7 +28,10 @@ from denoiser.inference.step_graph import check_export, export_onnx, trtexec_com
 
 
 def default_output(ckpt: str | os.PathLike) -> Path:
-    return Path(ckpt).with_suffix(".onnx")
+    """The ONNX file beside the checkpoint (a run directory's: beside its best, else last, checkpoint)."""
+    from denoiser.checkpoint import resolve_checkpoint
+
+    return resolve_checkpoint(ckpt).with_suffix(".onnx")
 
 
 def run(cfg: DictConfig) -> dict:

@@ -97,15 +97,27 @@ def measure_time(cfg: DictConfig, net) -> dict[str, float]:
     return {"time/ms": row["ms_median"], "time/ms_min": row["ms_min"]}
 
 
+#: override keys that change how a run executes, not what it trains: a finished run asked for
+#: again with other values of these is the same run (skip_done)
+RUN_ENVIRONMENT = ("threads", "skip_done", "ckpt_path", "trust_checkpoint", "trainer.enable_progress_bar",
+                   "callbacks.progress", "hydra")
+
+
+def _environment(key: str) -> bool:
+    return any(key == k or key.startswith((k + ".", k + "/")) for k in RUN_ENVIRONMENT)
+
+
 def same_overrides(a: list[str], b: list[str]) -> bool:
     """Whether two command lines' overrides ask for the same run: the same set of (key, value)
-    as Hydra parses them, so ``skip_done=true`` (a single run, as typed) equals ``skip_done=True``
-    (the same value in a multirun job, which Hydra writes back) and the order does not count."""
+    as Hydra parses them, less the :data:`RUN_ENVIRONMENT` keys, so ``skip_done=true`` (a single
+    run, as typed) equals ``skip_done=True`` (the same value in a multirun job, which Hydra writes
+    back), ``threads=1`` equals ``threads=2`` and the order does not count."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     def canonical(overrides: list[str]) -> list[str]:
         parser = OverridesParser.create()
-        return sorted(repr((o.type.name, o.key_or_group, o.package, o.value())) for o in parser.parse_overrides(overrides))
+        return sorted(repr((o.type.name, o.key_or_group, o.package, o.value()))
+                      for o in parser.parse_overrides(overrides) if not _environment(o.key_or_group))
 
     try:
         return canonical(list(a)) == canonical(list(b))
@@ -113,9 +125,35 @@ def same_overrides(a: list[str], b: list[str]) -> bool:
         return list(a) == list(b)
 
 
+def same_config(a: list[str], b: list[str], config_name: str = "train") -> bool:
+    """Whether two override lists compose the same ``config_name`` config, less the
+    :data:`RUN_ENVIRONMENT` keys (unresolved, so ``${...}`` compare as written): ``ablation=X``
+    asks for the same run as no ablation once the recipe itself holds X's values."""
+    from omegaconf import OmegaConf
+
+    from denoiser.configs import compose_config
+
+    def composed(overrides: list[str]) -> dict:
+        cfg = OmegaConf.to_container(compose_config(overrides, config_name), resolve=False)
+        for key in RUN_ENVIRONMENT:
+            *parents, leaf = key.split(".")
+            node = cfg
+            for part in parents:
+                node = node.get(part) if isinstance(node, dict) else None
+            if isinstance(node, dict):
+                node.pop(leaf, None)
+        return cfg
+
+    try:
+        return composed(a) == composed(b)
+    except Exception:  # noqa: BLE001 - stored overrides that no longer compose: not the same run
+        return False
+
+
 def stored_run(cfg: DictConfig) -> dict[str, float] | None:
     """With ``skip_done``, the metrics of a finished run of the same overrides in this run
-    directory (DONE and metrics.json); a run of other overrides there is an error."""
+    directory (DONE and metrics.json): :func:`same_overrides`, else overrides that compose the
+    same config (:func:`same_config`); a run of another config there is an error."""
     from denoiser.report.pareto import DONE_FILE, METRICS_FILE, read_json
 
     out = Path(cfg.output_dir)
@@ -123,8 +161,9 @@ def stored_run(cfg: DictConfig) -> dict[str, float] | None:
         return None
     stored = read_json(out / METRICS_FILE)
     overrides = hydra_runtime()[0]
-    if stored.get("overrides") is not None and not same_overrides(stored["overrides"], overrides):
-        raise ConfigError(f"skip_done: {out} holds a finished run of other overrides ({' '.join(stored['overrides'])}); "
+    old = stored.get("overrides")
+    if old is not None and not same_overrides(old, overrides) and not same_config(old, overrides):
+        raise ConfigError(f"skip_done: {out} holds a finished run of other overrides ({' '.join(old)}); "
                           "use another hydra.sweep.dir")
     print(f"{out}: finished before, skipped (skip_done=true)", file=sys.stderr)
     return stored.get("metrics") or {}

@@ -38,7 +38,7 @@ import torch.nn.functional as F
 
 from denoiser.atomic import atomic_save_figure, atomic_write_text
 from denoiser.buffers import FRAME_INPUTS
-from denoiser.errors import ConfigError, UserError, first_line
+from denoiser.errors import UserError, first_line
 from denoiser.metrics import mse_to_psnr, tonemap
 from denoiser.runner import RecurrentRunner
 
@@ -66,17 +66,6 @@ class Capture:
     weights: dict[str, torch.Tensor]
     motion: torch.Tensor
     previous_motion: torch.Tensor
-
-
-def open_layout(name: str):
-    """The layout ``conf/layout/<name>.yaml`` (``native``, ``blender``); ConfigError naming the options."""
-    from denoiser.conf import CONF_DIR
-    from denoiser.configs import compose_config, instantiate_config
-
-    names = sorted(p.stem for p in (Path(CONF_DIR) / "layout").glob("*.yaml"))
-    if name not in names:
-        raise ConfigError(f"layout: unknown {name!r}; use {' or '.join(names)}")
-    return instantiate_config(compose_config([f"+layout={name}"]).data.layout, "layout")
 
 
 def open_sequence(directory: str | os.PathLike, layout):
@@ -313,10 +302,11 @@ def diagnose(ckpt: str | os.PathLike, sequence: str | os.PathLike, layout: str =
     Returns ``{"png": path, "markdown": path, "frame": index, "rows": statistics, "capture": Capture}``.
     """
     from denoiser.checkpoint import load_denoiser
+    from denoiser.configs import load_layout
 
     if net is None:
         net = load_denoiser(ckpt, "cpu", trust=trust)
-    lay = open_layout(layout)
+    lay = load_layout(layout)
     source, dataset = open_sequence(sequence, lay)
     if frame is None:
         frame = pick_frame(mean_motion(lay, source))
@@ -335,5 +325,5 @@ def diagnose(ckpt: str | os.PathLike, sequence: str | os.PathLike, layout: str =
     return {"png": png, "markdown": md, "frame": cap.frame, "rows": rows, "capture": cap}
 
 
-__all__ = ["Capture", "capture", "diagnose", "markdown", "open_layout", "open_sequence", "pick_frame",
+__all__ = ["Capture", "capture", "diagnose", "markdown", "open_sequence", "pick_frame",
            "pixel_error", "regions", "save_grid", "statistics"]

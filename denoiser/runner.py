@@ -21,9 +21,60 @@ the exported graph's :class:`~denoiser.inference.step_graph.OnnxStep` and every 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 StepFn = Callable[..., tuple]
+
+
+@runtime_checkable
+class Temporal(Protocol):
+    """A network's recurrence, as the exporter and the backends see it."""
+
+    def state_channels(self) -> dict[str, int]:
+        """``{state key: channels}`` of the state ``step`` carries, in graph order."""
+        ...
+
+
+@runtime_checkable
+class Network(Protocol):
+    """The network contract: what training, the runner, the exporter, the backends and
+    :class:`~denoiser.methods.baselines.NetworkMethod` call on a denoising network
+    (:class:`~denoiser.nn.denoiser.Denoiser`, with any of its filters: the pyramid, NPPD's
+    learned upsampling, WS). ``isinstance(x, Network)`` checks that the members exist.
+
+    ``step(frame, state=None, reset=None) -> (output, state, extras)``: one frame, the step
+    function contract above (``frame`` ``{buffer: [B, C, H, W]}``, ``output [B, 3, H, W]``
+    float32 linear HDR, ``state`` ``{key: [B, C, H, W]}``, ``reset`` bool ``[B]`` or None);
+    ``extras["features"]`` holds one U-Net map per level, ``feature_channels`` wide (feature
+    distillation); ``multiple``: height and width are padded to it inside ``step``;
+    ``temporal``: the recurrence (:class:`Temporal`) or None for a per-frame network.
+    """
+
+    feature_channels: list[int]
+    multiple: int
+    temporal: Temporal | None
+
+    def step(self, frame: Mapping[str, Any], state: dict | None = None, reset: Any = None) -> tuple:
+        ...
+
+
+@runtime_checkable
+class Method(Protocol):
+    """The evaluation contract of :mod:`denoiser.methods.baselines`: every method compared
+    (the noisy input, OIDN, ONND, a network through :class:`RecurrentRunner`, a backend's
+    stepper) is called frame by frame in sequence order: ``reset()`` before a sequence, then
+    ``method(frame, reset) -> [1, 3, H, W]`` linear HDR (``reset`` True at the first frame and
+    at camera cuts). ``label`` names it in the tables; ``recurrent`` says whether it carries
+    history (its frames 2+ are then the figure that shows the history's worth)."""
+
+    label: str
+    recurrent: bool
+
+    def reset(self) -> None:
+        ...
+
+    def __call__(self, frame: Mapping[str, Any], reset: bool = False) -> Any:
+        ...
 
 
 class Stepper:

@@ -49,16 +49,16 @@ from denoiser.errors import UserError
 from denoiser.frames import random_frame
 from denoiser.nn.kernels import kernels_as_op
 from denoiser.nn.parts import heads_as_matmul
-from denoiser.runner import RecurrentRunner
+from denoiser.runner import Network, RecurrentRunner
 
 
-def state_keys(net: nn.Module) -> list[str]:
+def state_keys(net: Network) -> list[str]:
     """State keys of a denoiser's recurrence, in graph order (empty without recurrence)."""
-    temporal = getattr(net, "temporal", None)
-    return [] if temporal is None else list(temporal.state_channels())
+    return list(state_channels(net))
 
 
-def state_channels(net: nn.Module) -> dict[str, int]:
+def state_channels(net: Network) -> dict[str, int]:
+    """``{state key: channels}`` of a denoiser's recurrence (empty without recurrence)."""
     temporal = getattr(net, "temporal", None)
     return {} if temporal is None else dict(temporal.state_channels())
 

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from denoiser.errors import ConfigError
-from denoiser.runner import RecurrentRunner
+from denoiser.runner import Method, Network, RecurrentRunner
 
 #: OIDN quality names -> pyoidn constants (resolved lazily, pyoidn is an optional extra)
 OIDN_QUALITIES = ("fast", "balanced", "high")
@@ -164,14 +164,17 @@ class NetworkMethod:
     """A trained denoiser run recurrently, frame by frame, with its state carried.
 
     Args:
-        net: a :class:`~denoiser.nn.denoiser.Denoiser` (eval mode is set here).
+        net: a :class:`~denoiser.runner.Network` module (eval mode is set here).
         label: display name.
         device: torch device to run on; frames are moved there.
     """
 
     recurrent = True
 
-    def __init__(self, net: torch.nn.Module, label: str, device: str | torch.device = "cpu"):
+    def __init__(self, net: Network, label: str, device: str | torch.device = "cpu"):
+        if not isinstance(net, Network) or not isinstance(net, torch.nn.Module):
+            raise ConfigError(f"{label}: a {type(net).__name__} is not a denoising network module "
+                              "(denoiser.runner.Network: step, feature_channels, multiple, temporal)")
         self.net = net.eval().to(device)
         self.label = label
         self.device = torch.device(device)
@@ -211,14 +214,19 @@ class StepperMethod:
         return out.detach().float().cpu()
 
 
-def build_baselines(nodes) -> OrderedDict[str, object]:
+def build_baselines(nodes) -> OrderedDict[str, Method]:
     """The methods of a ``baselines`` config node (``{key: {_target_: ...} | None}``, see
-    ``conf/baselines/default.yaml``), in order, by their ``label``; None entries are skipped."""
+    ``conf/baselines/default.yaml``), in order, by their ``label``; None entries are skipped.
+    A target that is not a :class:`~denoiser.runner.Method` is a one-line ConfigError naming its key."""
     from denoiser.configs import instantiate_config
 
-    methods: OrderedDict[str, object] = OrderedDict()
+    methods: OrderedDict[str, Method] = OrderedDict()
     for key, node in (nodes or {}).items():
         if node is not None:
             method = instantiate_config(node, f"baselines.{key}")
-            methods[getattr(method, "label", key)] = method
+            if not isinstance(method, Method):
+                missing = [m for m in ("label", "recurrent", "reset", "__call__") if not hasattr(method, m)]
+                raise ConfigError(f"baselines.{key}: a {type(method).__name__} is not an evaluation method "
+                                  f"(denoiser.runner.Method); it lacks {', '.join(missing)}")
+            methods[method.label] = method
     return methods

@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-check pareto compare ablations paper lint clean-cache blender blender-val
+.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check pareto compare ablations paper lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -59,6 +59,10 @@ pareto: setup
 compare: setup
 	VENV=$(VENV) bash scripts/compare.sh
 
+# Copy the comparison's block of reports/compare/summary.md (<!-- compare:begin --> ... end) into README.md.
+readme-compare:
+	python3 scripts/readme_results.py --summary reports/compare/summary.md --marker compare
+
 # The paper's Fig. A.1 (the pyramid against no_pyramid and direct) and its distillation ablations
 # (no_kd, no_unlabeled, no_adversarial, no_param_transfer, kernels k3 and k7) on the demo's held-out
 # scenes: reuses make demo's data, teacher and students (none = its distilled students, no_kd = its
@@ -81,7 +85,7 @@ readme-ablations:
 # (README, "Every figure: make paper").
 paper: setup
 	VENV=$(VENV) bash scripts/paper.sh
-	$(MAKE) readme-ablations readme-pareto
+	$(MAKE) readme-ablations readme-compare readme-pareto
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py

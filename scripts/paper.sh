@@ -10,7 +10,7 @@
 # teacher is missing: make pareto alone would train a shorter one) and is resumable on its own,
 # so a second make paper redoes only what is missing or changed. Each stage's wall time goes to
 # reports/paper/timings.md (as reports/demo/timings.md); the Makefile then copies the reports'
-# blocks into the README (make readme-ablations, make readme-pareto).
+# blocks into the README (make readme-ablations, make readme-compare, make readme-pareto).
 # Knobs: those of the three scripts (ABLATION_*, COMPARE_*, PARETO_*).
 set -euo pipefail
 cd "$(dirname "$0")/.."

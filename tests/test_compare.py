@@ -115,6 +115,9 @@ def test_figure_tables_rows_means_std_times_and_ranking(tmp_path):
     proc = _summary(tmp_path, PSNR)
     assert proc.returncode == 0, proc.stderr
     summary = (tmp_path / "report" / "summary.md").read_text()
+    # its own README block (make readme-compare), never make demo's `results` block
+    assert summary.count("<!-- compare:begin -->") == summary.count("<!-- compare:end -->") == 1
+    assert "<!-- results:begin -->" not in summary
     tables = _tables()
     assert [t.title for t in tables][:2] == ["Fig. A.2: real-time denoisers at 4 spp", "Fig. A.3: OIDN, teacher and student"]
     bench = _bench_rows()

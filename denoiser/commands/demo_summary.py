@@ -60,8 +60,11 @@ from denoiser.report.summary import (
     tree_hash,
 )
 
-#: the README copies the lines between these markers (scripts/readme_results.py)
-BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+
+def markers(name: str) -> tuple[str, str]:
+    """The lines around the block the README copies (scripts/readme_results.py --marker <name>):
+    ``results`` for make demo's summary, ``compare`` for make compare's (the config's ``marker``)."""
+    return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
 
 
 def run_rows(runs: Path) -> list[dict]:
@@ -226,12 +229,12 @@ def run(cfg: DictConfig) -> Path:
     lines += [
         "## Test split, every method" if cfg.tables else "## Test split (students: mean ± std over seeds)",
         "",
-        BEGIN,
+        markers(cfg.marker)[0],
         results_table(merged, bench, size, cfg.speed_reference).rstrip(),
         *merged_note(merged),
         "",
         *claim_lines(claims, per_sequence),
-        END,
+        markers(cfg.marker)[1],
         "",
         *(family_lines(claims, per_sequence, families(metrics_csv), cfg.family_metric) + [""] if claims else []),
         *extra_sections(report, cfg.get("extra_evals") or {}, claims),

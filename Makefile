@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check pareto compare ablations paper lint clean-cache blender blender-val
+.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -21,6 +21,13 @@ setup: $(VENV)/.installed
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 	$(PY) scripts/readme_check.py
+
+# Build the OpenVINO extension (denoiser/inference/ovext: one C++ header per operation) ahead of
+# time into its cache ($$DENOISER_CACHE/ovext, else ~/.cache/denoiser/ovext), as a package
+# maintainer or an image build would; without it, the first OpenVINO use builds it. Prints the
+# library's path, or one line saying why it cannot be built (exit 1).
+ovext: setup
+	$(PY) -m denoiser.inference.ovext
 
 # The whole pipeline on the simulated demo dataset (render, teacher, distilled and no-KD
 # students with 3 seeds each, evaluation, benchmark): reports/demo/ and its summary.md.

@@ -343,7 +343,7 @@ def fake(tmp_path, monkeypatch):
         ovext._status.cache_clear()  # the next use builds again under the restored environment
 
 
-FAILS = "echo 'kernel_apply.cpp:1:1: error: simulated failure' >&2\nexit 1"
+FAILS = "echo 'extension.cpp:1:1: error: simulated failure' >&2\nexit 1"
 BUILDS = "printf 'built by the fake compiler\\n' > \"$OUT\""
 
 

@@ -56,8 +56,9 @@ def test_wheel_install_runs_the_commands_outside_the_checkout(tmp_path):
     assert configs and shipped == configs, sorted(configs ^ shipped)
     assert "denoiser/conf/__init__.py" in names and not any(n.startswith("conf/") for n in names)
     # the OpenVINO extension's C++ source (package data of denoiser.inference.ovext, built on first use)
-    sources = {p.relative_to(REPO).as_posix() for p in (REPO / "denoiser").rglob("*.cpp")}
-    assert "denoiser/inference/ovext/kernel_apply.cpp" in sources and sources <= names, sorted(sources - names)
+    sources = {p.relative_to(REPO).as_posix() for p in (REPO / "denoiser").rglob("*.[ch]pp")}
+    assert {"denoiser/inference/ovext/extension.cpp", "denoiser/inference/ovext/kernel_apply.hpp"} <= sources
+    assert sources <= names, sorted(sources - names)
 
     # 2. a fresh environment that sees the dependencies but not the editable install
     venv = tmp_path / "venv"

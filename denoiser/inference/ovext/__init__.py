@@ -1,5 +1,7 @@
-"""The project's OpenVINO CPU extension (``kernel_apply.cpp``): the kernel filters as single
-operations. ``denoiser::KernelApply`` is the per-pixel kernel filter
+"""The project's OpenVINO CPU extension: the kernel filters as single operations, one C++
+header per operation (``kernel_apply.hpp``, ``pyramid_filter.hpp``, ``log1p.hpp``,
+``add_upsampled.hpp``, with ``common.hpp``), registered in ``extension.cpp``, the one file
+compiled; their names, inputs and attributes are :mod:`denoiser.inference.ovext.schema`. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
 :class:`~denoiser.nn.pyramid.PyramidFilter` (partition, pooled parts, the levels' kernels,
 upsampling, normalisation), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``
@@ -53,8 +55,10 @@ from typing import NamedTuple
 from denoiser.atomic import atomic_path, atomic_write_text
 from denoiser.errors import UserError
 
-#: the extension's source, shipped with the package
-SOURCE = Path(__file__).with_name("kernel_apply.cpp")
+#: the file compiled (it includes the operations' headers), shipped with the package
+SOURCE = Path(__file__).with_name("extension.cpp")
+#: every source file of the extension, in the build's cache key (a changed header is a new build)
+SOURCES = tuple(sorted([SOURCE, *Path(__file__).parent.glob("*.hpp")]))
 #: compiler flags (part of the cache key); :data:`NATIVE` is added where the CPU's flags are known
 FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-fvisibility=hidden")
 NATIVE = "-march=native"
@@ -220,7 +224,8 @@ def _compile(cmd: list[str], timeout: float) -> None:
     if proc.returncode != 0:
         lines = (err or out).strip().splitlines()
         error = next((line for line in lines if "error" in line), lines[-1] if lines else "")
-        raise _BuildFailed(f"building {SOURCE.name} failed: {error.strip()[:200]}")
+        error = error.strip()[:200] or f"{cmd[0]} exited with status {proc.returncode} and printed nothing"
+        raise _BuildFailed(f"building {SOURCE.name} failed: {error}")
 
 
 def _build() -> Path:
@@ -228,7 +233,8 @@ def _build() -> Path:
     cpu = _cpu_flags()
     flags = (*FLAGS, NATIVE) if cpu else FLAGS
     key = hashlib.sha256()
-    for part in (SOURCE.read_bytes(), tools.version, tools.cxx, " ".join(flags), platform.machine(), cpu or ""):
+    sources = (p.name.encode() + b"\0" + p.read_bytes() for p in SOURCES)
+    for part in (*sources, tools.version, tools.cxx, " ".join(flags), platform.machine(), cpu or ""):
         key.update(part if isinstance(part, bytes) else part.encode())
         key.update(b"\0")
     root = cache_root()

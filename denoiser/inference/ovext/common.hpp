@@ -1,0 +1,235 @@
+// Shared by the operations of the OpenVINO extension (one header per operation, extension.cpp
+// registers them): the bounded exp, the per-pixel softmax scale, the row-wise kernel filter
+// (KernelApply and PyramidFilter's levels), the row scheduler and torch's bilinear coordinates.
+// Rows run in parallel on the calling TBB arena (the CPU plugin's, so INFERENCE_NUM_THREADS
+// holds); each row is computed by one thread in a fixed order, so results do not depend on the
+// number of threads.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <string>
+#include <limits>
+#include <memory>
+#include <mutex>
+#include <vector>
+
+#include <openvino/core/extension.hpp>
+#include <openvino/core/op_extension.hpp>
+#include <openvino/frontend/node_context.hpp>
+#include <openvino/frontend/onnx/extension/conversion.hpp>
+#include <openvino/op/op.hpp>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+namespace denoiser {
+
+constexpr float NORM_EPS = 1e-30f;  // denoiser.nn.pyramid.NORM_EPS
+
+// exp(x) for x <= 88 (a softmax's shifted logits), about 2 ulp; 0 below -87.
+// Cody-Waite reduction x = n ln2 + f, degree-6 polynomial on |f| <= ln2 / 2, 2^n by the exponent
+// bits. Branch-free so the row loops vectorise.
+static inline float exp_bounded(float x) {
+    x = std::max(x, -87.0f);
+    const float n = std::nearbyint(x * 1.44269504088896341f);
+    float f = std::fma(n, -0.693359375f, x);
+    f = std::fma(n, 2.12194440e-4f, f);
+    float p = 1.9875691500e-4f;
+    p = std::fma(p, f, 1.3981999507e-3f);
+    p = std::fma(p, f, 8.3334519073e-3f);
+    p = std::fma(p, f, 4.1665795894e-2f);
+    p = std::fma(p, f, 1.6666665459e-1f);
+    p = std::fma(p, f, 5.0000001201e-1f);
+    p = std::fma(p * f, f, f) + 1.0f;
+    const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+    float scale;
+    std::memcpy(&scale, &bits, sizeof(scale));
+    return p * scale;
+}
+
+static std::unique_ptr<float[]> uninitialised(size_t n) { return std::unique_ptr<float[]>(new float[n]); }
+
+// Softmax scale per pixel of a row: s[px] = scale / sqrt(var over the n planes + 1) (two-pass
+// variance, as torch.var(unbiased=False)), or 1. z: n planes of W values, `plane` apart. tmp: W floats.
+static void logit_scale_row(const float* z, int64_t n, int64_t plane, int64_t W, float scale, bool has_scale,
+                            float* s, float* tmp) {
+    if (!has_scale) {
+        std::fill(s, s + W, 1.0f);
+        return;
+    }
+    std::fill(tmp, tmp + W, 0.0f);
+    for (int64_t t = 0; t < n; ++t)
+        for (int64_t px = 0; px < W; ++px) tmp[px] += z[t * plane + px];
+    for (int64_t px = 0; px < W; ++px) tmp[px] *= 1.0f / n;
+    std::fill(s, s + W, 0.0f);
+    for (int64_t t = 0; t < n; ++t)
+        for (int64_t px = 0; px < W; ++px) {
+            const float d = z[t * plane + px] - tmp[px];
+            s[px] += d * d;
+        }
+    for (int64_t px = 0; px < W; ++px) s[px] = scale / std::sqrt(s[px] * (1.0f / n) + 1.0f);
+}
+
+// Scratch of one thread for rows of width W and C channels.
+struct RowScratch {
+    explicit RowScratch(int64_t W, int64_t C) : data(uninitialised(static_cast<size_t>(W) * C)) { acc = data.get(); }
+    std::unique_ptr<float[]> data;
+    float* acc;  // C rows of W: the filtered row
+};
+
+constexpr int64_t S = 16;  // pixels per strip: one AVX-512 register of floats
+
+// Whether the softmax may be shifted by the logits' mean instead of their maximum: with the
+// scale-normalised logits every centred, scaled logit lies within scale * sqrt(K) of it
+// (|z_t - mean| <= sqrt(K var)), so exp stays finite and normal for scale * sqrt(K) <= 80.
+static bool mean_shift_ok(int64_t K, float scale, bool has_scale) {
+    return has_scale && scale * std::sqrt(static_cast<float>(K)) <= 80.0f;
+}
+
+// The kernel filter of pixels px0 .. px0 + S - 1 of row y, channels 0 .. C-1 (NC = C when known at
+// compile time, else 0), into acc (C rows of W). EDGE: some of the strip's taps or pixels lie
+// outside the row (checked per pixel); otherwise every tap column is inside. X: C planes of
+// H x W; Z: k*k logit planes `plane` apart, offset to row y.
+template <int NC, bool EDGE>
+static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
+                         int64_t y, int64_t px0, float scale, bool has_scale, float* acc_rows) {
+    const int64_t C = NC > 0 ? NC : C_;
+    const int64_t r = k / 2, K = k * k, HW = H * W;
+    const int64_t n = EDGE ? std::min<int64_t>(S, W - px0) : S;
+    float mean[S] = {}, s[S], shift[S], sum[S] = {};
+    float acc[NC > 0 ? NC : 8][S] = {};
+    for (int64_t t = 0; t < K; ++t) {
+        const float* z = Z + t * plane + px0;
+        for (int64_t l = 0; l < S; ++l) mean[l] += l < n ? z[l] : 0.0f;
+    }
+    for (int64_t l = 0; l < S; ++l) mean[l] *= 1.0f / K;
+    if (has_scale) {
+        float var[S] = {};
+        for (int64_t t = 0; t < K; ++t) {
+            const float* z = Z + t * plane + px0;
+            for (int64_t l = 0; l < S; ++l) {
+                const float d = (l < n ? z[l] : 0.0f) - mean[l];
+                var[l] += d * d;
+            }
+        }
+        for (int64_t l = 0; l < S; ++l) s[l] = scale / std::sqrt(var[l] * (1.0f / K) + 1.0f);
+    } else {
+        for (int64_t l = 0; l < S; ++l) s[l] = 1.0f;
+    }
+    if (mean_shift_ok(K, scale, has_scale)) {
+        for (int64_t l = 0; l < S; ++l) shift[l] = mean[l] * s[l];
+    } else {  // the largest in-image scaled logit; the centre tap always is in the image
+        const float* zc = Z + (r * k + r) * plane + px0;
+        for (int64_t l = 0; l < S; ++l) shift[l] = l < n ? zc[l] * s[l] : 0.0f;
+        for (int64_t i = 0; i < k; ++i) {
+            if (y + i - r < 0 || y + i - r >= H) continue;
+            for (int64_t j = 0; j < k; ++j) {
+                const float* z = Z + (i * k + j) * plane + px0;
+                for (int64_t l = 0; l < S; ++l) {
+                    const int64_t q = px0 + l + j - r;
+                    if (!EDGE || (l < n && q >= 0 && q < W)) shift[l] = std::max(shift[l], z[l] * s[l]);
+                }
+            }
+        }
+    }
+    for (int64_t i = 0; i < k; ++i) {
+        const int64_t yy = y + i - r;
+        if (yy < 0 || yy >= H) continue;
+        for (int64_t j = 0; j < k; ++j) {
+            const int64_t d = j - r;
+            const float* z = Z + (i * k + j) * plane + px0;
+            const float* xr = X + yy * W + px0 + d;
+            if (!EDGE) {
+                for (int64_t l = 0; l < S; ++l) {
+                    const float e = exp_bounded(z[l] * s[l] - shift[l]);
+                    sum[l] += e;
+                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * HW + l];
+                }
+            } else {
+                for (int64_t l = 0; l < n; ++l) {
+                    const int64_t q = px0 + l + d;
+                    if (q < 0 || q >= W) continue;
+                    const float e = exp_bounded(z[l] * s[l] - shift[l]);
+                    sum[l] += e;
+                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * HW + l];
+                }
+            }
+        }
+    }
+    for (int64_t l = 0; l < S; ++l) sum[l] = 1.0f / sum[l];
+    for (int64_t c = 0; c < C; ++c)
+        for (int64_t l = 0; l < n; ++l) acc_rows[c * W + px0 + l] = acc[c][l] * sum[l];
+}
+
+template <int NC>
+static void filter_row_c(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
+                         int64_t y, float scale, bool has_scale, float* acc) {
+    const int64_t r = k / 2;
+    for (int64_t px0 = 0; px0 < W; px0 += S) {
+        if (px0 >= r && px0 + S + r <= W)
+            filter_strip<NC, false>(X, C, H, W, Z, plane, k, y, px0, scale, has_scale, acc);
+        else
+            filter_strip<NC, true>(X, C, H, W, Z, plane, k, y, px0, scale, has_scale, acc);
+    }
+}
+
+// The kernel filter of row y: t.acc (C rows of W) = sum_t w_t * x[c, y + i - r, px + j - r] with
+// the softmax weights w. X: C planes of H x W; Z: k*k logit planes `plane` apart, offset to row y.
+static void filter_row(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
+                       int64_t y, float scale, bool has_scale, RowScratch& t) {
+    if (C == 3) return filter_row_c<3>(X, C, H, W, Z, plane, k, y, scale, has_scale, t.acc);
+    if (C == 4) return filter_row_c<4>(X, C, H, W, Z, plane, k, y, scale, has_scale, t.acc);
+    for (int64_t c0 = 0; c0 < C; c0 += 8) {  // other channel counts, 8 at a time
+        const int64_t cn = std::min<int64_t>(8, C - c0);
+        filter_row_c<0>(X + c0 * H * W, cn, H, W, Z, plane, k, y, scale, has_scale, t.acc + c0 * W);
+    }
+}
+
+template <class F>
+static void parallel_rows(int64_t rows, F&& body) {
+    tbb::parallel_for(tbb::blocked_range<int64_t>(0, rows, 4), body);
+}
+
+static int64_t kernel_size_of(int64_t K) {
+    const int64_t k = static_cast<int64_t>(std::lround(std::sqrt(static_cast<double>(K))));
+    OPENVINO_ASSERT(k * k == K && k % 2 == 1, "kernel logits need k*k channels with odd k, got ", K);
+    return k;
+}
+
+// One coordinate of torch's bilinear interpolation (align_corners=False) from n_in to n_out samples.
+struct Lerp {
+    int64_t i0, i1;
+    float l0, l1;
+};
+
+static std::vector<Lerp> bilinear_axis(int64_t n_in, int64_t n_out) {
+    std::vector<Lerp> out(static_cast<size_t>(n_out));
+    const float ratio = static_cast<float>(n_in) / static_cast<float>(n_out);
+    for (int64_t d = 0; d < n_out; ++d) {
+        float src = ratio * (d + 0.5f) - 0.5f;
+        src = std::max(src, 0.0f);
+        const int64_t i0 = std::min<int64_t>(static_cast<int64_t>(src), n_in - 1);
+        const int64_t i1 = i0 + (i0 < n_in - 1 ? 1 : 0);
+        const float l1 = src - static_cast<float>(i0);
+        out[d] = {i0, i1, 1.0f - l1, l1};
+    }
+    return out;
+}
+
+// dst (4 planes h x w) += bilinear upsampling of src (4 planes hs x ws), row y only.
+static void add_upsampled_row(const float* src, int64_t hs, int64_t ws, const Lerp& ly, const std::vector<Lerp>& lx,
+                              int64_t w, float* dst_row, int64_t dst_plane, int64_t channels) {
+    for (int64_t c = 0; c < channels; ++c) {
+        const float* r0 = src + (c * hs + ly.i0) * ws;
+        const float* r1 = src + (c * hs + ly.i1) * ws;
+        float* o = dst_row + c * dst_plane;
+        for (int64_t px = 0; px < w; ++px) {
+            const Lerp& l = lx[px];
+            o[px] += ly.l0 * (l.l0 * r0[l.i0] + l.l1 * r0[l.i1]) + ly.l1 * (l.l0 * r1[l.i0] + l.l1 * r1[l.i1]);
+        }
+    }
+}
+
+}  // namespace denoiser

@@ -1,0 +1,45 @@
+// OpenVINO CPU extension: the kernel filters of denoiser.nn as single operations (domain
+// "denoiser"), one header per operation (their definitions at the top of each), registered here
+// with the ONNX front end's conversions (the attributes of denoiser.inference.ovext.schema;
+// tests/test_ovext_schema.py checks both against it). The one file compiled; the headers are
+// part of the build's cache key.
+#include "add_upsampled.hpp"
+#include "kernel_apply.hpp"
+#include "log1p.hpp"
+#include "pyramid_filter.hpp"
+
+OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
+    std::make_shared<ov::OpExtension<denoiser::KernelApply>>(),
+    std::make_shared<ov::OpExtension<denoiser::PyramidFilter>>(),
+    std::make_shared<ov::OpExtension<denoiser::Log1p>>(),
+    std::make_shared<ov::OpExtension<denoiser::AddUpsampled>>(),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "AddUpsampled", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::AddUpsampled>(ctx.get_input(0), ctx.get_input(1),
+                                                            ctx.get_attribute<std::string>("mode"))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "Log1p", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::Log1p>(ctx.get_input(0))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "KernelApply", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            const float scale = ctx.get_attribute<float>("scale", 1.0f);
+            const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
+            return std::make_shared<denoiser::KernelApply>(ctx.get_input(0), ctx.get_input(1), scale,
+                                                           has_scale != 0)->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "PyramidFilter", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            ov::OutputVector args;
+            for (size_t i = 0; i < ctx.get_input_size(); ++i) args.push_back(ctx.get_input(static_cast<int>(i)));
+            const auto sizes = ctx.get_attribute<std::vector<int64_t>>("kernel_sizes");
+            const float scale = ctx.get_attribute<float>("scale", 1.0f);
+            const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
+            return std::make_shared<denoiser::PyramidFilter>(args, sizes, scale, has_scale != 0)->outputs();
+        }),
+}));

@@ -44,8 +44,8 @@ readme-results:
 
 # Fail (one line per block) when what a README results block measures (denoiser/nn, conf/net, conf/kernel,
 # conf/experiment, conf/dataset) changed since its commit (a pure move does not count): rerun, then copy.
-readme-check:
-	python3 scripts/readme_check.py --readme README.md
+readme-check: setup
+	$(PY) scripts/readme_check.py --readme README.md
 
 # Copy the Pareto table of reports/pareto/pareto.md and its plot (docs/images/pareto.png) into README.md.
 readme-pareto:

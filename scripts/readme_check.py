@@ -13,6 +13,13 @@ locations listed) leaves a block current, and a changed value, default or line o
 know. A ``-dirty`` commit counts as its base commit. One line per stale block on stderr, then
 exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
+Code of the networks (:data:`BEHAVIOUR`, ``denoiser/nn``) is judged by what it computes when
+nothing else measured changed: ``scripts/nn_fingerprint.py`` runs on both trees (``git
+archive`` of the block's commit and of ``HEAD``) and hashes, per network config, the training
+pass's outputs and gradients and the exported ONNX graphs, bit for bit. Equal fingerprints (a
+refactor: code moved between modules, renamed, restructured) leave the block current, with a
+line on stdout saying so; different ones, or a tree the fingerprint cannot run on, make it stale.
+
     python scripts/readme_check.py [--readme README.md] [--repo DIR]   # DIR: the README's directory
 """
 
@@ -20,9 +27,13 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
+import json
+import os
 import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 #: what the README's numbers measure: a change under one of these makes every block stale (the
@@ -32,6 +43,9 @@ MEASURED = ("denoiser/nn/", *(f"{root}{group}/" for root in ("conf/", "denoiser/
 #: a file deleted at the first location and added at the second is the same file moved (paired
 #: even when git's rename detection, which goes by similarity, does not pair a small edited file)
 MOVED = (("denoiser/conf/", "conf/"),)
+#: Python code judged by what the networks compute (scripts/nn_fingerprint.py), not by its text
+BEHAVIOUR = ("denoiser/nn/",)
+FINGERPRINT = Path(__file__).with_name("nn_fingerprint.py")
 
 BLOCK = re.compile(r"<!-- (?P<name>[\w.-]+):begin -->(?P<body>.*?)<!-- (?P=name):end -->", re.DOTALL)
 COPIED_COMMIT = re.compile(r"<!-- copied by scripts/readme_results\.py from [^\n]*?, commit (?P<commit>[0-9a-f]{7,40})"
@@ -102,6 +116,45 @@ def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASUR
     return changed
 
 
+@functools.cache
+def fingerprints(repo: Path, commit: str, nets: str | None = None) -> dict[str, str] | str:
+    """``scripts/nn_fingerprint.py`` over ``git archive <commit>`` of ``repo``: ``{net: sha256}``,
+    or a one-line reason why it could not run. ``nets``: comma-separated conf/net names (all)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(f"git -C '{repo}' archive '{commit}' | tar -x -C '{tmp}'", shell=True,
+                                 capture_output=True, text=True, check=False)
+        if archive.returncode != 0:
+            return f"git archive {commit} failed: {archive.stderr.strip()[:200]}"
+        cmd = [sys.executable, str(FINGERPRINT), "--tree", tmp, *(["--nets", nets] if nets else [])]
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=tmp,
+                              env={**os.environ, "PYTHONPATH": tmp, "OMP_NUM_THREADS": "1"})
+    if proc.returncode != 0:
+        lines = proc.stderr.strip().splitlines()
+        return f"the fingerprint did not run on {commit}: {lines[-1][:200] if lines else proc.returncode}"
+    return json.loads(proc.stdout)
+
+
+def same_behaviour(repo: Path, commit: str, changed: list[str]) -> tuple[bool, str]:
+    """Whether ``changed`` (:func:`measured_changes` lines) is code of :data:`BEHAVIOUR` only and
+    the networks of ``commit`` and ``HEAD`` compute the same (``$README_CHECK_NETS``: the configs
+    compared, default all); with the reason when not."""
+    if not all(line.split("\t")[-1].startswith(BEHAVIOUR) and line.split("\t")[-1].endswith(".py")
+               and all(p.startswith(BEHAVIOUR) for p in line.split("\t")[1:]) for line in changed):
+        return False, ""
+    nets = os.environ.get("README_CHECK_NETS") or None
+    before, after = fingerprints(repo, commit, nets), fingerprints(repo, "HEAD", nets)
+    for side in (before, after):
+        if isinstance(side, str):
+            return False, side
+    common = sorted(set(before) & set(after))
+    if not common:
+        return False, "no network config in both trees"
+    differ = [n for n in common if before[n] != after[n]]
+    if differ:
+        return False, f"the networks compute differently ({', '.join(differ[:3])}{' ...' if len(differ) > 3 else ''})"
+    return True, f"{len(common)} network configs compute the same, bit for bit (scripts/nn_fingerprint.py)"
+
+
 def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED) -> list[str]:
     """One line per stale block of ``readme`` (empty when all are current); ``repo``: the git checkout."""
     if git(repo, "rev-parse", "--verify", "--quiet", "HEAD").returncode != 0:
@@ -120,8 +173,12 @@ def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED)
         changed = measured_changes(repo, commit, measured)
         if changed:
             files = ", ".join(line.split("\t")[-1] for line in changed[:3]) + (" ..." if len(changed) > 3 else "")
+            same, why = same_behaviour(repo, commit, changed)
+            if same:
+                print(f"{where} (commit {commit}): {files} changed in form only: {why}")
+                continue
             lines.append(f"{where} (commit {commit}): what it measures changed since ({len(changed)} file(s): "
-                         f"{files}): rerun what wrote it")
+                         f"{files}{'; ' + why if why else ''}): rerun what wrote it")
     return lines
 
 

@@ -211,9 +211,12 @@ def git(repo: Path, *args: str) -> str:
                                "GIT_COMMITTER_EMAIL": "t@t", "PATH": "/usr/bin:/bin"}).stdout.strip()
 
 
-def readme_check(repo: Path) -> subprocess.CompletedProcess:
+def readme_check(repo: Path, **env: str) -> subprocess.CompletedProcess:
+    import os
+
     return subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_check.py"), "--readme",
-                           str(repo / "README.md")], capture_output=True, text=True, check=False)
+                           str(repo / "README.md")], capture_output=True, text=True, check=False,
+                          env={**os.environ, **env}, timeout=600)
 
 
 def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
@@ -266,6 +269,35 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     git(repo, "commit", "-qam", "wider config")
     proc = readme_check(repo)
     assert proc.returncode == 1 and "conf/net/student.yaml" in proc.stderr
+
+
+@pytest.mark.slow
+def test_readme_check_judges_network_code_by_what_it_computes(tmp_path):
+    """A refactor of denoiser/nn (another syntax tree, the same numbers) leaves a block current; a
+    change of what a network computes makes it stale (scripts/nn_fingerprint.py on both trees)."""
+    import shutil
+
+    repo = tmp_path / "repo"
+    for name in ("denoiser", "conf"):
+        shutil.copytree(ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.so"))
+    git(repo, "init", "-q")
+    git(repo, "add", ".")
+    git(repo, "commit", "-qm", "code")
+    (repo / "README.md").write_text(README.format(commit=git(repo, "rev-parse", "HEAD")))
+    inputs = repo / "denoiser" / "nn" / "inputs.py"
+    text = inputs.read_text()
+    line = "    return log1p(x.float().clamp_min(0) / scale)\n"
+    assert line in text
+    inputs.write_text(text.replace(line, "    ratio = x.float().clamp_min(0) / scale\n    return log1p(ratio)\n"))
+    git(repo, "commit", "-qam", "refactor")
+    proc = readme_check(repo, README_CHECK_NETS="tiny")
+    assert proc.returncode == 0, proc.stderr
+    assert "denoiser/nn/inputs.py changed in form only: 1 network configs compute the same" in proc.stdout
+    inputs.write_text(text.replace(line, "    return log1p(x.float().clamp_min(0) / (2 * scale))\n"))
+    git(repo, "commit", "-qam", "another feature scale")
+    proc = readme_check(repo, README_CHECK_NETS="tiny")
+    assert proc.returncode == 1 and proc.stderr.count("\n") == 1
+    assert "denoiser/nn/inputs.py; the networks compute differently (tiny)" in proc.stderr
 
 
 def test_readme_results_fills_a_pending_block_and_names_its_commit(tmp_path):

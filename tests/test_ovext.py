@@ -25,7 +25,8 @@ from conftest import extension_or_skip
 
 from denoiser.errors import UserError
 from denoiser.inference import ovext
-from denoiser.nn.kernels import apply_kernels, kernels_as_op
+from denoiser.nn.graph_ops import kernels_as_op
+from denoiser.nn.kernels import apply_kernels
 from denoiser.nn.pyramid import PyramidFilter
 
 
@@ -273,11 +274,11 @@ def test_log1p_matches_torch(tmp_path):
 ])
 def test_add_upsampled_matches_interpolate(tmp_path, mode, hw, half):
     """``denoiser::AddUpsampled`` against ``a + F.interpolate(z, size, mode)`` (align_corners False)."""
-    from denoiser.nn.unet import _AddUpsampledOp
+    from denoiser.nn.graph_ops import AddUpsampledOp
 
     class Add(torch.nn.Module):
         def forward(self, a, z):
-            return _AddUpsampledOp.apply(a, z, mode, False if mode == "bilinear" else None)
+            return AddUpsampledOp.apply(a, z, mode, False if mode == "bilinear" else None)
 
     g = torch.Generator().manual_seed(5)
     a, z = torch.randn(2, 5, *hw, generator=g), torch.randn(2, 5, *half, generator=g) * 100

@@ -47,8 +47,7 @@ from denoiser.atomic import atomic_path
 from denoiser.buffers import CHANNELS, FRAME_INPUTS
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
-from denoiser.nn.kernels import kernels_as_op
-from denoiser.nn.parts import heads_as_matmul
+from denoiser.nn.graph_ops import heads_as_matmul, kernels_as_op
 from denoiser.runner import Network, RecurrentRunner
 
 
@@ -111,7 +110,7 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     in f32, while 1x1 convolutions (the default) are what it runs fastest in bf16.
     ``fused_kernels``: the kernel filter, the input transforms' ``log1p`` and (with matmul heads)
     the level-0 head's upsampling as operations of the project's OpenVINO extension
-    (:func:`denoiser.nn.kernels.kernels_as_op`, :mod:`denoiser.inference.ovext`; same numbers): faster in
+    (:func:`denoiser.nn.graph_ops.kernels_as_op`, :mod:`denoiser.inference.ovext`; same numbers): faster in
     OpenVINO, and only OpenVINO with that extension can run the file.
     """
     import onnx

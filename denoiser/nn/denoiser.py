@@ -62,6 +62,7 @@ from torch import nn
 
 from denoiser.buffers import NETWORK_INPUTS
 from denoiser.errors import ConfigError
+from denoiser.nn.graph_ops import in_graph
 from denoiser.nn.inputs import (
     GUIDE_CHANNELS,
     color_feature,
@@ -223,7 +224,7 @@ class Denoiser(nn.Module):
         # the transforms run in float32; a network converted to bfloat16/float16 weights (fast
         # CPU/GPU inference without autocast) gets its inputs in its own dtype
         net_dtype = self.embed.layers[0].weight.dtype
-        graph = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()  # traced or exported
+        graph = in_graph()  # traced or exported
         if graph and frame.get("samples") is None:
             # exported: the EmbedNet's first layer runs per input part (no concatenation)
             net_in = self.embed([color_feature(color, scale).to(net_dtype), guide.to(net_dtype)])

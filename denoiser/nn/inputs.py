@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import torch
 
-from denoiser.nn.kernels import fused_kernels
+from denoiser.nn.graph_ops import Log1pOp, fused_kernels
 from denoiser.nonfinite import POSINF, replace_tensor  # noqa: F401 - POSINF is used through this module
 
 COLOR_EPS = 1e-3
@@ -75,26 +75,12 @@ def albedo_feature(albedo: torch.Tensor) -> torch.Tensor:
 
 
 def log1p(x: torch.Tensor) -> torch.Tensor:
-    """``torch.log1p``; exported with the fused operations (:func:`~denoiser.nn.kernels.kernels_as_op`)
+    """``torch.log1p``; exported with the fused operations (:func:`~denoiser.nn.graph_ops.kernels_as_op`)
     as one ``denoiser::Log1p`` node of the OpenVINO extension (OpenVINO's own ``Log`` is a slow
     reference implementation on the CPU: 8-11 ms per 3-channel 1080p buffer on 2 threads)."""
     if fused_kernels():
-        return _Log1pOp.apply(x)
+        return Log1pOp.apply(x)
     return torch.log1p(x)
-
-
-class _Log1pOp(torch.autograd.Function):
-    """:func:`log1p` recorded as one ``denoiser::Log1p`` ONNX node (the value: ``torch.log1p``)."""
-
-    @staticmethod
-    def forward(ctx, x):
-        return torch.log1p(x)
-
-    @staticmethod
-    def symbolic(g, x):
-        out = g.op("denoiser::Log1p", x)
-        out.setType(x.type())
-        return out
 
 
 def demodulation_albedo(albedo: torch.Tensor) -> torch.Tensor:

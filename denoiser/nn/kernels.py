@@ -15,8 +15,8 @@ so besides the weights ``[B, k*k, H, W]`` only O(C*H*W) is allocated (an ``unfol
 allocate ``[B, C*k*k, H*W]``). :func:`apply_kernels_unfold` is that unfold formulation, kept
 for the benchmark's comparison only.
 
-Traced or exported (``torch.jit.is_tracing()`` / ``torch.onnx.is_in_onnx_export()``, the graph
-of ``denoiser-export``, ONNX Runtime and OpenVINO), the same sum is recorded as a few large ops
+Traced or exported (:func:`denoiser.nn.graph_ops.in_graph`, the graph of ``denoiser-export``,
+ONNX Runtime and OpenVINO), the same sum is recorded as a few large ops
 instead of k*k Python-level taps and the border masking's 2k slice assignments
 (:func:`apply_kernels_graph`): the k*k shifted views are slices of one zero-padded copy, the
 border mask is two small separable biases added to the logits (:func:`border_bias`: a row term
@@ -29,14 +29,12 @@ keeps the in-place loop with its hand-written backward.
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import math
-from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
 
+from denoiser.nn.graph_ops import KernelApplyOp, fused_kernels, in_graph
 from denoiser.nonfinite import nan_to_num
 
 
@@ -93,7 +91,7 @@ def scale_logits(logits: torch.Tensor, scale: float | None, dim: int = 1) -> tor
     bfloat16 engine has float32's range); the replacement cost 3% of the demo student's time at
     1080p in OpenVINO. Computed in float32.
     """
-    if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+    if in_graph():
         logits = logits.float()  # finite by construction (see above)
     else:
         logits = nan_to_num(logits.float(), nan=0.0, posinf=1e4, neginf=-1e4)
@@ -149,7 +147,7 @@ def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | No
     """
     if fused_kernels():
         with torch.autocast(device_type=x.device.type, enabled=False):
-            return _KernelApplyOp.apply(x.float(), logits.float(), scale)
+            return KernelApplyOp.apply(x.float(), logits.float(), scale)
     k = kernel_size_of(logits)
     r = k // 2
     with torch.autocast(device_type=x.device.type, enabled=False):
@@ -161,59 +159,6 @@ def apply_kernels_graph(x: torch.Tensor, logits: torch.Tensor, scale: float | No
         out = weights[:, :1] * views[0]
         for t in range(1, k * k):
             out = out + weights[:, t: t + 1] * views[t]
-        return out
-
-
-_KERNEL_OP = contextvars.ContextVar("kernel_op", default=False)
-
-
-@contextlib.contextmanager
-def kernels_as_op(enabled: bool = True) -> Iterator[None]:
-    """Within the block, an exported :func:`apply_kernels_graph` is one ``denoiser::KernelApply``
-    node (attributes ``scale`` float, ``has_scale`` int) instead of slices, a softmax and k*k
-    multiply-adds, a :class:`~denoiser.nn.pyramid.PyramidFilter` one ``denoiser::PyramidFilter``
-    node and :func:`denoiser.nn.inputs.log1p` one ``denoiser::Log1p`` node: the fused operations
-    of the OpenVINO extension :mod:`denoiser.inference.ovext`. Only an engine with that extension loaded can
-    run such a graph."""
-    token = _KERNEL_OP.set(bool(enabled))
-    try:
-        yield
-    finally:
-        _KERNEL_OP.reset(token)
-
-
-def fused_kernels() -> bool:
-    """Whether a graph being exported records the kernel filters as single operations
-    (:func:`kernels_as_op`; :class:`~denoiser.nn.pyramid.PyramidFilter` as one
-    ``denoiser::PyramidFilter`` node too)."""
-    return _KERNEL_OP.get() and (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
-
-
-def unfused(fn, *args):
-    """``fn(*args)`` with :func:`kernels_as_op` off (the plain computation of a fused node)."""
-    token = _KERNEL_OP.set(False)
-    try:
-        return fn(*args)
-    finally:
-        _KERNEL_OP.reset(token)
-
-
-class _KernelApplyOp(torch.autograd.Function):
-    """:func:`apply_kernels_graph` recorded as one ``denoiser::KernelApply`` ONNX node.
-
-    forward(x ``[B, C, H, W]`` float32, logits ``[B, k*k, H, W]`` float32, scale float or None)
-    -> ``[B, C, H, W]`` float32, computed by the plain graph (the tracer records the node only).
-    """
-
-    @staticmethod
-    def forward(ctx, x, logits, scale):
-        return unfused(apply_kernels_graph, x, logits, scale)
-
-    @staticmethod
-    def symbolic(g, x, logits, scale):
-        out = g.op("denoiser::KernelApply", x, logits, scale_f=1.0 if scale is None else float(scale),
-                   has_scale_i=int(scale is not None))
-        out.setType(x.type())
         return out
 
 
@@ -282,7 +227,7 @@ def apply_kernels(x: torch.Tensor, logits: torch.Tensor, scale: float | None = N
     x: ``[B, C, H, W]`` linear radiance; logits: ``[B, k*k, H, W]`` unnormalised kernel taps
     (any float dtype); scale: logit normalisation (:func:`scale_logits`). Returns ``[B, C, H, W]`` float32.
     """
-    if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+    if in_graph():
         return apply_kernels_graph(x, logits, scale)
     k = kernel_size_of(logits)
     r = k // 2

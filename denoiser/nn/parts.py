@@ -11,9 +11,7 @@ channels-last view of each part: what the exported graph runs for the U-Net's he
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -79,21 +77,3 @@ def pointwise(weight: torch.Tensor, bias: torch.Tensor | None, x: torch.Tensor) 
     return out.reshape(b, -1, h, w)
 
 
-_MATMUL_HEADS = contextvars.ContextVar("matmul_heads", default=False)
-
-
-def matmul_heads() -> bool:
-    """Whether a graph being traced runs the U-Net's heads as :func:`pointwise_of_parts`."""
-    return _MATMUL_HEADS.get()
-
-
-@contextlib.contextmanager
-def heads_as_matmul(enabled: bool = True) -> Iterator[None]:
-    """Within the block, traced U-Net heads are matrix products (:func:`pointwise_of_parts`)
-    instead of 1x1 convolutions: faster in OpenVINO f32, slower in OpenVINO bf16 (there the
-    convolution's bfloat16 output is reordered fast, and the ``MatMul`` runs in float32)."""
-    token = _MATMUL_HEADS.set(bool(enabled))
-    try:
-        yield
-    finally:
-        _MATMUL_HEADS.reset(token)

@@ -29,7 +29,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.kernels import apply_kernels, fused_kernels, scale_logits, unfused
+from denoiser.nn.graph_ops import PyramidFilterOp, fused_kernels
+from denoiser.nn.kernels import apply_kernels, scale_logits
 
 #: smallest normaliser used for division; below it the input pixel is passed through
 NORM_EPS = 1e-30
@@ -104,7 +105,7 @@ class PyramidFilter(nn.Module):
         """
         if fused_kernels():  # exported for OpenVINO with the project's extension: one node
             with torch.autocast(device_type=x.device.type, enabled=False):
-                out = _PyramidFilterOp.apply(x.float(), tuple(self.kernel_sizes), self.logit_scale,
+                out = PyramidFilterOp.apply(x.float(), tuple(self.kernel_sizes), self.logit_scale,
                                              *[h.float() for h in heads])
             return out, {}
         return pyramid_filter(x, heads, self.kernel_sizes, self.logit_scale)
@@ -125,20 +126,3 @@ def pyramid_filter(x: torch.Tensor, heads: Sequence[torch.Tensor], kernel_sizes:
             acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",
                                 align_corners=False) + filtered[i]
         return normalize(acc, x1[:, :-1]), {"partition": partition}
-
-
-class _PyramidFilterOp(torch.autograd.Function):
-    """:meth:`PyramidFilter.forward` recorded as one ``denoiser::PyramidFilter`` ONNX node
-    (inputs x and the L heads; attributes ``kernel_sizes`` ints, ``scale`` float, ``has_scale``
-    int); the value is the plain computation (the tracer records the node only)."""
-
-    @staticmethod
-    def forward(ctx, x, kernel_sizes, scale, *heads):
-        return unfused(pyramid_filter, x, heads, kernel_sizes, scale)[0]
-
-    @staticmethod
-    def symbolic(g, x, kernel_sizes, scale, *heads):
-        out = g.op("denoiser::PyramidFilter", x, *heads, kernel_sizes_i=list(kernel_sizes),
-                   scale_f=1.0 if scale is None else float(scale), has_scale_i=int(scale is not None))
-        out.setType(x.type())
-        return out

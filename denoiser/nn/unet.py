@@ -26,8 +26,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.kernels import fused_kernels
-from denoiser.nn.parts import conv_of_parts, matmul_heads, pointwise, pointwise_of_parts
+from denoiser.nn.graph_ops import AddUpsampledOp, fused_kernels, in_graph, matmul_heads
+from denoiser.nn.parts import conv_of_parts, pointwise, pointwise_of_parts
 
 
 def conv_block(cin: int, cout: int, negative_slope: float) -> nn.Sequential:
@@ -134,7 +134,7 @@ class UNet(nn.Module):
         features[0] = torch.cat([skips[0], x], dim=1)
         # exported for OpenVINO f32 (matmul_heads): each head as matrix products, the level-0 head
         # per part (skip 0 and the upsampled features, no concatenation); see pointwise_of_parts
-        as_matmul = matmul_heads() and (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+        as_matmul = matmul_heads() and in_graph()
         parts = [[skips[0], x]] + [[f] for f in features[1:]]
         heads = [(pointwise_of_parts(head, parts[i]) if as_matmul else head(features[i])) if n > 0 else None
                  for i, (head, n) in enumerate(zip(self.heads, self.head_channels))]
@@ -157,20 +157,5 @@ class UNet(nn.Module):
         # the bias joins the half-resolution product (the upsampling's weights sum to 1)
         a, z = pointwise(weight[:, :n], None, skip0), pointwise(weight[:, n:], head.bias, half)
         if fused_kernels():  # one planar denoiser::AddUpsampled node (the OpenVINO extension)
-            return _AddUpsampledOp.apply(a, z, self.upsample_mode, self.align)
+            return AddUpsampledOp.apply(a, z, self.upsample_mode, self.align)
         return a + self._up(z)
-
-
-class _AddUpsampledOp(torch.autograd.Function):
-    """``a + interpolate(z, 2x)`` recorded as one ``denoiser::AddUpsampled`` ONNX node (attribute
-    ``mode``); the value is the plain computation."""
-
-    @staticmethod
-    def forward(ctx, a, z, mode, align):
-        return a + F.interpolate(z, size=a.shape[-2:], mode=mode, align_corners=align)
-
-    @staticmethod
-    def symbolic(g, a, z, mode, align):
-        out = g.op("denoiser::AddUpsampled", a, z, mode_s=mode)
-        out.setType(a.type())
-        return out

@@ -1,7 +1,7 @@
 """The project's OpenVINO CPU extension: the kernel filters as single operations, one C++
 header per operation (``kernel_apply.hpp``, ``pyramid_filter.hpp``, ``log1p.hpp``,
 ``add_upsampled.hpp``, with ``common.hpp``), registered in ``extension.cpp``, the one file
-compiled; their names, inputs and attributes are :mod:`denoiser.inference.ovext.schema`. ``denoiser::KernelApply`` is the per-pixel kernel filter
+compiled; their names, inputs and attributes are :data:`denoiser.nn.graph_ops.OPERATIONS`. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
 :class:`~denoiser.nn.pyramid.PyramidFilter` (partition, pooled parts, the levels' kernels,
 upsampling, normalisation), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``

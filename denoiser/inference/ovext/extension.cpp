@@ -1,6 +1,6 @@
 // OpenVINO CPU extension: the kernel filters of denoiser.nn as single operations (domain
 // "denoiser"), one header per operation (their definitions at the top of each), registered here
-// with the ONNX front end's conversions (the attributes of denoiser.inference.ovext.schema;
+// with the ONNX front end's conversions (the attributes of denoiser.nn.graph_ops.OPERATIONS;
 // tests/test_ovext_schema.py checks both against it). The one file compiled; the headers are
 // part of the build's cache key.
 #include "add_upsampled.hpp"

@@ -1,0 +1,196 @@
+"""The networks' export hooks, in one place: when a graph is being recorded, the switches that
+choose its form, the operations of the OpenVINO extension (their schema) and the autograd stubs
+that record them. Eager training and inference never take these paths.
+
+* :func:`in_graph`: ``net.step`` is being traced or exported (``torch.jit`` / ``torch.onnx``);
+  the modules then record graph-friendly forms (slices instead of in-place loops, inputs split
+  into parts instead of concatenated).
+* :func:`kernels_as_op` / :func:`fused_kernels`: within the block, a recorded graph holds the
+  kernel filters, the input transforms' ``log1p`` and (with matmul heads) the level-0 head's
+  upsampled sum as single operations of the extension :mod:`denoiser.inference.ovext` (only an
+  engine with it loaded runs such a graph); :func:`unfused` computes a fused node's value.
+* :func:`heads_as_matmul` / :func:`matmul_heads`: within the block, the traced U-Net heads are
+  matrix products (:func:`denoiser.nn.parts.pointwise_of_parts`) instead of 1x1 convolutions:
+  faster in OpenVINO f32, slower in OpenVINO bf16 (there the convolution's bfloat16 output is
+  reordered fast, and the ``MatMul`` runs in float32).
+* :data:`OPERATIONS`: the extension's operations (ONNX domain :data:`DOMAIN`): inputs and
+  attributes. Said once: the stubs record nodes through :func:`graph_node`, which checks them,
+  and ``tests/test_ovext_schema.py`` checks the C++ source (``denoiser/inference/ovext/<name>.hpp``,
+  the operation's name in snake case, and ``extension.cpp``) against it.
+* The stubs (``torch.autograd.Function``): their value is the plain computation (the tracer
+  records the node only); :class:`KernelApplyOp` (:func:`denoiser.nn.kernels.apply_kernels_graph`),
+  :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`Log1pOp`
+  (:func:`denoiser.nn.inputs.log1p`), :class:`AddUpsampledOp`
+  (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from collections.abc import Iterator
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+#: the ONNX domain (and OpenVINO opset name) of the extension's operations
+DOMAIN = "denoiser"
+
+
+class Operation(NamedTuple):
+    """One operation of the extension: ``inputs`` (the count; None: variadic) and ``attributes``
+    ``{name: ONNX attribute type}`` (``FLOAT``, ``INT``, ``INTS``, ``STRING``)."""
+
+    inputs: int | None
+    attributes: dict[str, str]
+
+
+OPERATIONS: dict[str, Operation] = {
+    # x [B, C, H, W], logits [B, k*k, H, W] -> [B, C, H, W]
+    "KernelApply": Operation(2, {"scale": "FLOAT", "has_scale": "INT"}),
+    # x [B, 3, H, W], head_0 .. head_{L-1} -> [B, 3, H, W]
+    "PyramidFilter": Operation(None, {"kernel_sizes": "INTS", "scale": "FLOAT", "has_scale": "INT"}),
+    # x -> log1p(x)
+    "Log1p": Operation(1, {}),
+    # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
+    "AddUpsampled": Operation(2, {"mode": "STRING"}),
+}
+#: the suffix torch.onnx's ``g.op`` takes for each attribute type
+_SUFFIX = {"FLOAT": "f", "INT": "i", "INTS": "i", "STRING": "s"}
+
+
+def in_graph() -> bool:
+    """Whether a graph is being recorded: traced (``torch.jit``) or exported (``torch.onnx``)."""
+    return torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
+
+
+_KERNEL_OP = contextvars.ContextVar("kernel_op", default=False)
+_MATMUL_HEADS = contextvars.ContextVar("matmul_heads", default=False)
+
+
+@contextlib.contextmanager
+def kernels_as_op(enabled: bool = True) -> Iterator[None]:
+    """Within the block, a recorded graph holds the extension's operations (:data:`OPERATIONS`):
+    :func:`denoiser.nn.kernels.apply_kernels_graph` as one ``denoiser::KernelApply`` node instead
+    of slices, a softmax and k*k multiply-adds, a :class:`~denoiser.nn.pyramid.PyramidFilter` as
+    one ``denoiser::PyramidFilter``, :func:`denoiser.nn.inputs.log1p` as one ``denoiser::Log1p``
+    and, with :func:`heads_as_matmul`, the level-0 head's upsampled sum as one
+    ``denoiser::AddUpsampled``."""
+    token = _KERNEL_OP.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _KERNEL_OP.reset(token)
+
+
+def fused_kernels() -> bool:
+    """Whether a graph being recorded holds the extension's operations (:func:`kernels_as_op`)."""
+    return _KERNEL_OP.get() and in_graph()
+
+
+def unfused(fn, *args):
+    """``fn(*args)`` with :func:`kernels_as_op` off (the plain computation of a fused node)."""
+    token = _KERNEL_OP.set(False)
+    try:
+        return fn(*args)
+    finally:
+        _KERNEL_OP.reset(token)
+
+
+@contextlib.contextmanager
+def heads_as_matmul(enabled: bool = True) -> Iterator[None]:
+    """Within the block, traced U-Net heads are matrix products (:func:`denoiser.nn.parts.pointwise_of_parts`)
+    instead of 1x1 convolutions (see the module docstring)."""
+    token = _MATMUL_HEADS.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _MATMUL_HEADS.reset(token)
+
+
+def matmul_heads() -> bool:
+    """Whether a graph being traced runs the U-Net's heads as :func:`denoiser.nn.parts.pointwise_of_parts`."""
+    return _MATMUL_HEADS.get()
+
+
+def graph_node(g, name: str, *inputs, like, **attributes):
+    """One node of the extension's operation ``name`` in the graph ``g`` (a ``symbolic``'s first
+    argument), with the type of ``like``; the inputs and attributes must be :data:`OPERATIONS`'."""
+    op = OPERATIONS[name]
+    if op.inputs is not None and len(inputs) != op.inputs:
+        raise ValueError(f"{DOMAIN}::{name}: {len(inputs)} inputs, the schema has {op.inputs}")
+    if set(attributes) != set(op.attributes):
+        raise ValueError(f"{DOMAIN}::{name}: attributes {sorted(attributes)}, the schema has {sorted(op.attributes)}")
+    typed = {f"{key}_{_SUFFIX[op.attributes[key]]}": value for key, value in attributes.items()}
+    out = g.op(f"{DOMAIN}::{name}", *inputs, **typed)
+    out.setType(like.type())
+    return out
+
+
+def _scale_attributes(scale: float | None) -> dict:
+    """A kernel filter's logit normalisation as attributes: ``scale`` (1 when off) and ``has_scale``."""
+    return {"scale": 1.0 if scale is None else float(scale), "has_scale": int(scale is not None)}
+
+
+class KernelApplyOp(torch.autograd.Function):
+    """:func:`denoiser.nn.kernels.apply_kernels_graph` recorded as one ``denoiser::KernelApply`` node.
+
+    forward(x ``[B, C, H, W]`` float32, logits ``[B, k*k, H, W]`` float32, scale float or None)
+    -> ``[B, C, H, W]`` float32, computed by the plain graph.
+    """
+
+    @staticmethod
+    def forward(ctx, x, logits, scale):
+        from denoiser.nn.kernels import apply_kernels_graph
+
+        return unfused(apply_kernels_graph, x, logits, scale)
+
+    @staticmethod
+    def symbolic(g, x, logits, scale):
+        return graph_node(g, "KernelApply", x, logits, like=x, **_scale_attributes(scale))
+
+
+class PyramidFilterOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.pyramid.PyramidFilter.forward` recorded as one ``denoiser::PyramidFilter``
+    node (inputs x and the L heads; attributes ``kernel_sizes``, ``scale``, ``has_scale``)."""
+
+    @staticmethod
+    def forward(ctx, x, kernel_sizes, scale, *heads):
+        from denoiser.nn.pyramid import pyramid_filter
+
+        return unfused(pyramid_filter, x, heads, kernel_sizes, scale)[0]
+
+    @staticmethod
+    def symbolic(g, x, kernel_sizes, scale, *heads):
+        return graph_node(g, "PyramidFilter", x, *heads, like=x, kernel_sizes=list(kernel_sizes),
+                          **_scale_attributes(scale))
+
+
+class Log1pOp(torch.autograd.Function):
+    """:func:`denoiser.nn.inputs.log1p` recorded as one ``denoiser::Log1p`` node (the value: ``torch.log1p``)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return torch.log1p(x)
+
+    @staticmethod
+    def symbolic(g, x):
+        return graph_node(g, "Log1p", x, like=x)
+
+
+class AddUpsampledOp(torch.autograd.Function):
+    """``a + interpolate(z, a's size)`` recorded as one ``denoiser::AddUpsampled`` node (attribute
+    ``mode``); the value is the plain computation."""
+
+    @staticmethod
+    def forward(ctx, a, z, mode, align):
+        return a + F.interpolate(z, size=a.shape[-2:], mode=mode, align_corners=align)
+
+    @staticmethod
+    def symbolic(g, a, z, mode, align):
+        return graph_node(g, "AddUpsampled", a, z, like=a, mode=mode)
+
+
+__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterOp",
+           "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused"]

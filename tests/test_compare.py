@@ -36,6 +36,7 @@ def test_demo_compare_renders_exactly_demos_test_job_with_samples_in_its_own_roo
     # sequence seeds derive from seed, scene, split and index: the same scenes, cameras and references
     assert compare.seed == demo.seed
     assert Path(compare.root).name == "demo_compare" and Path(compare.root).parent == Path(demo.root).parent
+    assert compare.reference_from == demo.root and demo.reference_from is None   # its references: demo's, copied
     with initialize_config_dir(CONF_DIR, version_base=None):
         data = compose("eval", overrides=["data=demo_compare"]).data
         demo_data = compose("eval", overrides=["data=demo"]).data

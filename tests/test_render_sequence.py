@@ -286,3 +286,32 @@ def test_aux_samples_under_motion_blur_follow_the_colour_samples(mi):
     np.testing.assert_allclose(color, fr.radiance(1, 16, 11), rtol=1e-6, atol=1e-7)  # one shared helper
     row = albedo[12, :, 0]  # sky 0, ball 0.9; the swept band has fractions in between
     assert ((row > 0.05) & (row < 0.85)).sum() >= 4
+
+
+def _reference(out, t: int = 0) -> np.ndarray:
+    arrays, _ = read_frame(frame_path(out, t), {"reference": NATIVE["reference"]})
+    return arrays["reference"]
+
+
+def test_references_copied_from_a_donor_are_the_ones_rendered(static_seq, mi, tmp_path, capsys):
+    """dataset=demo_compare re-renders demo's test split with per-sample radiance: its references
+    come from data/demo (reference_from), and they are the references the sequence would render."""
+    donor, _ = static_seq
+    spec = build_scene(static_scene(), 0)
+    with_samples = RenderSettings(frames=2, spp=2, ref_spp=8, width=32, height=32, save_samples=True)
+    copied = tmp_path / "copied"
+    meta = render_sequence(mi, spec, copied, with_samples, seq_seed=1234, reference_from=donor)
+    assert meta["reference_from"] == str(donor)
+    assert all("reference" not in seconds for seconds in meta["frame_seconds"])   # nothing rendered for them
+    rendered = tmp_path / "rendered"
+    render_sequence(mi, spec, rendered, with_samples, seq_seed=1234)
+    for t in range(2):
+        assert np.array_equal(_reference(copied, t), _reference(donor, t))
+        assert np.array_equal(_reference(copied, t), _reference(rendered, t))   # the reference pass's own seed
+    # a donor of another reference spp (or seed, size, renderer) is not used: said, and rendered
+    other = tmp_path / "other"
+    meta = render_sequence(mi, spec, other, RenderSettings(frames=2, spp=2, ref_spp=4, width=32, height=32),
+                           seq_seed=1234, reference_from=donor)
+    assert "reference_from" not in meta and all("reference" in s for s in meta["frame_seconds"])
+    assert f"note: {other}: references rendered, not copied ({donor / 'sequence.json'}: rendered with other ref_spp)" \
+        in capsys.readouterr().err

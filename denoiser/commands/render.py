@@ -133,9 +133,10 @@ def run(cfg: DictConfig) -> None:
                 skipped += was_done
                 bar.update(1)
 
+            donor = Path(cfg.reference_from) / job.directory if cfg.get("reference_from") else None
             render_sequence(mi, spec, root / job.directory, job.settings,
                             sequence_seed(cfg.seed, job.scene_name, job.split, job.index),
-                            overwrite=bool(cfg.overwrite), on_frame=on_frame)
+                            overwrite=bool(cfg.overwrite), on_frame=on_frame, reference_from=donor)
     print(f"rendered {total - skipped} frame(s), skipped {skipped} finished, {len(jobs)} sequence(s) in {root}",
           file=sys.stderr)
 

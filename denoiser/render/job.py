@@ -6,10 +6,19 @@ after every frame). A frame whose file exists with every expected channel is ski
 interrupted render continues where it stopped; its timings come from the previous
 ``sequence.json``. Settings that differ from an existing ``sequence.json`` are an error
 unless ``overwrite`` is set (then stale frames are replaced).
+
+A labeled sequence may take its references from a *donor*: the same sequence directory under
+another root (``denoiser-render reference_from=<root>``) rendered with the same scene, sequence
+seed, reference spp, size, precision and renderer (:func:`reference_donor`): its frames'
+``reference`` buffers are copied instead of rendered again, which is most of a labeled frame's
+time (``dataset=demo_compare`` re-renders data/demo's test split with per-sample radiance; its
+references are data/demo's). The reference pass has a seed of its own, so a donor's reference
+is the one this sequence would render; ``sequence.json`` names the donor (``reference_from``).
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
@@ -19,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from denoiser.buffers import SEQUENCE_BUFFERS, native_channels, sample_channels
-from denoiser.data.exr import list_channels, write_frame
+from denoiser.data.exr import list_channels, read_channels, write_frame
 from denoiser.data.sequence import SEQUENCE_JSON, load_sequence_json, write_sequence_json
 from denoiser.errors import ExrError, UserError
 from denoiser.render import seeds as sd
@@ -103,9 +112,46 @@ def frame_complete(path: Path, channels: list[str]) -> bool:
     return all(c in present for c in channels)
 
 
+#: the render settings a donor's references must share with the sequence that copies them
+REFERENCE_KEYS = ("scene", "sequence_seed", "ref_spp", "width", "height", "half")
+
+
+def reference_donor(donor_dir: Path, identity: Mapping[str, Any], renderer: Mapping[str, str]
+                    ) -> tuple[Callable[[int], np.ndarray | None] | None, str]:
+    """``(reference_of, why)``: ``reference_of(t)`` is the reference ``[H, W, 3]`` of frame ``t``
+    of the donor sequence ``donor_dir`` (None where that frame is not finished there), when the
+    donor was rendered with this sequence's :data:`REFERENCE_KEYS` ``identity`` values and the
+    same ``renderer`` (Mitsuba version and variant); else ``(None, the reason)``."""
+    path = donor_dir / SEQUENCE_JSON
+    if not path.exists():
+        return None, f"{path}: no such donor sequence"
+    meta = load_sequence_json(path)
+    theirs = dict(meta.extra.get("render_settings", {}))
+    differ = [k for k in REFERENCE_KEYS if theirs.get(k) != identity.get(k)]
+    if not theirs.get("labeled", False):
+        differ.insert(0, "labeled")
+    for key in ("version", "variant"):
+        if str(meta.renderer.get(key, "")) != str(renderer.get(key, "")):
+            differ.append(f"renderer {key}")
+    if differ:
+        return None, f"{path}: rendered with other {', '.join(differ)}"
+    channels = list(native_channels("reference", 3))
+
+    def reference_of(t: int) -> np.ndarray | None:
+        frame = frame_path(donor_dir, t)
+        if t >= meta.frames or not frame_complete(frame, channels):
+            return None
+        arrays = read_channels(frame, channels)
+        return np.stack([arrays[c] for c in channels], axis=-1)
+
+    return reference_of, ""
+
+
 def render_frame(renderer: FrameRenderer, spec: SceneSpec, t: int, settings: RenderSettings,
-                 seeds: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """All buffers of frame ``t`` (``{name: [H,W,C]}``, samples ``[S,H,W,3]``) and seconds per buffer."""
+                 seeds: Mapping[str, Any], reference: np.ndarray | None = None
+                 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """All buffers of frame ``t`` (``{name: [H,W,C]}``, samples ``[S,H,W,3]``) and seconds per buffer;
+    ``reference``: the frame's reference from a donor (:func:`reference_donor`), not rendered again."""
     seconds: dict[str, float] = {}
     out: dict[str, np.ndarray] = {}
     tic = time.perf_counter()
@@ -131,7 +177,9 @@ def render_frame(renderer: FrameRenderer, spec: SceneSpec, t: int, settings: Ren
     tic = time.perf_counter()
     out["motion"] = backward_motion(spec, aux, t, settings.width, settings.height)
     seconds["motion"] = time.perf_counter() - tic
-    if settings.labeled:
+    if settings.labeled and reference is not None:
+        out["reference"] = reference
+    elif settings.labeled:
         tic = time.perf_counter()
         out["reference"] = renderer.reference(t, settings.ref_spp, seeds["reference"])
         seconds["reference"] = time.perf_counter() - tic
@@ -164,15 +212,24 @@ def _previous(out_dir: Path, settings: RenderSettings, identity: dict, overwrite
 
 
 def render_sequence(mi, spec: SceneSpec, out_dir: str | Path, settings: RenderSettings, seq_seed: int,
-                    overwrite: bool = False, on_frame: Callable[[int, bool], None] | None = None) -> dict:
+                    overwrite: bool = False, on_frame: Callable[[int, bool], None] | None = None,
+                    reference_from: str | Path | None = None) -> dict:
     """Render (or resume) one sequence; returns the written ``sequence.json`` content.
 
-    ``on_frame(t, skipped)`` is called after each frame (progress bars).
+    ``on_frame(t, skipped)`` is called after each frame (progress bars). ``reference_from``: the
+    donor sequence directory whose references are copied (:func:`reference_donor`; a donor that
+    does not match is said on stderr, and the references are rendered).
     """
     out_dir = Path(out_dir)
     identity = {**settings.identity(), "scene": spec.name, "sequence_seed": seq_seed}
     previous = _previous(out_dir, settings, identity, overwrite) or []
     renderer = FrameRenderer(mi, spec, settings.width, settings.height)
+    donor = None
+    if reference_from is not None and settings.labeled:
+        donor, why = reference_donor(Path(reference_from), identity,
+                                     {"version": mi.__version__, "variant": active_variant() or mi.variant()})
+        if donor is None:
+            print(f"note: {out_dir}: references rendered, not copied ({why})", file=sys.stderr)
     channels = settings.channels()
     frame_seconds: list[dict[str, float]] = []
     seeds = [_frame_seeds(seq_seed, t, settings) for t in range(settings.frames)]
@@ -183,10 +240,13 @@ def render_sequence(mi, spec: SceneSpec, out_dir: str | Path, settings: RenderSe
         if done:
             frame_seconds.append(previous[t])
         else:
-            buffers, seconds = render_frame(renderer, spec, t, settings, seeds[t])
+            reference = donor(t) if donor is not None else None
+            buffers, seconds = render_frame(renderer, spec, t, settings, seeds[t], reference)
             write_frame(path, buffers, half=settings.half, attributes={"frameIndex": t})
             frame_seconds.append({k: round(v, 4) for k, v in seconds.items()})
         meta = _metadata(mi, spec, settings, seq_seed, seeds, frame_seconds, identity)
+        if donor is not None:
+            meta["reference_from"] = str(reference_from)
         write_sequence_json(out_dir / SEQUENCE_JSON, meta)
         if on_frame is not None:
             on_frame(t, done)

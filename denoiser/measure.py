@@ -322,6 +322,32 @@ def fastest(clocks: Sequence[Clock]) -> Clock:
 # ----------------------------------------------------------------------------- compute
 
 
+#: the CPU flags the benchmark tables record (what the vector units and bf16 paths can use)
+ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_fp16")
+
+
+def cpu_isa(cpuinfo: str | None = None) -> dict[str, bool]:
+    """``{flag: present}`` for :data:`ISA_FLAGS` from ``/proc/cpuinfo`` (all False when unreadable)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            flags.update(line.split(":", 1)[1].split())
+            break
+    return {f: f in flags for f in ISA_FLAGS}
+
+
+def has_bf16(isa: dict[str, bool] | None = None) -> bool:
+    """Whether the CPU computes bfloat16 natively (AVX512-BF16 or AMX-BF16; :func:`cpu_isa`):
+    elsewhere a bf16 product runs on a slow reference path (minutes for a 2048 matmul)."""
+    isa = cpu_isa() if isa is None else isa
+    return bool(isa.get("avx512_bf16") or isa.get("amx_bf16"))
+
+
 def matmul_peak(size: int = 2048, repeats: int = 5, dtype: torch.dtype = torch.float32, warmup: int = 2) -> float:
     """GFLOP/s of a ``size`` x ``size`` matrix product ``torch.mm`` on the CPU in ``dtype``
     (fastest of ``repeats`` after ``warmup`` untimed products): the machine's practical peak.

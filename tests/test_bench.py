@@ -174,12 +174,13 @@ def test_default_student_for_the_ratio():
 
 
 def test_cpu_isa_flags():
-    from denoiser.commands.bench import cpu_isa
+    from denoiser.measure import cpu_isa, has_bf16
 
     info = "processor : 0\nflags\t\t: fpu sse avx2 avx512f avx512_bf16 amx_tile\nbugs : x\n"
     flags = cpu_isa(info)
     assert flags["avx512_bf16"] and flags["amx_tile"] and flags["avx2"] and not flags["amx_bf16"]
     assert not any(cpu_isa("").values())
+    assert has_bf16(flags) and not has_bf16(cpu_isa("flags : avx2 avx512f\n"))
 
 
 @pytest.mark.slow

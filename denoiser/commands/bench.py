@@ -99,6 +99,7 @@ from denoiser.measure import (
     PeakRss,
     StagedStep,
     count_flops,
+    cpu_isa,
     markdown_table,
     matmul_peak,
     median_interval,
@@ -563,24 +564,6 @@ def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dic
 
 #: CPU flags that decide the fast paths of the backends (bf16 convolutions: AVX512-BF16 or AMX;
 #: OIDN >= 2.4 computes in fp16 with AMX-FP16)
-ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_fp16")
-
-
-def cpu_isa(cpuinfo: str | None = None) -> dict[str, bool]:
-    """``{flag: present}`` for :data:`ISA_FLAGS` from ``/proc/cpuinfo`` (all False when unreadable)."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
-    flags: set[str] = set()
-    for line in cpuinfo.splitlines():
-        if line.startswith("flags"):
-            flags.update(line.split(":", 1)[1].split())
-            break
-    return {f: f in flags for f in ISA_FLAGS}
-
-
 def machine_info(threads: int, peak_gflops: float, versions: dict[str, str], isa: dict[str, bool]) -> dict:
     """The machine and software of a run: ``cpu`` (model name), ``logical_cores``, ``isa``
     (:func:`cpu_isa`), ``versions`` (:func:`engine_versions`), ``threads_requested``,

@@ -288,7 +288,7 @@ def run(cfg: DictConfig) -> list[dict]:
 
     from denoiser.configs import build_net, compose_net_config
     from denoiser.inference.backends import backend_names
-    from denoiser.measure import count_flops, matmul_peak
+    from denoiser.measure import count_flops, has_bf16, matmul_peak
 
     names = [*backend_names(), *(v for v in VARIANTS if v not in BACKEND_VARIANTS)]
     unknown = [v for v in cfg.variants if v not in names]
@@ -305,11 +305,12 @@ def run(cfg: DictConfig) -> list[dict]:
 
     started = time.time()
     peak = matmul_peak()
-    peak_bf16 = matmul_peak(dtype=torch.bfloat16)
+    # a CPU without native bf16 runs the bf16 product on a reference path: minutes, and no peak
+    bf16 = f"bf16 {matmul_peak(dtype=torch.bfloat16):.1f} GFLOP/s" if has_bf16() else \
+        "bf16 not measured (the CPU has no AVX512-BF16 or AMX-BF16)"
     print(f"# bench_networks: torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}, load average {os.getloadavg()[0]:.1f}")
-    print("# matmul peak (2048x2048 torch.mm, best of 5): "
-          f"fp32 {peak:.1f} GFLOP/s, bf16 {peak_bf16:.1f} GFLOP/s\n")
+    print(f"# matmul peak (2048x2048 torch.mm, best of 5): fp32 {peak:.1f} GFLOP/s, {bf16}\n")
 
     results = []
     for job in tqdm(net_jobs(cfg), desc="networks", file=sys.stderr):

@@ -30,7 +30,7 @@ mkdir -p "$RUNS"
 . scripts/lib.sh
 [ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
 echo "==> [render data/demo_compare]"
-"$BIN/denoiser-render" dataset=demo_compare
+"$BIN/denoiser-render" dataset=demo_compare "reference_from=${DENOISER_DATA:-data}/demo"  # its references: data/demo's, copied
 TEACHER=$(best "$DEMO/teacher")
 CKPTS="teacher: $TEACHER"
 BENCH_CKPTS="teacher: $TEACHER"   # a seed group is timed once (its networks are the same size)

@@ -36,7 +36,6 @@ def test_demo_compare_renders_exactly_demos_test_job_with_samples_in_its_own_roo
     # sequence seeds derive from seed, scene, split and index: the same scenes, cameras and references
     assert compare.seed == demo.seed
     assert Path(compare.root).name == "demo_compare" and Path(compare.root).parent == Path(demo.root).parent
-    assert compare.reference_from == demo.root and demo.reference_from is None   # its references: demo's, copied
     with initialize_config_dir(CONF_DIR, version_base=None):
         data = compose("eval", overrides=["data=demo_compare"]).data
         demo_data = compose("eval", overrides=["data=demo"]).data
@@ -217,7 +216,7 @@ def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
 
     calls = _compare_sh(tmp_path)
     names = [c[0] if c[0] != "python" else c[1] for c in calls]
-    assert names[0] == "denoiser-render" and calls[0][1:] == ["dataset=demo_compare"]
+    assert names[0] == "denoiser-render" and calls[0][1:] == ["dataset=demo_compare", "reference_from=data/demo"]
     trained = [c for c in calls if c[0] == "denoiser-train"]
     assert [(_arg(c, "net"), _arg(c, "seed")) for c in trained] == [(net, s) for s in "012" for net in ("nppd_demo", "ws_demo")]
     for c in trained:   # a finished run is denoiser-train's to skip, an interrupted one its to resume

@@ -253,3 +253,48 @@ def test_bad_worker_start_method_is_one_config_error(root):
         cfg = compose(overrides=["+data=tiny", f"data.root={root}", "data.multiprocessing_context=threads"])
     with pytest.raises(UserError, match="data.multiprocessing_context: 'threads' is not one of fork, spawn"):
         instantiate_config(cfg.data, "data")
+
+
+@pytest.fixture(scope="module")
+def extra_root(tmp_path_factory):
+    """A second dataset root: more train and val sequences, no test split."""
+    extra = tmp_path_factory.mktemp("extra")
+    write_synthetic_sequence(extra / "train" / "f0", frames=4, width=32, height=32, seed=20)
+    write_synthetic_sequence(extra / "val" / "fv0", frames=3, width=32, height=24, seed=21)
+    return extra
+
+
+def test_extra_roots_join_the_splits_they_have(root, extra_root):
+    layout = NativeLayout({"color": ["color.R", "color.G", "color.B"]})
+    train = index_split(layout, root, "train", [extra_root])
+    assert [s.name for s in train] == ["train/t0", "train/t1", "train/f0"]
+    assert Path(train[-1].directory) == extra_root / "train" / "f0"
+    assert [s.name for s in index_split(layout, root, "test", [extra_root])] == ["test/x0"]  # no extra test split
+    dm = make(root, f"data.extra_roots=[{extra_root}]", "data.batch_size=1")
+    dm.setup("fit")
+    assert [s.name for s in dm.sequences("val")] == ["val/v0", "val/fv0"]
+    # windows of the extra sequence are drawn too: f0's 4 frames add 4 - window + 1 windows
+    alone = make(root, "data.batch_size=1")
+    alone.setup("fit")
+    assert len(dm.train_set) - len(alone.train_set) == 4 - dm.window + 1
+    assert len(dm.val_set) == 2
+
+
+def test_extra_roots_reach_evaluation(root, extra_root):
+    from omegaconf import OmegaConf
+
+    from denoiser.data.evalset import open_test_split
+
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        cfg = compose(overrides=["+data=tiny", f"data.root={root}", f"data.extra_roots=[{extra_root}]"])
+    _, sources, _ = open_test_split(cfg.data, "val")
+    assert [s.name for s in sources] == ["val/v0", "val/fv0"]
+    plain = OmegaConf.masked_copy(cfg.data, [k for k in cfg.data if k != "extra_roots"])  # a config without the key
+    assert [s.name for s in open_test_split(plain, "val")[1]] == ["val/v0"]
+
+
+def test_a_sequence_name_in_two_roots_is_one_error_naming_both(root, tmp_path):
+    clash = tmp_path / "clash"
+    write_synthetic_sequence(clash / "train" / "t1", frames=2, width=32, height=32, seed=30)
+    with pytest.raises(UserError, match=r"clash/train/t1: sequence train/t1 is also in .*/train/t1"):
+        index_split(NativeLayout({"color": ["color.R", "color.G", "color.B"]}), root, "train", [clash])

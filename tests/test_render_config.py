@@ -5,6 +5,8 @@ from __future__ import annotations
 import copy
 
 import numpy as np
+from pathlib import Path
+
 import pytest
 from hydra import compose, initialize_config_dir
 
@@ -145,6 +147,29 @@ def test_demo_preset_keeps_test_only_scenes_out_of_training():
         assert (j.settings.width, j.settings.height) == (128, 128)
         assert j.settings.labeled == (j.split != "unlabeled")
     assert len({j.directory for j in jobs}) == len(jobs)
+
+
+def test_fast_preset_is_the_demo_settings_with_the_fast_motion_families():
+    """dataset=fast (data/fast, joined to another root by data.extra_roots): demo's size, spp,
+    aux and references; fast_objects for train and unlabeled, fast_spin for val, no test split;
+    and the sequences the same seeds give as when rendered into data/demo_fast by hand."""
+    from denoiser.commands.render import plan
+    from denoiser.render.seeds import sequence_seed
+
+    demo, fast = _compose(["dataset=demo"]), _compose(["dataset=fast"])
+    assert fast.name == "fast" and fast.root.endswith("data/fast")
+    assert {k: fast[k] for k in ("width", "height", "spp", "ref_spp", "aux", "seed")} == \
+        {k: demo[k] for k in ("width", "height", "spp", "ref_spp", "aux", "seed")}
+    jobs = plan(fast)
+    assert sorted((j.split, Path(j.directory).name, j.settings.frames) for j in jobs) == [
+        ("train", "fast_objects_000", 6), ("train", "fast_objects_001", 6),
+        ("unlabeled", "fast_objects_000", 6), ("val", "fast_spin_000", 6)]
+    by_hand = plan(_compose(["scene=fast_objects", "split=train", "sequences=2", "frames=6", "spp=4",
+                             "ref_spp=256", "aux=samples", "name=demo_fast"]))
+    def seeds(cfg, js):
+        return [(j.directory, sequence_seed(cfg.seed, j.scene_name, j.split, j.index), j.settings) for j in js]
+
+    assert seeds(_compose(["dataset=demo"]), by_hand) == seeds(fast, [j for j in jobs if j.split == "train"])
 
 
 def test_test_only_scene_refused_for_training():

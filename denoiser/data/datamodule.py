@@ -1,7 +1,9 @@
 """``SequenceDataModule``: the LightningDataModule of every training/evaluation command.
 
 Built by Hydra from ``conf/data/*.yaml`` (``_target_``); keys mirror the constructor. Splits
-live at ``<root>/<split>/<sequence>/`` in the configured layout. Loaders:
+live at ``<root>/<split>/<sequence>/`` in the configured layout, and at ``<extra>/<split>/<sequence>/``
+for each of ``extra_roots`` that has the split (families rendered as their own dataset, joined
+without a copy: :func:`~denoiser.data.dataset.index_split`). Loaders:
 
 * ``train_dataloader``: :class:`~denoiser.data.dataset.WindowDataset` of ``train_split``
   (windows of ``window`` frames, ``stride`` apart, random ``crop``, ``augment``), shuffled,
@@ -76,6 +78,7 @@ class SequenceDataModule(L.LightningDataModule):
         self,
         root: str,
         layout: Layout | Mapping,
+        extra_roots: Sequence[str] = (),
         buffers: Sequence[str] = FRAME_INPUTS,
         samples: bool = False,
         window: int = 8,
@@ -99,6 +102,7 @@ class SequenceDataModule(L.LightningDataModule):
     ):
         super().__init__()
         self.root = str(root)
+        self.extra_roots = tuple(str(r) for r in (extra_roots or ()))
         self.layout = _instantiate(layout, Layout, "data.layout")
         self.buffers = tuple(buffers)
         self.samples = bool(samples)
@@ -127,7 +131,7 @@ class SequenceDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ datasets
     def _windows(self, split: str, labeled: bool) -> WindowDataset:
-        sources = index_split(self.layout, self.root, split)
+        sources = self._index(split)
         sizes = sorted({(s.width, s.height) for s in sources})
         if self.crop is None and self.batch_size > 1 and len(sizes) > 1:
             raise ConfigError(f"data.crop: null (whole frames) with batch_size {self.batch_size} needs one frame "
@@ -137,14 +141,17 @@ class SequenceDataModule(L.LightningDataModule):
                              cache_dir=self.cache_dir, fill_reference=self.use_unlabeled)
 
     def _sequences(self, split: str) -> SequenceDataset:
-        sources = index_split(self.layout, self.root, split)
+        sources = self._index(split)
         return SequenceDataset(sources, self.layout, self.buffers, window=self.val_window, labeled=True,
                                samples=self.samples, cache_dir=self.cache_dir)
 
     def sequences(self, split: str) -> list[SequenceSource]:
         """The sequences of ``split`` (``train``/``val``/``test``/``unlabeled`` or a folder name),
         with their metadata (``source.meta``: scene, effects, cameras, render_seconds, ...)."""
-        return index_split(self.layout, self.root, self.splits.get(split) or split)
+        return self._index(self.splits.get(split) or split)
+
+    def _index(self, split: str) -> list[SequenceSource]:
+        return index_split(self.layout, self.root, split, self.extra_roots)
 
     def prepare_data(self) -> None:
         if self.precache and self.cache_dir:
@@ -160,7 +167,7 @@ class SequenceDataModule(L.LightningDataModule):
         for split in names:
             if not os.path.isdir(os.path.join(self.root, split)):
                 continue
-            for src in index_split(self.layout, self.root, split):
+            for src in self._index(split):
                 wanted = [b for b in (*self.buffers, "reference", "samples") if b in src.buffers]
                 jobs.extend((src, i, wanted) for i in range(src.frames))
         for src, i, wanted in tqdm(jobs, desc="cache frames", unit="frame"):

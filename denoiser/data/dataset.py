@@ -41,9 +41,26 @@ from denoiser.errors import ConfigError, UserError
 CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2, "reference": 3}
 
 
-def index_split(layout: Layout, root: str | os.PathLike, split: str) -> list[SequenceSource]:
-    """Open every sequence of ``<root>/<split>`` (validated), names ``"<split>/<sequence>"``."""
-    dirs = layout.list_sequences(os.path.join(root, split))
+def index_split(layout: Layout, root: str | os.PathLike, split: str,
+                extra_roots: Sequence[str | os.PathLike] = ()) -> list[SequenceSource]:
+    """Open every sequence of ``<root>/<split>`` (validated), names ``"<split>/<sequence>"``.
+
+    ``extra_roots``: more dataset roots whose ``<extra>/<split>`` sequences join the split, when
+    that folder exists (``data.extra_roots``: families rendered as their own dataset, e.g.
+    ``conf/dataset/fast.yaml``, added to another without copying it). A sequence name in two roots
+    is an error naming both folders."""
+    dirs = list(layout.list_sequences(os.path.join(root, split)))
+    seen = {d.name: d for d in dirs}
+    for extra in extra_roots:
+        folder = os.path.join(extra, split)
+        if not os.path.isdir(folder):
+            continue
+        for d in layout.list_sequences(folder):
+            if d.name in seen:
+                raise UserError(f"{d}: sequence {split}/{d.name} is also in {seen[d.name]} "
+                                "(data.root and data.extra_roots must not share sequence names)")
+            seen[d.name] = d
+            dirs.append(d)
     sources = [layout.open_sequence(d, name=f"{split}/{d.name}")
                for d in tqdm(dirs, desc=f"index {split}", unit="seq", leave=False, disable=len(dirs) < 50)]
     if not sources:

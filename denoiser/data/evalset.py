@@ -19,7 +19,8 @@ from denoiser.errors import UserError
 
 
 def open_test_split(data_cfg: DictConfig, split: str, sequences=None, samples: bool = False):
-    """``(layout, sources, dataset)`` for the labeled sequences of ``<data.root>/<split>``.
+    """``(layout, sources, dataset)`` for the labeled sequences of ``<data.root>/<split>`` (and of
+    ``data.extra_roots``, :func:`~denoiser.data.dataset.index_split`).
 
     ``samples``: also read per-sample radiance, when every sequence has it with one count S
     (otherwise frames come without it, and a method that needs it says so)."""
@@ -27,7 +28,7 @@ def open_test_split(data_cfg: DictConfig, split: str, sequences=None, samples: b
     from denoiser.data.dataset import SequenceDataset, index_split
 
     layout = instantiate_config(data_cfg.layout, "data.layout")
-    sources = index_split(layout, data_cfg.root, split)
+    sources = index_split(layout, data_cfg.root, split, data_cfg.get("extra_roots") or ())
     if sequences:
         wanted = [str(s) for s in sequences]
         by_name = {s.name.split("/", 1)[-1]: s for s in sources}

@@ -9,7 +9,9 @@ lists a file added or deleted, or a file whose meaning changed. Meaning, not byt
 is compared as its syntax tree without docstrings (comments are not in the tree), a YAML file as
 the data it parses to (comments dropped), anything else byte for byte; so a comment, a docstring
 or a file that only moved (a rename, e.g. the configs from ``denoiser/conf/`` to ``conf/``, both
-locations listed) leaves a block current, and a changed value, default or line of code does not. Also stale: a block that names no commit, or a commit git does not
+locations listed) leaves a block current, and a changed value, default or line of code does not.
+An added YAML file is a new option of its group (a new experiment, dataset or net), which nothing
+composes unless a changed file selects it: it leaves a block current too. Also stale: a block that names no commit, or a commit git does not
 know. A ``-dirty`` commit counts as its base commit. One line per stale block on stderr, then
 exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
@@ -43,6 +45,9 @@ MEASURED = ("denoiser/nn/", *(f"{root}{group}/" for root in ("conf/", "denoiser/
 #: a file deleted at the first location and added at the second is the same file moved (paired
 #: even when git's rename detection, which goes by similarity, does not pair a small edited file)
 MOVED = (("denoiser/conf/", "conf/"),)
+#: an added file of these kinds is a new option of its config group (``conf/dataset/fast.yaml``): a
+#: config composes it only when selected by name, and a changed file that selects it is in the diff
+NEW_OPTION = (".yaml", ".yml")
 #: Python code judged by what the networks compute (scripts/nn_fingerprint.py), not by its text
 BEHAVIOUR = ("denoiser/nn/",)
 FINGERPRINT = Path(__file__).with_name("nn_fingerprint.py")
@@ -112,6 +117,8 @@ def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASUR
                 continue
         elif status == "A" and paths[0] in moved.values():
             continue  # judged with its deleted twin
+        elif status == "A" and paths[0].endswith(NEW_OPTION):
+            continue  # a new option of a config group: no composition selects it unless a changed file does
         changed.append("\t".join([status, *paths]))
     return changed
 

@@ -264,6 +264,19 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     (repo / "conf" / "net" / "student.yaml").write_text("# the student\nwidth: 32   # channels\n")
     git(repo, "commit", "-qam", "words only")
     assert readme_check(repo).returncode == 0
+    # ... and a new option of a config group (composed only when selected by name) ...
+    (repo / "conf" / "net" / "wide.yaml").write_text("width: 64\n")
+    git(repo, "add", ".")
+    git(repo, "commit", "-qm", "another net option")
+    assert readme_check(repo).returncode == 0
+    # ... but deleting one does not (a composition may have selected it) ...
+    git(repo, "rm", "-q", "conf/net/wide.yaml")
+    git(repo, "commit", "-qm", "net option removed")
+    assert readme_check(repo).returncode == 0  # it was added after the block's commit: nothing measured it
+    (repo / "README.md").write_text(README.format(commit=git(repo, "rev-parse", "HEAD~1")))
+    proc = readme_check(repo)
+    assert proc.returncode == 1 and "conf/net/wide.yaml" in proc.stderr
+    (repo / "README.md").write_text(README.format(commit=at))
     # ... a change of a value after the move does not
     (repo / "conf" / "net" / "student.yaml").write_text("width: 48\n")
     git(repo, "commit", "-qam", "wider config")

@@ -1,0 +1,228 @@
+"""Training candidates on validation splits: ``python -m denoiser.commands.val_table`` -> ``out``.
+
+Usage::
+
+    python -m denoiser.commands.val_table out=reports/fast/val_table.md candidates=[base,clamp,dc]
+
+A Hydra app over ``conf/val_table.yaml`` (its defaults: issue 33's study of fast-moving objects,
+``reports/fast/val_table.md``). It reads every ``metrics.csv`` named under ``evals``
+(``denoiser-eval ... split=val``; every candidate's runs labelled ``<group>_s<seed>``, baselines
+such as ``noisy input`` and ``OIDN-fast`` without the suffix) and writes, per evaluation:
+
+* a table: the ``baselines`` rows, then every candidate (``reference`` first) with the mean over
+  sequences of ``metric`` and of each ``also`` column (mean ± std over seeds,
+  :mod:`denoiser.report.summary`), and two paired differences in ``metric``: the candidate minus
+  ``reference`` and minus ``baseline``, per sequence with the seeds averaged first, their 95% bootstrap
+  interval over sequences and the verdict ahead/tied/behind
+  (:func:`denoiser.report.summary.paired_difference`, :mod:`denoiser.report.stats`); the
+  ``labels`` of the groups shown as a legend under it;
+* a per-sequence table of ``metric``, seeds averaged, one column per method shown.
+
+The header names the run id, commit, seeds, the command line and the inputs (with their
+SHA-256). Runs of seeds outside ``seeds`` are left out (and named). Missing input (a file, a
+baseline, a candidate, one of its seeds) is one error line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from denoiser.atomic import atomic_write_text
+from denoiser.commands.app import hydra_runtime
+from denoiser.errors import ConfigError, UserError
+from denoiser.measure import markdown_table, read_csv
+from denoiser.metrics import COLUMNS
+from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
+from denoiser.report.summary import (
+    format_interval,
+    format_mean_std,
+    git_commit,
+    group_sequences,
+    method_means,
+    paired_difference,
+    seed_groups,
+    sequence_values,
+    split_seed,
+)
+
+
+def check_config(cfg: DictConfig) -> tuple[str, list[str], dict[str, dict[str, str]]]:
+    """``(metric, also, evals {key: {title, csv}})`` of the config; ConfigError on an unknown
+    column or an evaluation without a csv."""
+    metric, also = str(cfg.metric), [str(m) for m in (cfg.get("also") or [])]
+    unknown = [m for m in [metric, *also] if m not in COLUMNS]
+    if unknown:
+        raise ConfigError(f"metric/also: unknown {unknown} (one of {', '.join(COLUMNS)})")
+    evals = {}
+    for key, spec in (cfg.get("evals") or {}).items():
+        if not spec or not spec.get("csv"):
+            raise ConfigError(f"evals.{key}: needs csv (denoiser-eval's metrics.csv) and title")
+        evals[str(key)] = {"title": str(spec.get("title") or key), "csv": str(spec.csv)}
+    if not evals:
+        raise ConfigError("evals: no evaluation configured ({key: {title, csv}})")
+    if not cfg.get("reference"):
+        raise ConfigError("reference: the seed group every candidate is compared against")
+    return metric, [m for m in dict.fromkeys(also) if m != metric], evals
+
+
+def keep_seeds(rows: list[dict], seeds: list[int] | None) -> tuple[list[dict], list[str]]:
+    """``(rows, methods left out)``: the rows of runs whose seed is not in ``seeds`` removed
+    (methods without a seed suffix are kept); every row with ``seeds`` None."""
+    if seeds is None:
+        return rows, []
+    kept, dropped = [], {}
+    for row in rows:
+        seed = split_seed(str(row["method"]))[1]
+        if seed is None or seed in seeds:
+            kept.append(row)
+        else:
+            dropped[str(row["method"])] = True
+    return kept, list(dropped)
+
+
+def evaluation(path: Path, cfg: DictConfig, columns: list[str],
+               seeds: list[int] | None) -> tuple[list[str], list[str], dict[str, dict], dict, list[str]]:
+    """``(baselines, candidates, {name: seed group row}, per-sequence values per group, methods left
+    out)`` of a metrics.csv; UserError naming the file when a baseline, a candidate or one of its
+    seeds is missing."""
+    if not path.exists():
+        raise UserError(f"{path}: not found (denoiser-eval ... split=val writes it)")
+    rows, dropped = keep_seeds(read_csv(path), seeds)
+    groups = {g["method"]: g for g in seed_groups(method_means(rows, columns))}
+    base = str(cfg.reference)
+    if cfg.get("candidates") is None:
+        candidates = [g for g in groups if groups[g]["seeds"]]
+    else:
+        candidates = [str(c) for c in cfg.candidates]
+    candidates = list(dict.fromkeys(candidates if base in candidates else [base, *candidates]))
+    baselines = [str(b) for b in (cfg.get("baselines") or [])]
+    needed = [*baselines, *([str(cfg.baseline)] if cfg.get("baseline") else [])]
+    for name in needed:
+        if name not in groups:
+            raise UserError(f"{path}: no method '{name}' (baselines/baseline; methods evaluated: "
+                            f"{', '.join(groups)})")
+    have = ", ".join(g for g in groups if groups[g]["seeds"]) or "none"
+    for name in candidates:
+        if name not in groups or not groups[name]["seeds"]:
+            raise UserError(f"{path}: no runs of candidate '{name}' (methods {name}_s<seed>; seed groups "
+                            f"evaluated: {have})")
+        missing = [s for s in (seeds or []) if s not in groups[name]["seeds"]]
+        if missing:
+            raise UserError(f"{path}: candidate '{name}' lacks seed(s) {missing} of seeds={seeds} "
+                            f"(evaluated: {sorted(groups[name]['seeds'])})")
+    return baselines, candidates, groups, group_sequences(sequence_values(rows, columns)), dropped
+
+
+def difference_cell(per_sequence: dict, name: str, other: str, column: str, n: int) -> str:
+    """``"+0.32 [+0.13, +0.60] ahead"``: the paired difference name minus other over the sequences
+    both have, its interval and verdict (``(k sequences)`` added when they share fewer than ``n``);
+    empty for the method itself or without a common sequence."""
+    iv = None if name == other else paired_difference(per_sequence, name, other, column)
+    if iv is None:
+        return ""
+    text = f"{format_interval(iv, column)} {iv.verdict(COLUMNS[column].lower_is_better)}"
+    return text + (f" ({iv.n} sequences)" if iv.n != n else "")
+
+
+def candidate_table(cfg: DictConfig, baselines: list[str], candidates: list[str], groups: dict,
+                    per_sequence: dict, metric: str, also: list[str], n: int) -> str:
+    """Method, seeds (runs), every mean column, then the paired differences in ``metric`` of every
+    candidate against ``reference`` and ``baseline``."""
+    base, baseline = str(cfg.reference), (str(cfg.baseline) if cfg.get("baseline") else None)
+    rows = []
+    for name in [*baselines, *candidates]:
+        g = groups[name]
+        row = {"method": name, "seeds": len(g["seeds"]) or 1,
+               **{m: format_mean_std(g, m, COLUMNS[m].digits) for m in [metric, *also]}}
+        if name in candidates:
+            row["d_base"] = difference_cell(per_sequence, name, base, metric, n)
+            if baseline is not None:
+                row["d_baseline"] = difference_cell(per_sequence, name, baseline, metric, n)
+        rows.append(row)
+    interval = f"{COLUMNS[metric].label} [{CONFIDENCE:.0%}]"
+    headers = {**{m: COLUMNS[m].header for m in [metric, *also]},
+               "d_base": f"vs {base}, {interval}", "d_baseline": f"vs {baseline}, {interval}"}
+    columns = ["method", "seeds", metric, *also, "d_base", *(["d_baseline"] if baseline is not None else [])]
+    return markdown_table(rows, columns, headers=headers)
+
+
+def sequence_table(names: list[str], per_sequence: dict, metric: str) -> str:
+    """One row per sequence (first-appearance order over ``names``), one column per method: its
+    ``metric`` on that sequence, seeds averaged (:func:`denoiser.report.summary.group_sequences`)."""
+    values = {name: per_sequence.get(name, {}).get(metric, {}) for name in names}
+    sequences = list(dict.fromkeys(seq for v in values.values() for seq in v))
+    rows = [{"sequence": seq, **{name: values[name].get(seq) for name in names}} for seq in sequences]
+    formats = dict.fromkeys(names, f".{COLUMNS[metric].digits}f")
+    return markdown_table(rows, ["sequence", *names], formats=formats)
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def run(cfg: DictConfig) -> Path:
+    """Write ``out``; returns its path."""
+    metric, also, evals = check_config(cfg)
+    seeds = None if cfg.get("seeds") is None else [int(s) for s in cfg.seeds]
+    columns = [metric, *also]
+    labels = {str(k): str(v) for k, v in (cfg.get("labels") or {}).items()}
+    sections, dropped = [], {}
+    for key, spec in evals.items():
+        path = Path(spec["csv"])
+        baselines, candidates, groups, per_sequence, left_out = evaluation(path, cfg, columns, seeds)
+        dropped[path] = left_out
+        n = len(per_sequence[str(cfg.reference)].get(metric, {}))
+        legend = [f"- `{name}`: {labels[name]}" for name in candidates if name in labels]
+        sections.append((key, spec, path, [
+            f"### {spec['title']}: {n} sequences", "",
+            f"From `{path}`.", "",
+            candidate_table(cfg, baselines, candidates, groups, per_sequence, metric, also, n).rstrip(), "",
+            *([*legend, ""] if legend else []),
+        ], [
+            f"#### {spec['title']}: per sequence, {COLUMNS[metric].label} (seeds averaged)", "",
+            sequence_table([*baselines, *candidates], per_sequence, metric).rstrip(), "",
+        ]))
+    overrides = hydra_runtime()[0]
+    command = " ".join(["python -m denoiser.commands.val_table", *overrides])
+    lines = [
+        "# Val table: training candidates on validation splits",
+        "",
+        f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
+        f"- commit: {git_commit()}",
+        f"- seeds (every candidate): {seeds if seeds is not None else 'all evaluated'}",
+        f"- command: `{command}`",
+        *(f"- {spec['title']}: `{path}`, SHA-256 {sha256(path)}" for _, spec, path, _, _ in sections),
+        *(f"- left out of `{p}` (seeds not in {seeds}): {', '.join(d)}" for p, d in dropped.items() if d),
+        "",
+        (f"Means: over the sequences of each evaluation; mean ± std over seeds for a candidate (column "
+         f"seeds: its runs). Intervals ({COLUMNS[metric].label}): per sequence, the candidate's value (mean "
+         f"over its seeds) minus {cfg.reference}'s"
+         + (f" or {cfg.baseline}'s" if cfg.get("baseline") else "")
+         + f"; the mean over sequences and its {CONFIDENCE:.0%} percentile bootstrap interval ({RESAMPLES} "
+         f"resamples, seed {SEED}; denoiser/report/stats.py), and the verdict from the interval: ahead when "
+         "it lies wholly on the candidate's better side of 0, behind when wholly on the other side, tied "
+         "when it holds 0."),
+        "",
+    ]
+    for _, _, _, table, _ in sections:
+        lines += table
+    for _, _, _, _, per_seq in sections:
+        lines += per_seq
+    out = Path(cfg.out)
+    atomic_write_text(out, "\n".join(lines))
+    print(f"wrote {out}")
+    return out
+
+
+def main() -> None:
+    from denoiser.commands.app import hydra_command
+
+    hydra_command(run, "val_table")()
+
+
+if __name__ == "__main__":
+    main()

@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper lint clean-cache blender blender-val
+.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper fast-motion lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -93,6 +93,14 @@ readme-ablations:
 paper: setup
 	VENV=$(VENV) bash scripts/paper.sh
 	$(MAKE) readme-ablations readme-compare readme-pareto
+
+# Issue 33's val study (moving objects), after make demo: renders the fast-motion families into
+# data/fast (dataset=fast), trains teacher candidates on data/demo + data/fast (FAST_TEACHERS, 3 seeds
+# each), evaluates them on the Mitsuba and Blender val splits and writes reports/fast/teachers/val_table.md;
+# FAST_STUDENT_TEACHER=<candidate> also distils students from it -> reports/fast/students/val_table.md.
+# Val only, never a test split. Resumable. Knobs: FAST_* in scripts/fast_motion.sh.
+fast-motion: setup
+	VENV=$(VENV) bash scripts/fast_motion.sh
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py

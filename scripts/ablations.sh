@@ -63,12 +63,6 @@ run_dir() {  # the run directory of <variant> <seed>: make demo's for none and n
         *) echo "$RUNS/$1_s$2" ;;
     esac
 }
-fresh() {  # fresh <dir> <inputs>: <dir>/inputs.txt holds <inputs> and no checkpoint it names is newer
-    [ -f "$1/inputs.txt" ] && [ "$(cat "$1/inputs.txt")" = "$2" ] || return 1
-    local f
-    for f in $(grep -o '[^ ,{}]*\.ckpt' <<< "$2"); do [ "$f" -nt "$1/inputs.txt" ] && return 1; done
-    return 0
-}
 
 need "$DATA/test" "the demo's test split"
 need "$DEMO/teacher/DONE" "the finished demo teacher"

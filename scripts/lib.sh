@@ -1,4 +1,4 @@
-# What the pipeline scripts (demo.sh, compare.sh, pareto.sh, ablations.sh, paper.sh) share; sourced
+# What the pipeline scripts (demo.sh, compare.sh, pareto.sh, ablations.sh, paper.sh, fast_motion.sh) share; sourced
 # after `set -euo pipefail` and `cd` to the checkout. Training itself is denoiser-train's: it skips
 # a finished run (skip_done=true: DONE and metrics.json in the run directory, the same config) and
 # resumes an interrupted one from its last.ckpt (ckpt_path=auto); a script only names the run.
@@ -13,6 +13,14 @@ best() {  # best <run dir>: the checkpoint a run is evaluated with: best validat
 train_run() {  # train_run <run dir> <overrides...>: denoiser-train into <run dir>, skipped when finished, resumed
     local dir=$1; shift
     "$BIN/denoiser-train" "$@" skip_done=true ckpt_path=auto "hydra.run.dir=$dir"
+}
+
+fresh() {  # fresh <dir> <inputs>: <dir>/inputs.txt holds <inputs> and no checkpoint it names is newer
+    # (a step over those checkpoints, e.g. an evaluation, is done; the step writes inputs.txt last)
+    [ -f "$1/inputs.txt" ] && [ "$(cat "$1/inputs.txt")" = "$2" ] || return 1
+    local f
+    for f in $(grep -o '[^ ,{}]*\.ckpt' <<< "$2"); do [ "$f" -nt "$1/inputs.txt" ] && return 1; done
+    return 0
 }
 
 timings_begin() {  # a fresh stage-time table ($TIMINGS.tmp until timings_end)

@@ -2,14 +2,16 @@
 
 Usage::
 
-    python -m denoiser.commands.val_table out=reports/fast/val_table.md candidates=[base,clamp,dc]
+    python -m denoiser.commands.val_table out=reports/fast/val_table.md reference=base candidates=[base,clamp,dc] \
+        "evals={blender: {title: 'Blender Cycles val (fast_101-103)', csv: reports/fast/blender_val/metrics.csv}, \
+                mitsuba: {title: 'Mitsuba val (data/demo_fast/val)', csv: reports/fast/mitsuba_val/metrics.csv}}"
 
-A Hydra app over ``conf/val_table.yaml`` (its defaults: issue 33's study of fast-moving objects,
-``reports/fast/val_table.md``). It reads every ``metrics.csv`` named under ``evals``
+A Hydra app over ``conf/val_table.yaml`` (``scripts/fast_motion.sh``, ``make fast-motion``, runs it
+over issue 33's candidates; the command above is that study's first table). It reads every ``metrics.csv`` named under ``evals``
 (``denoiser-eval ... split=val``; every candidate's runs labelled ``<group>_s<seed>``, baselines
 such as ``noisy input`` and ``OIDN-fast`` without the suffix) and writes, per evaluation:
 
-* a table: the ``baselines`` rows, then every candidate (``reference`` first) with the mean over
+* a table: the ``plain_rows`` (methods without seeds, e.g. the noisy input and OIDN), then every candidate (``reference`` first) with the mean over
   sequences of ``metric`` and of each ``also`` column (mean ± std over seeds,
   :mod:`denoiser.report.summary`), and two paired differences in ``metric``: the candidate minus
   ``reference`` and minus ``baseline``, per sequence with the seeds averaged first, their 95% bootstrap
@@ -99,11 +101,11 @@ def evaluation(path: Path, cfg: DictConfig, columns: list[str],
     else:
         candidates = [str(c) for c in cfg.candidates]
     candidates = list(dict.fromkeys(candidates if base in candidates else [base, *candidates]))
-    baselines = [str(b) for b in (cfg.get("baselines") or [])]
+    baselines = [str(b) for b in (cfg.get("plain_rows") or [])]
     needed = [*baselines, *([str(cfg.baseline)] if cfg.get("baseline") else [])]
     for name in needed:
         if name not in groups:
-            raise UserError(f"{path}: no method '{name}' (baselines/baseline; methods evaluated: "
+            raise UserError(f"{path}: no method '{name}' (plain_rows/baseline; methods evaluated: "
                             f"{', '.join(groups)})")
     have = ", ".join(g for g in groups if groups[g]["seeds"]) or "none"
     for name in candidates:

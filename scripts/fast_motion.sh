@@ -1,0 +1,141 @@
+#!/usr/bin/env bash
+# `make fast-motion`: issue 33's val study of recipes that train on the fast-motion families, after
+# make demo (docs/results_log.md, "Fast object motion"). Everything is chosen on val; no test split
+# is read.
+#
+#   1. render data/fast (denoiser-render dataset=fast: fast_objects for train and unlabeled,
+#      fast_spin for val; sequences that exist are kept)
+#   2. teacher candidates: experiment=demo_teacher with data.extra_roots=[data/fast] and each
+#      candidate's overrides, one run per seed, FAST_JOBS side by side
+#      -> reports/fast/teachers/runs/<candidate>_s<seed> (a collapse is kept and listed)
+#   3. denoiser-eval of every teacher, and of make demo's teacher (the row demo_teacher), on the
+#      Mitsuba val (data/demo's val plus data/fast's) and on the Blender Cycles val when
+#      data/blender/val exists (make blender-val)
+#   4. the table: python -m denoiser.commands.val_table -> reports/fast/teachers/val_table.md
+#      (PSNR frames 2+, paired intervals over val sequences against the first candidate and OIDN-fast)
+#   5. with FAST_STUDENT_TEACHER=<candidate>: students distilled from that candidate's seed-0
+#      teacher on the same data (experiment=demo_distill), the same seeds, evaluated with make
+#      demo's distilled students ("base": today's recipe) -> reports/fast/students/val_table.md
+#
+# Knobs (environment): FAST_TEACHERS (candidates, "name:override,override;name:..."; default the
+# demo's lr, a lower lr and a longer warm-up), FAST_SEEDS (default "0 1 2"), FAST_JOBS (default 2),
+# FAST_THREADS (torch threads per run, default 1), FAST_STUDENT_TEACHER (default empty: no step 5).
+# Resumable as the other pipelines: denoiser-train skips a finished run (skip_done=true) and
+# resumes an interrupted one (ckpt_path=auto; scripts/lib.sh); an evaluation is redone only when
+# its checkpoints changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+VENV=${VENV:-.venv}
+PY="$VENV/bin/python"
+BIN="$VENV/bin"
+DATA=${DENOISER_DATA:-data}
+DEMO=reports/demo/runs
+REPORT=reports/fast
+SEEDS=${FAST_SEEDS:-0 1 2}
+JOBS=${FAST_JOBS:-2}
+THREADS=${FAST_THREADS:-1}
+TEACHERS=${FAST_TEACHERS:-"lr2e3:model.optimizer.lr=2e-3;lr1e3:model.optimizer.lr=1e-3;warmup200:model.scheduler.warmup_steps=200"}
+STUDENT_TEACHER=${FAST_STUDENT_TEACHER:-}
+EXTRA="data.extra_roots=[$DATA/fast]"
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh
+
+[ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
+declare -A OVERRIDES=()
+NAMES=()
+IFS=';' read -ra SPECS <<< "$TEACHERS"
+for spec in "${SPECS[@]}"; do
+    name=${spec%%:*}
+    [[ "$spec" == *:* && "$name" =~ ^[A-Za-z][A-Za-z0-9]*$ ]] \
+        || { echo "error: FAST_TEACHERS: '$spec' is not name:override,... (name: a letter, then letters and digits)" >&2; exit 2; }
+    OVERRIDES[$name]=${spec#*:}
+    NAMES+=("$name")
+done
+SEEDS_LIST="[${SEEDS// /,}]"
+
+echo "==> [render] $DATA/fast"
+"$BIN/denoiser-render" dataset=fast
+
+evaluate() {  # evaluate <out dir> <ckpt map>: the Mitsuba val and, when rendered, the Blender val
+    local out=$1 ckpts=$2
+    if fresh "$out/mitsuba_val" "$ckpts"; then
+        echo "==> [eval] $out/mitsuba_val: the same checkpoints, done before"
+    else
+        echo "==> [eval] $out/mitsuba_val"
+        "$BIN/denoiser-eval" data=demo split=val "$EXTRA" "ckpt={$ckpts}" "out_dir=$out/mitsuba_val" \
+            '~baselines.oidn_balanced' '~baselines.oidn_high'
+        echo "$ckpts" > "$out/mitsuba_val/inputs.txt"
+    fi
+    if [ ! -d "$DATA/blender/val" ]; then
+        echo "warning: $DATA/blender/val: no Blender val sequences (make blender-val), the Mitsuba val only" >&2
+    elif fresh "$out/blender_val" "$ckpts"; then
+        echo "==> [eval] $out/blender_val: the same checkpoints, done before"
+    else
+        echo "==> [eval] $out/blender_val"
+        "$BIN/denoiser-eval" layout=blender "data.root=$DATA/blender" split=val "ckpt={$ckpts}" \
+            "out_dir=$out/blender_val" '~baselines.oidn_balanced' '~baselines.oidn_high'
+        echo "$ckpts" > "$out/blender_val/inputs.txt"
+    fi
+}
+table() {  # table <out dir> <reference> <candidates> <baselines> <title>: val_table over what was evaluated
+    local out=$1 evals="{mitsuba: {title: 'Mitsuba val ($DATA/demo/val + $DATA/fast/val)', csv: $1/mitsuba_val/metrics.csv}"
+    [ -f "$out/blender_val/metrics.csv" ] && evals="$evals, blender: {title: 'Blender Cycles val ($DATA/blender/val)', csv: $out/blender_val/metrics.csv}"
+    "$PY" -m denoiser.commands.val_table "out=$out/val_table.md" "evals=$evals}" "reference=$2" \
+        "candidates=$3" "plain_rows=$4" "seeds=$SEEDS_LIST" "labels=$5"
+}
+train() {  # train <run dir> <overrides...>: one run, its output in <run dir>.log; a collapse is listed
+    local dir=$1; shift
+    echo "==> [$dir]"
+    mkdir -p "$(dirname "$dir")"
+    OMP_NUM_THREADS=$THREADS train_run "$dir" "$@" "$EXTRA" "threads=$THREADS" trainer.enable_progress_bar=false \
+        callbacks.progress=null > "$dir.log" 2>&1 || { echo "error: [$dir] failed, see $dir.log" >&2; return 1; }
+    [ -f "$dir/COLLAPSED" ] && echo "warning: [$dir] $(cat "$dir/COLLAPSED") (kept, listed in collapsed.txt)" >&2
+    echo "<== [$dir]"
+}
+
+# -- teachers
+TRUNS=$REPORT/teachers/runs
+teacher_run() {  # teacher_run <name>_s<seed>
+    local name=${1%_s*} seed=${1##*_s}
+    local -a extra
+    IFS=',' read -ra extra <<< "${OVERRIDES[$name]}"
+    train "$TRUNS/$1" experiment=demo_teacher "seed=$seed" "${extra[@]}"
+}
+RUNS_LIST=()
+for name in "${NAMES[@]}"; do for seed in $SEEDS; do RUNS_LIST+=("${name}_s$seed"); done; done
+run_jobs "$JOBS" teacher_run "${RUNS_LIST[@]}" || exit 3
+CKPTS="demo_teacher: $(best "$DEMO/teacher")"
+LABELS="{"
+for name in "${NAMES[@]}"; do
+    for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$TRUNS/${name}_s$seed")"; done
+    LABELS="$LABELS$name: 'experiment=demo_teacher $EXTRA ${OVERRIDES[$name]}', "
+done
+LABELS="${LABELS%, }}"
+evaluate "$REPORT/teachers" "$CKPTS"
+find "$TRUNS" -name COLLAPSED -printf '%h: ' -exec cat {} \; > "$REPORT/teachers/collapsed.txt" 2>/dev/null || true
+CANDIDATES=$(IFS=,; echo "[${NAMES[*]}]")
+table "$REPORT/teachers" "${NAMES[0]}" "$CANDIDATES" "['noisy input',OIDN-fast,demo_teacher]" "$LABELS"
+
+# -- students from the chosen teacher
+if [ -n "$STUDENT_TEACHER" ]; then
+    [ -n "${OVERRIDES[$STUDENT_TEACHER]+x}" ] \
+        || { echo "error: FAST_STUDENT_TEACHER: '$STUDENT_TEACHER' is not a candidate of FAST_TEACHERS (${NAMES[*]})" >&2; exit 2; }
+    FIRST=${SEEDS%% *}
+    TEACHER=$(best "$TRUNS/${STUDENT_TEACHER}_s$FIRST")
+    SRUNS=$REPORT/students/runs
+    student_run() { train "$SRUNS/$1" experiment=demo_distill "model.teacher_ckpt=$TEACHER" "seed=${1##*_s}"; }
+    SNAMES=()
+    for seed in $SEEDS; do SNAMES+=("fast_s$seed"); done
+    run_jobs "$JOBS" student_run "${SNAMES[@]}" || exit 3
+    CKPTS=""
+    for seed in $SEEDS; do
+        [ -f "$DEMO/student_distilled_s$seed/DONE" ] \
+            || { echo "error: $DEMO/student_distilled_s$seed: no finished demo student (make demo DEMO_SEEDS)" >&2; exit 2; }
+        CKPTS="$CKPTS${CKPTS:+, }base_s$seed: $(best "$DEMO/student_distilled_s$seed"), fast_s$seed: $(best "$SRUNS/fast_s$seed")"
+    done
+    evaluate "$REPORT/students" "$CKPTS"
+    table "$REPORT/students" base "[base,fast]" "['noisy input',OIDN-fast]" \
+        "{base: \"make demo's distilled students (today's recipe)\", fast: 'experiment=demo_distill $EXTRA, taught by $TEACHER'}"
+fi
+echo "==== fast-motion finished: $REPORT/teachers/val_table.md${STUDENT_TEACHER:+, $REPORT/students/val_table.md} ===="

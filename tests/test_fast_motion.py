@@ -112,6 +112,10 @@ def test_fast_motion_needs_make_demo(tmp_path):
     assert proc.returncode == 2 and "run make demo first" in proc.stderr and not calls
 
 
+LABELS = "labels={lr2e3: 'experiment=demo_teacher data.extra_roots=[data/fast] model.optimizer.lr=2e-3'}"
+EVALS = "evals={mitsuba: {title: 'Mitsuba val (data/demo/val + data/fast/val)', csv: reports/mitsuba_val/metrics.csv}}"
+
+
 def test_the_overrides_of_the_script_compose():
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         teacher = compose("train", overrides=["experiment=demo_teacher", "data.extra_roots=[data/fast]",
@@ -120,10 +124,7 @@ def test_the_overrides_of_the_script_compose():
                                         "~baselines.oidn_balanced", "~baselines.oidn_high"])
         table = compose("val_table", overrides=["reference=lr2e3", "candidates=[lr2e3,lr1e3]", "seeds=[0,1,2]",
                                                 "plain_rows=['noisy input',OIDN-fast,demo_teacher]",
-                                                "labels={lr2e3: 'experiment=demo_teacher data.extra_roots=[data/fast] "
-                                                "model.optimizer.lr=2e-3'}",
-                                                "evals={mitsuba: {title: 'Mitsuba val (data/demo/val + data/fast/val)', "
-                                                "csv: reports/fast/teachers/mitsuba_val/metrics.csv}}"])
+                                                LABELS, EVALS])
     assert list(teacher.data.extra_roots) == ["data/fast"] and teacher.model.scheduler.warmup_steps == 200
     assert teacher.model.optimizer.lr == 1e-3
     assert list(ev.data.extra_roots) == ["data/fast"] and list(ev.baselines) == ["noisy", "oidn_fast"]

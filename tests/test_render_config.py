@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import copy
-
-import numpy as np
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 

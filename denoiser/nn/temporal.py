@@ -55,6 +55,15 @@ change) is pulled to what the current frame shows, whatever the learned blend pr
 history that agrees with the current frame passes unchanged. Noise widens the box, so on a
 noisy input it rejects only gross disagreement; the filtered frame's box is tighter.
 
+History disagreement (``history_disagreement``; False = off, the behaviour of configs from before
+it existed): one more network input, ``disagreement [B, 1, H, W]``, how many standard deviations
+of the current noisy colour's 3x3 neighbourhood the warped history colour lies from its mean,
+squashed to [0, 1) (:func:`history_disagreement`; times ``valid``, so 0 without history). The
+disocclusion gate compares guides, which agree on a turning object's interior; the clamp holds a
+fixed box. This input lets the learned blend weights see the colour evidence itself (issue 33's
+"learned rejection that sees the warped-history-vs-current difference"). Parameter transfer gives
+its input channel zero weights when the teacher lacks it (:mod:`denoiser.lit.transfer`).
+
 Probe (diagnostics, :mod:`denoiser.report.history_diagnosis`): ``TemporalRecurrence.probe`` is None
 (the default: nothing recorded, one attribute test per step). Set to a dict, every
 :meth:`~TemporalRecurrence.warp` puts into it the tensors of that step it does not return
@@ -77,6 +86,9 @@ from denoiser.nn.warp import warp_all
 COVER_MIN = 1e-4
 
 STATE_KEYS = ("output", "color", "features", "guide")
+
+#: relative floor of the standard deviation in :func:`history_disagreement` (a flat neighbourhood)
+DISAGREEMENT_EPS = 0.05
 
 #: clamp of the depth feature before its logit (log depth ratio) in the disocclusion gate
 DEPTH_LOGIT_EPS = 1e-6
@@ -101,16 +113,15 @@ def _box_excess(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
     return torch.maximum(previous - hi, lo - previous).clamp_min(0).amax(dim=1, keepdim=True)
 
 
-def neighbourhood_clamp(history: torch.Tensor, current: torch.Tensor, k: float) -> torch.Tensor:
-    """``history [B, C, H, W]`` clamped per channel to ``[mu - k sigma, mu + k sigma]``, the mean
-    and (population) standard deviation of ``current [B, C, H, W]`` over each pixel's 3x3
-    neighbourhood, the edges replicated. float32; finite for finite inputs.
+def box_moments(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(mean, variance)`` of ``x [B, C, H, W]`` over each pixel's 3x3 neighbourhood, the edges
+    replicated (population variance), each ``[B, C, H, W]`` float32.
 
     The moments are taken of the differences to the centre pixel, ``d = x_n - x_c`` (mean
     ``x_c + E[d]``, variance ``E[d^2] - E[d]^2``), as nine shifted slices: the variance then does
     not lose the small spread of a bright neighbourhood to float32 cancellation, as
     ``E[x^2] - E[x]^2`` would."""
-    x = current.float()
+    x = x.float()
     h, w = x.shape[-2:]
     xp = F.pad(x, (1, 1, 1, 1), mode="replicate")
     total = torch.zeros_like(x)
@@ -124,10 +135,31 @@ def neighbourhood_clamp(history: torch.Tensor, current: torch.Tensor, k: float) 
             squares = squares + d * d
     mean_d = total / 9.0
     var = (squares / 9.0 - mean_d * mean_d).clamp_min(0.0)
-    mean = x + mean_d
+    return x + mean_d, var
+
+
+def neighbourhood_clamp(history: torch.Tensor, current: torch.Tensor, k: float) -> torch.Tensor:
+    """``history [B, C, H, W]`` clamped per channel to ``[mu - k sigma, mu + k sigma]``, the mean
+    and (population) standard deviation of ``current [B, C, H, W]`` over each pixel's 3x3
+    neighbourhood (:func:`box_moments`), the edges replicated. float32; finite for finite inputs."""
+    mean, var = box_moments(current)
     # the epsilon keeps the square root's gradient finite where the neighbourhood is constant
     spread = k * torch.sqrt(var + 1e-12)
     return torch.minimum(torch.maximum(history.float(), mean - spread), mean + spread)
+
+
+def history_disagreement(history: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """How far ``history [B, C, H, W]`` (warped history colour, linear) lies from the 3x3
+    neighbourhood of ``current [B, C, H, W]`` (the current noisy colour), in its standard
+    deviations: ``z = max_c |h_c - mu_c| / (sigma_c + DISAGREEMENT_EPS * (|mu_c| + 1e-3))``,
+    returned as ``z / (1 + z)`` in [0, 1) ``[B, 1, H, W]`` float32 (0: the history is the
+    neighbourhood's mean; near 1: many standard deviations off). The statistic the history clamp
+    thresholds, given to the network as an input so that its blend can learn where to distrust
+    the history (``history_disagreement``, module docstring)."""
+    mean, var = box_moments(current)
+    sigma = torch.sqrt(var + 1e-12) + DISAGREEMENT_EPS * (mean.abs() + 1e-3)
+    z = ((history.float() - mean).abs() / sigma).amax(dim=1, keepdim=True)
+    return z / (1.0 + z)
 
 
 def _log_depth_ratio(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
@@ -165,11 +197,14 @@ class TemporalRecurrence(nn.Module):
             default, and what a stored config without the key means) switches the gate off.
         history_clamp: ``k`` of the history clamp (module docstring), > 0; None (the default,
             and what a stored config without the key means) switches it off.
+        history_disagreement: add the history disagreement input (module docstring); False (the
+            default, and what a stored config without the key means) leaves the inputs as before.
     """
 
     def __init__(self, state_features: int = 8, reject_threshold: float | None = None,
-                 history_clamp: float | None = None):
+                 history_clamp: float | None = None, history_disagreement: bool = False):
         super().__init__()
+        self.history_disagreement = bool(history_disagreement)
         if history_clamp is not None and not float(history_clamp) > 0:
             raise ConfigError(f"net.temporal.history_clamp: must be > 0 or null, got {history_clamp}")
         self.history_clamp = None if history_clamp is None else float(history_clamp)
@@ -179,7 +214,8 @@ class TemporalRecurrence(nn.Module):
         self.reject_threshold = None if reject_threshold is None else float(reject_threshold)
         #: channels added to the U-Net input, in order: ``(part, channels)`` (see :meth:`inputs`)
         self.input_layout = (("output", 3), ("color", 3), ("guide", GUIDE_CHANNELS),
-                             ("features", self.state_features), ("valid", 1))
+                             ("features", self.state_features), ("valid", 1),
+                             *((("disagreement", 1),) if self.history_disagreement else ()))
         self.input_channels = sum(n for _, n in self.input_layout)
         #: channels the level-0 head must predict, in order: ``(part, channels)``; the blend
         #: logits h_in, h_out, then the next state features
@@ -215,7 +251,9 @@ class TemporalRecurrence(nn.Module):
         motion: ``[B, 2, H, W]``; reset: bool ``[B]`` or None; like: ``[B, 3, H, W]`` current color;
         guide: ``[B, 7, H, W]`` current guide features, needed by the disocclusion gate (None: no gate).
         Returns the warped, coverage-normalised history (same keys) plus ``"valid" [B, 1, H, W]``
-        (coverage times the disocclusion gate).
+        (coverage times the disocclusion gate), and with ``history_disagreement``
+        ``"disagreement" [B, 1, H, W]`` (:func:`history_disagreement` of the history colour against
+        ``like``, times ``valid``).
         """
         b = like.shape[0]
         if not state:
@@ -237,6 +275,8 @@ class TemporalRecurrence(nn.Module):
         if self.reject_threshold is not None and guide is not None:
             gate = self.gate(history["guide"], guide)
             history["valid"] = history["valid"] * gate
+        if self.history_disagreement:
+            history["disagreement"] = history_disagreement(history["color"], like) * history["valid"]
         if self.probe is not None:
             self.probe.update(cover=torch.where(ok, cover, 0.0), history=dict(history),
                               gate=torch.ones_like(cover) if gate is None else gate)
@@ -248,7 +288,8 @@ class TemporalRecurrence(nn.Module):
         convolution part by part). scale: ``[B, 1, 1, 1]`` current color scale.
         """
         parts = {"output": color_feature(history["output"], scale), "color": color_feature(history["color"], scale),
-                 "guide": history["guide"], "features": history["features"], "valid": history["valid"]}
+                 "guide": history["guide"], "features": history["features"], "valid": history["valid"],
+                 "disagreement": history.get("disagreement")}
         return [parts[part] for part, _ in self.input_layout]
 
     def inputs(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> torch.Tensor:

@@ -13,13 +13,16 @@
 #      data/blender/val exists (make blender-val)
 #   4. the table: python -m denoiser.commands.val_table -> reports/fast/teachers/val_table.md
 #      (PSNR frames 2+, paired intervals over val sequences against the first candidate and OIDN-fast)
-#   5. with FAST_STUDENT_TEACHER=<candidate>: students distilled from that candidate's seed-0
-#      teacher on the same data (experiment=demo_distill), the same seeds, evaluated with make
-#      demo's distilled students ("base": today's recipe) -> reports/fast/students/val_table.md
+#   5. with FAST_STUDENT_TEACHER=<candidate> (or demo: make demo's teacher): student candidates
+#      (FAST_STUDENTS) distilled from that candidate's first-seed teacher on the same data
+#      (experiment=demo_distill), the same seeds, evaluated with make demo's distilled students
+#      ("base": today's recipe) -> reports/fast/students/val_table.md
 #
 # Knobs (environment): FAST_TEACHERS (candidates, "name:override,override;name:..."; default the
-# demo's lr, a lower lr and a longer warm-up), FAST_SEEDS (default "0 1 2"), FAST_JOBS (default 2),
-# FAST_THREADS (torch threads per run, default 1), FAST_STUDENT_TEACHER (default empty: no step 5).
+# demo's lr, a lower lr and a longer warm-up; none: no teacher step), FAST_SEEDS (default "0 1 2"), FAST_JOBS (default 2),
+# FAST_THREADS (torch threads per run, default 1), FAST_STUDENT_TEACHER (default empty: no step 5),
+# FAST_STUDENTS (student candidates, the same form; default "fast:" (the recipe on the new data) and
+# "disagree:ablation=history_disagreement" (the history disagreement input, denoiser.nn.temporal)).
 # Resumable as the other pipelines: denoiser-train skips a finished run (skip_done=true) and
 # resumes an interrupted one (ckpt_path=auto; scripts/lib.sh); an evaluation is redone only when
 # its checkpoints changed.
@@ -37,22 +40,37 @@ JOBS=${FAST_JOBS:-2}
 THREADS=${FAST_THREADS:-1}
 TEACHERS=${FAST_TEACHERS:-"lr2e3:model.optimizer.lr=2e-3;lr1e3:model.optimizer.lr=1e-3;warmup200:model.scheduler.warmup_steps=200"}
 STUDENT_TEACHER=${FAST_STUDENT_TEACHER:-}
+STUDENTS=${FAST_STUDENTS:-"fast:;disagree:ablation=history_disagreement"}
 EXTRA="data.extra_roots=[$DATA/fast]"
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
 
 [ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
-declare -A OVERRIDES=()
+candidates() {  # candidates <knob> <value> <names array> <overrides map>: parse "name:o,o;name:..."
+    local knob=$1 spec name
+    local -n names=$3 overrides=$4
+    local -a specs=()
+    [ "$2" = none ] || IFS=';' read -ra specs <<< "$2"
+    for spec in "${specs[@]}"; do
+        name=${spec%%:*}
+        [[ "$spec" == *:* && "$name" =~ ^[A-Za-z][A-Za-z0-9]*$ && "$name" != base ]] || {
+            echo "error: $knob: '$spec' is not name:override,... (name: a letter, then letters and digits; not base)" >&2
+            exit 2
+        }
+        overrides[$name]=${spec#*:}
+        names+=("$name")
+    done
+}
+declare -A OVERRIDES=() SOVERRIDES=()
 NAMES=()
-IFS=';' read -ra SPECS <<< "$TEACHERS"
-for spec in "${SPECS[@]}"; do
-    name=${spec%%:*}
-    [[ "$spec" == *:* && "$name" =~ ^[A-Za-z][A-Za-z0-9]*$ ]] \
-        || { echo "error: FAST_TEACHERS: '$spec' is not name:override,... (name: a letter, then letters and digits)" >&2; exit 2; }
-    OVERRIDES[$name]=${spec#*:}
-    NAMES+=("$name")
-done
+SNAMES=()
+candidates FAST_TEACHERS "$TEACHERS" NAMES OVERRIDES
+candidates FAST_STUDENTS "$STUDENTS" SNAMES SOVERRIDES
 SEEDS_LIST="[${SEEDS// /,}]"
+if [ -n "$STUDENT_TEACHER" ] && [ "$STUDENT_TEACHER" != demo ] && [ -z "${OVERRIDES[$STUDENT_TEACHER]+x}" ]; then
+    echo "error: FAST_STUDENT_TEACHER: '$STUDENT_TEACHER' is not demo or a candidate of FAST_TEACHERS (${NAMES[*]})" >&2
+    exit 2
+fi
 
 echo "==> [render] $DATA/fast"
 "$BIN/denoiser-render" dataset=fast
@@ -94,48 +112,57 @@ train() {  # train <run dir> <overrides...>: one run, its output in <run dir>.lo
     echo "<== [$dir]"
 }
 
-# -- teachers
+# -- teachers (FAST_TEACHERS=none: none)
 TRUNS=$REPORT/teachers/runs
-teacher_run() {  # teacher_run <name>_s<seed>
-    local name=${1%_s*} seed=${1##*_s}
-    local -a extra
-    IFS=',' read -ra extra <<< "${OVERRIDES[$name]}"
-    train "$TRUNS/$1" experiment=demo_teacher "seed=$seed" "${extra[@]}"
-}
-RUNS_LIST=()
-for name in "${NAMES[@]}"; do for seed in $SEEDS; do RUNS_LIST+=("${name}_s$seed"); done; done
-run_jobs "$JOBS" teacher_run "${RUNS_LIST[@]}" || exit 3
-CKPTS="demo_teacher: $(best "$DEMO/teacher")"
-LABELS="{"
-for name in "${NAMES[@]}"; do
-    for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$TRUNS/${name}_s$seed")"; done
-    LABELS="$LABELS$name: 'experiment=demo_teacher $EXTRA ${OVERRIDES[$name]}', "
-done
-LABELS="${LABELS%, }}"
-evaluate "$REPORT/teachers" "$CKPTS"
-find "$TRUNS" -name COLLAPSED -printf '%h: ' -exec cat {} \; > "$REPORT/teachers/collapsed.txt" 2>/dev/null || true
-CANDIDATES=$(IFS=,; echo "[${NAMES[*]}]")
-table "$REPORT/teachers" "${NAMES[0]}" "$CANDIDATES" "['noisy input',OIDN-fast,demo_teacher]" "$LABELS"
+if [ "${#NAMES[@]}" -gt 0 ]; then
+    teacher_run() {  # teacher_run <name>_s<seed>
+        local name=${1%_s*} seed=${1##*_s}
+        local -a extra
+        IFS=',' read -ra extra <<< "${OVERRIDES[$name]}"
+        train "$TRUNS/$1" experiment=demo_teacher "seed=$seed" "${extra[@]}"
+    }
+    RUNS_LIST=()
+    for name in "${NAMES[@]}"; do for seed in $SEEDS; do RUNS_LIST+=("${name}_s$seed"); done; done
+    run_jobs "$JOBS" teacher_run "${RUNS_LIST[@]}" || exit 3
+    CKPTS="demo_teacher: $(best "$DEMO/teacher")"
+    LABELS="{"
+    for name in "${NAMES[@]}"; do
+        for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$TRUNS/${name}_s$seed")"; done
+        LABELS="$LABELS$name: 'experiment=demo_teacher $EXTRA ${OVERRIDES[$name]}', "
+    done
+    LABELS="${LABELS%, }}"
+    evaluate "$REPORT/teachers" "$CKPTS"
+    find "$TRUNS" -name COLLAPSED -printf '%h: ' -exec cat {} \; > "$REPORT/teachers/collapsed.txt" 2>/dev/null || true
+    CANDIDATES=$(IFS=,; echo "[${NAMES[*]}]")
+    table "$REPORT/teachers" "${NAMES[0]}" "$CANDIDATES" "['noisy input',OIDN-fast,demo_teacher]" "$LABELS"
+fi
 
-# -- students from the chosen teacher
+# -- student candidates, taught by the chosen teacher
 if [ -n "$STUDENT_TEACHER" ]; then
-    [ -n "${OVERRIDES[$STUDENT_TEACHER]+x}" ] \
-        || { echo "error: FAST_STUDENT_TEACHER: '$STUDENT_TEACHER' is not a candidate of FAST_TEACHERS (${NAMES[*]})" >&2; exit 2; }
     FIRST=${SEEDS%% *}
-    TEACHER=$(best "$TRUNS/${STUDENT_TEACHER}_s$FIRST")
+    if [ "$STUDENT_TEACHER" = demo ]; then TEACHER=$(best "$DEMO/teacher"); else TEACHER=$(best "$TRUNS/${STUDENT_TEACHER}_s$FIRST"); fi
     SRUNS=$REPORT/students/runs
-    student_run() { train "$SRUNS/$1" experiment=demo_distill "model.teacher_ckpt=$TEACHER" "seed=${1##*_s}"; }
-    SNAMES=()
-    for seed in $SEEDS; do SNAMES+=("fast_s$seed"); done
-    run_jobs "$JOBS" student_run "${SNAMES[@]}" || exit 3
+    student_run() {  # student_run <name>_s<seed>
+        local name=${1%_s*}
+        local -a extra=()
+        [ -n "${SOVERRIDES[$name]}" ] && IFS=',' read -ra extra <<< "${SOVERRIDES[$name]}"
+        train "$SRUNS/$1" experiment=demo_distill "model.teacher_ckpt=$TEACHER" "seed=${1##*_s}" "${extra[@]}"
+    }
+    RUNS_LIST=()
+    for name in "${SNAMES[@]}"; do for seed in $SEEDS; do RUNS_LIST+=("${name}_s$seed"); done; done
+    run_jobs "$JOBS" student_run "${RUNS_LIST[@]}" || exit 3
     CKPTS=""
+    LABELS="{base: \"make demo's distilled students (today's recipe, data/demo)\""
     for seed in $SEEDS; do
         [ -f "$DEMO/student_distilled_s$seed/DONE" ] \
             || { echo "error: $DEMO/student_distilled_s$seed: no finished demo student (make demo DEMO_SEEDS)" >&2; exit 2; }
-        CKPTS="$CKPTS${CKPTS:+, }base_s$seed: $(best "$DEMO/student_distilled_s$seed"), fast_s$seed: $(best "$SRUNS/fast_s$seed")"
+        CKPTS="$CKPTS${CKPTS:+, }base_s$seed: $(best "$DEMO/student_distilled_s$seed")"
+    done
+    for name in "${SNAMES[@]}"; do
+        for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$SRUNS/${name}_s$seed")"; done
+        LABELS="$LABELS, $name: 'experiment=demo_distill $EXTRA ${SOVERRIDES[$name]}, taught by $TEACHER'"
     done
     evaluate "$REPORT/students" "$CKPTS"
-    table "$REPORT/students" base "[base,fast]" "['noisy input',OIDN-fast]" \
-        "{base: \"make demo's distilled students (today's recipe)\", fast: 'experiment=demo_distill $EXTRA, taught by $TEACHER'}"
+    table "$REPORT/students" base "[base,$(IFS=,; echo "${SNAMES[*]}")]" "['noisy input',OIDN-fast]" "$LABELS}"
 fi
-echo "==== fast-motion finished: $REPORT/teachers/val_table.md${STUDENT_TEACHER:+, $REPORT/students/val_table.md} ===="
+echo "==== fast-motion finished: $(ls "$REPORT"/{teachers,students}/val_table.md 2>/dev/null | tr '\n' ' ')===="

@@ -84,25 +84,42 @@ def test_fast_motion_trains_the_teacher_candidates_and_tables_them_on_val(tree):
     proc, calls = _run(tree, FAST_STUDENT_TEACHER="lr1e3")
     assert proc.returncode == 0, proc.stderr
     students = [c for c in calls if c[0] == "denoiser-train" and "students" in _arg(c, "hydra.run.dir")]
-    assert sorted(_arg(c, "seed") for c in students) == ["0", "1", "2"]
+    assert sorted(_arg(c, "hydra.run.dir").rsplit("/", 1)[1] for c in students) == \
+        sorted(f"{n}_s{s}" for n in ("fast", "disagree") for s in (0, 1, 2))
     for c in students:
         assert _arg(c, "experiment") == "demo_distill" and _arg(c, "data.extra_roots") == "[data/fast]"
         assert _arg(c, "model.teacher_ckpt") == "reports/fast/teachers/runs/lr1e3_s0/checkpoints/last.ckpt"
+        assert ("ablation=history_disagreement" in c) == ("/disagree_s" in _arg(c, "hydra.run.dir"))
     ev = [c for c in calls if c[0] == "denoiser-eval" and "students" in _arg(c, "out_dir")]
     ckpts = dict(kv.split(": ") for kv in _arg(ev[0], "ckpt").strip("{}").split(", "))
     assert ckpts["base_s1"] == "reports/demo/runs/student_distilled_s1/checkpoints/best.ckpt"
-    assert ckpts["fast_s1"] == "reports/fast/students/runs/fast_s1/checkpoints/last.ckpt"
+    assert ckpts["disagree_s1"] == "reports/fast/students/runs/disagree_s1/checkpoints/last.ckpt"
+    assert sorted(ckpts) == sorted(f"{n}_s{s}" for n in ("base", "fast", "disagree") for s in (0, 1, 2))
     table = [c for c in calls if "denoiser.commands.val_table" in c][-1]
-    assert _arg(table, "reference") == "base" and _arg(table, "candidates") == "[base,fast]"
+    assert _arg(table, "reference") == "base" and _arg(table, "candidates") == "[base,fast,disagree]"
+    assert "ablation=history_disagreement" in _arg(table, "labels")
+
+
+def test_fast_motion_students_of_the_demo_teacher_alone(tree):
+    proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="x:model.optimizer.lr=1e-3")
+    assert proc.returncode == 0, proc.stderr
+    trained = [c for c in calls if c[0] == "denoiser-train"]
+    assert sorted(_arg(c, "hydra.run.dir") for c in trained) == [f"reports/fast/students/runs/x_s{s}" for s in (0, 1, 2)]
+    assert all(_arg(c, "model.teacher_ckpt") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
+               and _arg(c, "model.optimizer.lr") == "1e-3" for c in trained)
+    assert [_arg(c, "out_dir") for c in calls if c[0] == "denoiser-eval"] == \
+        ["reports/fast/students/mitsuba_val", "reports/fast/students/blender_val"]
 
 
 @pytest.mark.parametrize(("env", "message"), [
     ({"FAST_TEACHERS": "lr-1:model.optimizer.lr=1e-3"}, "FAST_TEACHERS: 'lr-1:model.optimizer.lr=1e-3' is not"),
-    ({"FAST_STUDENT_TEACHER": "nope"}, "FAST_STUDENT_TEACHER: 'nope' is not a candidate"),
+    ({"FAST_STUDENT_TEACHER": "nope"}, "FAST_STUDENT_TEACHER: 'nope' is not demo or a candidate"),
+    ({"FAST_STUDENT_TEACHER": "demo", "FAST_STUDENTS": "base:"}, "FAST_STUDENTS: 'base:' is not"),
 ])
 def test_fast_motion_refuses_bad_knobs_in_one_line(tree, env, message):
-    proc, _ = _run(tree, **env)
+    proc, calls = _run(tree, **env)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and message in proc.stderr
+    assert not calls  # before anything runs
 
 
 def test_fast_motion_needs_make_demo(tmp_path):

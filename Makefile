@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper fast-motion lint clean-cache blender blender-val
+.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper readme-paper fast-motion lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -88,11 +88,14 @@ readme-ablations:
 
 # Every figure of the paper after make demo, in order: make ablations, make compare, make pareto
 # (scripts/paper.sh; each stage resumable, its wall time in reports/paper/timings.md), then the
-# README copies. About 5.5-6 hours on 2 idle cores, estimated from make demo's stage times, not measured
-# (README, "Every figure: make paper").
+# README copies. Its work against the budget: reports/paper/summary.md (README, "Every figure: make paper").
 paper: setup
 	VENV=$(VENV) bash scripts/paper.sh
-	$(MAKE) readme-ablations readme-compare readme-pareto
+	$(MAKE) readme-ablations readme-compare readme-pareto readme-paper
+
+# Copy make paper's budget block (reports/paper/summary.md: every stage's work against the budget) into README.md.
+readme-paper:
+	python3 scripts/readme_results.py --summary reports/paper/summary.md --marker paper
 
 # Issue 33's val study (moving objects), after make demo: renders the fast-motion families into
 # data/fast (dataset=fast), trains teacher candidates on data/demo + data/fast (FAST_TEACHERS, 3 seeds

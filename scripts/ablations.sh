@@ -74,16 +74,14 @@ TEACHER=$(best "$DEMO/teacher")   # the checkpoint make demo's distilled student
 timings_begin
 
 train() {  # train <variant>_s<seed>: one run, its output in <run>.log
-    local name=$1 variant=${1%_s*} seed=${1##*_s} t0
-    t0=$(date +%s)
+    local name=$1 variant=${1%_s*} seed=${1##*_s}
     echo "==> [$name]"
-    OMP_NUM_THREADS=$THREADS train_run "$RUNS/$name" experiment=demo_distill "model.teacher_ckpt=$TEACHER" \
-        "ablation=$variant" "seed=$seed" ${STEPS:+"trainer.max_steps=$STEPS"} \
+    OMP_NUM_THREADS=$THREADS stage --reuse "$RUNS/$name" DONE "$name" train_run "$RUNS/$name" experiment=demo_distill \
+        "model.teacher_ckpt=$TEACHER" "ablation=$variant" "seed=$seed" ${STEPS:+"trainer.max_steps=$STEPS"} \
         trainer.enable_progress_bar=false callbacks.progress=null > "$RUNS/$name.log" 2>&1 \
         || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
     [ -f "$RUNS/$name/COLLAPSED" ] && echo "warning: [$name] $(cat "$RUNS/$name/COLLAPSED") (kept, marked in the summary)" >&2
-    echo "| $name | $(( $(date +%s) - t0 )) |" >> "$TIMINGS.tmp"
-    echo "<== [$name] $(( $(date +%s) - t0 ))s"
+    grep -h '^<== ' "$RUNS/$name.log" | tail -1
 }
 NAMES=()
 for variant in $VARIANTS; do for seed in $SEEDS; do NAMES+=("${variant}_s$seed"); done; done
@@ -102,6 +100,7 @@ for variant in none no_pyramid direct; do
 done
 if fresh "$REPORT/eval" "$CKPTS"; then
     echo "==> [eval] $REPORT/eval: the same checkpoints, done before"
+    timings_row eval 0 reused
 else
     stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval" '~baselines.oidn_fast' \
         '~baselines.oidn_balanced' '~baselines.oidn_high' "images.methods=[$SHOWN]"
@@ -115,6 +114,7 @@ if [ -z "$BACKENDS" ]; then
 fi
 if fresh "$REPORT/bench" "$BENCH_CKPTS $BACKENDS $REPEATS"; then
     echo "==> [bench] $REPORT/bench: the same checkpoints and backends, done before"
+    timings_row bench 0 reused
 else
     stage bench "$BIN/denoiser-bench" data=demo "ckpt={$BENCH_CKPTS}" "eval_csv=$REPORT/eval/metrics.csv" \
         "out_dir=$REPORT/bench" "sizes=[[1080,1920]]" "use_backends=$BACKENDS" '~baselines.oidn_balanced' \

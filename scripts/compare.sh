@@ -12,7 +12,8 @@
 #   4. denoiser-bench at 1080p (OpenVINO bf16 and eager) for the same methods (networks: first seed)
 #   5. summary.md with the Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml)
 # denoiser-train skips a finished run (skip_done=true) and resumes an interrupted one from its
-# last.ckpt (ckpt_path=auto; scripts/lib.sh).
+# last.ckpt (ckpt_path=auto; scripts/lib.sh). Stage times: $REPORT/timings.md (a reused run keeps
+# the seconds of the run that did it).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${VENV:-.venv}
@@ -26,11 +27,14 @@ FIRST=${SEEDS%% *}
 BASELINES=compare
 [ "${COMPARE_ONND:-1}" = 0 ] && BASELINES=default
 mkdir -p "$RUNS"
+TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
 [ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
-echo "==> [render data/demo_compare]"
-"$BIN/denoiser-render" dataset=demo_compare "reference_from=${DENOISER_DATA:-data}/demo"  # its references: data/demo's, copied
+timings_begin
+# its references: data/demo's, copied
+stage --reuse "${DENOISER_DATA:-data}/demo_compare" '*.exr' render "$BIN/denoiser-render" dataset=demo_compare \
+    "reference_from=${DENOISER_DATA:-data}/demo"
 TEACHER=$(best "$DEMO/teacher")
 CKPTS="teacher: $TEACHER"
 BENCH_CKPTS="teacher: $TEACHER"   # a seed group is timed once (its networks are the same size)
@@ -44,17 +48,16 @@ for seed in $SEEDS; do
     fi
     for net in nppd_demo ws_demo; do
         dir=$RUNS/${net}_s$seed
-        echo "==> [$net seed $seed]"
-        train_run "$dir" experiment=demo_distill "net=$net" "model.teacher_ckpt=$TEACHER" "seed=$seed"
+        stage --reuse "$dir" DONE "${net}_s$seed" train_run "$dir" experiment=demo_distill "net=$net" \
+            "model.teacher_ckpt=$TEACHER" "seed=$seed"
         CKPTS="$CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
         [ "$seed" = "$FIRST" ] && BENCH_CKPTS="$BENCH_CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
     done
 done
-echo "==> [eval]"
-"$BIN/denoiser-eval" data=demo_compare "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
-echo "==> [bench]"
-"$BIN/denoiser-bench" data=demo_compare "baselines=$BASELINES" "ckpt={$BENCH_CKPTS}" \
+stage eval "$BIN/denoiser-eval" data=demo_compare "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
+stage bench "$BIN/denoiser-bench" data=demo_compare "baselines=$BASELINES" "ckpt={$BENCH_CKPTS}" \
     "eval_csv=$REPORT/eval/metrics.csv" "out_dir=$REPORT/bench" "sizes=[[1080,1920]]" \
     "use_backends=[eager,openvino_bf16]" "skip={teacher: [[1080,1920]]}" repeats=3 quality=false
-"$PY" -m denoiser.commands.demo_summary --config-name compare_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
+stage summary "$PY" -m denoiser.commands.demo_summary --config-name compare_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
+timings_end
 echo "==== compare finished: $REPORT/summary.md (Fig. A.2 / A.3 tables), $REPORT/eval/images (crops), $REPORT/bench (plot) ===="

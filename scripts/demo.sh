@@ -46,7 +46,7 @@ timings_begin
 
 demo_train() {  # demo_train <run name> <overrides...>: train (skipped when finished, resumed when interrupted)
     local name=$1; shift
-    stage "$name" train_run "$RUNS/$name" "$@"
+    stage --reuse "$RUNS/$name" DONE "$name" train_run "$RUNS/$name" "$@"
     if [ -f "$RUNS/$name/COLLAPSED" ]; then  # written by the CollapseDetector callback
         echo "error: [$name] $(cat "$RUNS/$name/COLLAPSED")" >&2
         exit 3
@@ -54,7 +54,7 @@ demo_train() {  # demo_train <run name> <overrides...>: train (skipped when fini
 }
 
 # 1. data (denoiser-render keeps frames that exist, so a second run costs seconds)
-stage render "$BIN/denoiser-render" dataset=demo
+stage --reuse "${DENOISER_DATA:-data}/demo" '*.exr' render "$BIN/denoiser-render" dataset=demo
 
 # 2-4. networks
 demo_train teacher experiment=demo_teacher seed=0 "threads=$THREADS"

@@ -23,23 +23,73 @@ fresh() {  # fresh <dir> <inputs>: <dir>/inputs.txt holds <inputs> and no checkp
     return 0
 }
 
-timings_begin() {  # a fresh stage-time table ($TIMINGS.tmp until timings_end)
-    printf '| stage | seconds |\n|---|---|\n' > "$TIMINGS.tmp"
+# The stage-time table: one row per stage, | stage | seconds | run |. A stage whose work an earlier
+# run did (a finished training run skipped, an evaluation of the same checkpoints) keeps that run's
+# seconds and names it in the run column, so that a resumed pipeline's table still says what its
+# work costs: the total row is this run's wall time, the work row the sum of every stage's seconds.
+
+timings_begin() {  # a fresh stage-time table ($TIMINGS.tmp until timings_end); the rows of the last one kept
+    declare -gA TIMINGS_BEFORE=()
+    local name secs run
+    if [ -f "$TIMINGS" ]; then
+        while IFS='|' read -r _ name secs run _; do
+            read -r name <<< "$name"; read -r secs <<< "$secs"; read -r run <<< "$run"   # trimmed
+            [[ "$secs" =~ ^[0-9]+$ ]] && [ "$name" != total ] && [ "$name" != work ] \
+                && TIMINGS_BEFORE[$name]="$secs|${run:-an earlier run}"
+        done < "$TIMINGS"
+    fi
+    TIMINGS_RUN="run $(date -u +%Y-%m-%dT%H:%M:%SZ)"
+    printf '| stage | seconds | run |\n|---|---:|---|\n' > "$TIMINGS.tmp"
     TIMINGS_START=$(date +%s)
 }
 
-stage() {  # stage <name> <command...>: run it between ==>/<== lines and record its wall time
-    local name=$1 t0 dt; shift
+timings_row() {  # timings_row <name> <seconds> [reused]: a row of this run, or with "reused" the last
+    # table's row of <name> (the run that did the work; this run's seconds when it has none)
+    if [ "${3:-}" = reused ] && [ -n "${TIMINGS_BEFORE[$1]:-}" ]; then
+        echo "| $1 | ${TIMINGS_BEFORE[$1]%%|*} | ${TIMINGS_BEFORE[$1]#*|} |"
+    elif [ "${3:-}" = reused ]; then
+        echo "| $1 | $2 | reused (the run that did it is not recorded) |"
+    else
+        echo "| $1 | $2 | $TIMINGS_RUN |"
+    fi >> "$TIMINGS.tmp"
+}
+
+none_newer() {  # none_newer <dir> <file name pattern> <marker file>: <dir> holds such files, none newer than <marker>
+    [ -d "$1" ] && [ -n "$(find "$1" -name "$2" -print -quit)" ] && [ -z "$(find "$1" -name "$2" -newer "$3" -print -quit)" ]
+}
+
+stage() {  # stage [--reuse <dir> <file name pattern>] <name> <command...>: run it between ==>/<== lines
+    # and record its wall time; with --reuse, a command that wrote no such file under <dir> (e.g. DONE
+    # of a training run it skipped, frames a render kept) reused an earlier run's work (timings_row)
+    # (its status is the command's: set -e does not stop a function called before || or &&, so the
+    # status is passed on explicitly; a failed step gets no row)
+    local reuse=() name t0 dt marker status=0
+    if [ "$1" = --reuse ]; then reuse=("$2" "$3"); shift 3; fi
+    name=$1; shift
+    marker=$(mktemp)
     t0=$(date +%s)
     echo "==> [$name] $*"
-    "$@"
+    "$@" || status=$?
     dt=$(( $(date +%s) - t0 ))
-    echo "| $name | $dt |" >> "$TIMINGS.tmp"
+    if [ "$status" -ne 0 ]; then
+        rm -f "$marker"
+        echo "<== [$name] failed (exit $status) after ${dt}s"
+        return "$status"
+    fi
+    if [ "${#reuse[@]}" -gt 0 ] && none_newer "${reuse[@]}" "$marker"; then
+        timings_row "$name" "$dt" reused
+    else
+        timings_row "$name" "$dt"
+    fi
+    rm -f "$marker"
     echo "<== [$name] ${dt}s"
 }
 
-timings_end() {  # the total row; the table becomes $TIMINGS
-    echo "| total | $(( $(date +%s) - TIMINGS_START )) |" >> "$TIMINGS.tmp"
+timings_end() {  # the total (this run's wall time) and work (every stage's seconds) rows; the table becomes $TIMINGS
+    local work
+    work=$(awk -F'|' 'NR > 2 { s += $3 } END { print s + 0 }' "$TIMINGS.tmp")
+    echo "| total | $(( $(date +%s) - TIMINGS_START )) | $TIMINGS_RUN: wall time |" >> "$TIMINGS.tmp"
+    echo "| work | $work | every stage's seconds, reused ones included |" >> "$TIMINGS.tmp"
     mv "$TIMINGS.tmp" "$TIMINGS"
 }
 

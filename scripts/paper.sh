@@ -9,12 +9,16 @@
 # Every stage reuses make demo's data and teacher (this script stops with one line when the
 # teacher is missing: make pareto alone would train a shorter one) and is resumable on its own,
 # so a second make paper redoes only what is missing or changed. Each stage's wall time goes to
-# reports/paper/timings.md (as reports/demo/timings.md); the Makefile then copies the reports'
-# blocks into the README (make readme-ablations, make readme-compare, make readme-pareto).
+# reports/paper/timings.md (as reports/demo/timings.md), and each stage keeps its own table of
+# steps (reports/<stage>/timings.md, the seconds of reused steps kept); scripts/paper_summary.py
+# adds up their work against the budget -> reports/paper/summary.md. The Makefile then copies the
+# reports' blocks into the README (make readme-ablations, readme-compare, readme-pareto, readme-paper).
 # Knobs: those of the three scripts (ABLATION_*, COMPARE_*, PARETO_*).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+VENV=${VENV:-.venv}
+PY="$VENV/bin/python"
 REPORT=reports/paper
 TIMINGS=$REPORT/timings.md
 TEACHER=reports/demo/runs/teacher
@@ -25,5 +29,6 @@ mkdir -p "$REPORT"
 timings_begin
 for name in ablations compare pareto; do stage "$name" bash "scripts/$name.sh"; done
 timings_end
+"$PY" scripts/paper_summary.py --paper "$TIMINGS" --out "$REPORT/summary.md"
 echo "==== paper finished: reports/ablations, reports/compare, reports/pareto; stage timings: $TIMINGS ===="
 cat "$TIMINGS"

@@ -21,6 +21,7 @@
 #
 # Resumable: a finished job leaves DONE in its directory and is skipped (skip_done=true), an
 # interrupted one resumes from its last.ckpt (ckpt_path=auto); timings are cached per checkpoint.
+# Stage times: $REPORT/timings.md (a reused run keeps the seconds of the run that did it).
 # Keep PARETO_AXES the same between reruns: job directories are numbered in sweep order
 # (a directory holding another variant's finished run is an error, not silently reused).
 set -euo pipefail
@@ -41,48 +42,49 @@ AXES=${PARETO_AXES:-"net=demo_student_w05,demo_student kernel.sizes=[3,5,5],[5,5
 EVAL=${PARETO_EVAL:-1}                # 1: denoiser-eval of the variants on the test split (test PSNR column)
 FRONT_SEEDS=${PARETO_FRONT_SEEDS:-"1 2"}   # more seeds for the front's variants ("" : none)
 SEEDS_DIR=$REPORT/seeds
+TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
+mkdir -p "$REPORT"
+timings_begin
 
-echo "==> [render] data/demo"
-"$BIN/denoiser-render" dataset=demo
+stage --reuse "${DENOISER_DATA:-data}/demo" '*.exr' render "$BIN/denoiser-render" dataset=demo
 
 if [ -f "$TEACHER/DONE" ]; then   # make demo's teacher (or an earlier one), whatever its steps
     echo "==> [teacher] $TEACHER done before, reused"
 else
     echo "==> [teacher] training $TEACHER (experiment=demo_teacher, $TEACHER_STEPS steps)"
-    train_run "$TEACHER" experiment=demo_teacher "trainer.max_steps=$TEACHER_STEPS"
+    stage --reuse "$TEACHER" DONE teacher train_run "$TEACHER" experiment=demo_teacher "trainer.max_steps=$TEACHER_STEPS"
 fi
 TEACHER_CKPT=$(best "$TEACHER")
 
 echo "==> [sweep] $SWEEP: $AXES, $STEPS steps each"
 # shellcheck disable=SC2086 # AXES is a list of overrides
-"$PY" train.py -m experiment=pareto $AXES "model.teacher_ckpt=$TEACHER_CKPT" "trainer.max_steps=$STEPS" \
+stage --reuse "$SWEEP" DONE sweep "$PY" train.py -m experiment=pareto $AXES "model.teacher_ckpt=$TEACHER_CKPT" "trainer.max_steps=$STEPS" \
     "threads=$THREADS" skip_done=true ckpt_path=auto trainer.enable_progress_bar=false callbacks.progress=null \
     hydra/launcher=joblib "hydra.launcher.n_jobs=$JOBS" "hydra.sweep.dir=$SWEEP" 'hydra.sweep.subdir=${hydra.job.num}'
 
 # OIDN's val PSNR (the front is chosen on val; OIDN is timed by denoiser-pareto on the same frames)
 VAL_CSV=$REPORT/eval_val/metrics.csv
 if [ ! -f "$VAL_CSV" ]; then
-    echo "==> [eval] OIDN on the val split: $REPORT/eval_val"
-    "$BIN/denoiser-eval" data=demo split=val '~baselines.oidn_balanced' "out_dir=$REPORT/eval_val"
+    stage eval_val "$BIN/denoiser-eval" data=demo split=val '~baselines.oidn_balanced' "out_dir=$REPORT/eval_val"
 fi
-report() {  # denoiser-pareto over the given sweep directories (timings cached per checkpoint)
-    local dirs extra=()
+report() {  # report <stage name> <sweep dir...>: denoiser-pareto over them (timings cached per checkpoint)
+    local name=$1 dirs extra=()
+    shift
     dirs=$(IFS=,; echo "$*")
     [ -f "$REPORT/eval/metrics.csv" ] && extra+=("eval_csv=$REPORT/eval/metrics.csv")
-    echo "==> [report] $REPORT (timing on $BACKEND, one network at a time; OIDN on the same frames)"
-    "$BIN/denoiser-pareto" "sweep_dir=[$dirs]" "out_dir=$REPORT" "backend=$BACKEND" baselines=default \
+    echo "    (timing on $BACKEND, one network at a time; OIDN on the same frames)"
+    stage "$name" "$BIN/denoiser-pareto" "sweep_dir=[$dirs]" "out_dir=$REPORT" "backend=$BACKEND" baselines=default \
         baselines.noisy=null baselines.oidn_balanced=null "baseline_eval_csv=$VAL_CSV" "${extra[@]}"
 }
-report "$SWEEP"
+report report "$SWEEP"
 
 if [ -n "$FRONT_SEEDS" ]; then  # the front's variants with more seeds, before any claim about the front
     seeds=${FRONT_SEEDS// /,}
     while IFS=$'\t' read -r job line; do
         eval "overrides=($line)"
-        echo "==> [front seeds] job $job with seed $seeds: $line"
-        "$PY" train.py -m "${overrides[@]}" "seed=$seeds" hydra/launcher=joblib "hydra.launcher.n_jobs=$JOBS" \
+        stage --reuse "$SEEDS_DIR" DONE "front_seeds_$job" "$PY" train.py -m "${overrides[@]}" "seed=$seeds" hydra/launcher=joblib "hydra.launcher.n_jobs=$JOBS" \
             "hydra.sweep.dir=$SEEDS_DIR" "hydra.sweep.subdir=${job}_s\${seed}"
     done < <("$PY" -c 'import csv, shlex, sys
 for r in csv.DictReader(open(sys.argv[1])):
@@ -97,11 +99,11 @@ if [ "$EVAL" = 1 ]; then  # test PSNR of every finished run on the demo's test s
         [ -f "$dir/DONE" ] && [ -f "$dir/checkpoints/last.ckpt" ] && ckpts+="job$(basename "$dir"): ${dir}checkpoints/last.ckpt, "
     done
     if [ -n "$ckpts" ] && { [ ! -f "$EVAL_CSV" ] || [ -n "$(find "$SWEEP" "$SEEDS_DIR" -name last.ckpt -newer "$EVAL_CSV" 2>/dev/null)" ]; }; then
-        echo "==> [eval] test split: $REPORT/eval"
-        "$BIN/denoiser-eval" data=demo "ckpt={${ckpts%, }}" "out_dir=$REPORT/eval" '~baselines.oidn_balanced'
+        stage eval "$BIN/denoiser-eval" data=demo "ckpt={${ckpts%, }}" "out_dir=$REPORT/eval" '~baselines.oidn_balanced'
     fi
 fi
-if [ -d "$SEEDS_DIR" ]; then report "$SWEEP" "$SEEDS_DIR"; else report "$SWEEP"; fi
+if [ -d "$SEEDS_DIR" ]; then report report_seeds "$SWEEP" "$SEEDS_DIR"; else report report_seeds "$SWEEP"; fi
+timings_end
 
 cat <<END
 

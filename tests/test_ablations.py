@@ -439,21 +439,26 @@ def test_scripts_parse_and_the_makefile_has_the_targets():
 
 def test_paper_sh_times_every_stage_in_order(tmp_path):
     (tmp_path / "scripts").mkdir()
-    for name in ("paper.sh", "lib.sh"):
+    for name in ("paper.sh", "lib.sh", "paper_summary.py"):
         shutil.copy(ROOT / "scripts" / name, tmp_path / "scripts")
+    env = {**os.environ, "VENV": str(Path(sys.executable).parent.parent)}
     log = tmp_path / "order.log"
     for stage in ("ablations", "compare", "pareto"):
         (tmp_path / "scripts" / f"{stage}.sh").write_text(f"echo {stage} >> {log}\n")
-    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "paper.sh")], capture_output=True, text=True, check=False)
+    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "paper.sh")], capture_output=True, text=True, check=False,
+                          env=env)
     assert proc.returncode == 2 and "run make demo first" in proc.stderr and not log.exists()
     (tmp_path / "reports" / "demo" / "runs" / "teacher").mkdir(parents=True)
     (tmp_path / "reports" / "demo" / "runs" / "teacher" / "DONE").touch()
-    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "paper.sh")], capture_output=True, text=True, check=False)
+    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "paper.sh")], capture_output=True, text=True, check=False,
+                          env=env)
     assert proc.returncode == 0, proc.stderr
     assert log.read_text().split() == ["ablations", "compare", "pareto"]
     timings = (tmp_path / "reports" / "paper" / "timings.md").read_text().splitlines()
-    assert [line.split("|")[1].strip() for line in timings[2:]] == ["ablations", "compare", "pareto", "total"]
-
+    assert [line.split("|")[1].strip() for line in timings[2:]] == ["ablations", "compare", "pareto", "total", "work"]
+    summary = (tmp_path / "reports" / "paper" / "summary.md").read_text()   # the stages keep no table here
+    assert "| compare | 0 | 0.00 h | 0 | `reports/paper/timings.md` (the stage keeps no table) |" in summary
+    assert "within the budget of 2.00 h" in summary
 
 def test_a_multirun_job_is_the_same_run_as_the_scripts_single_run():
     """skip_done compares overrides as Hydra parses them: the documented SLURM multirun's jobs

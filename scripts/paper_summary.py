@@ -1,0 +1,126 @@
+#!/usr/bin/env python3
+"""The budget of ``make paper``: what each stage's work costs, from the stage tables the pipelines
+wrote, against the budget -> ``reports/paper/summary.md`` (``make readme-paper`` copies its block).
+
+A stage's work is the ``work`` row of its own table (``reports/<stage>/timings.md``: every step's
+seconds, the steps that an earlier run did included, with the seconds of that run; ``scripts/lib.sh``),
+or the sum of its rows when the table has no ``work`` row (a table from before the row existed);
+a stage without a table counts its wall time in ``make paper``'s own table
+(``reports/paper/timings.md``). So a ``make paper`` that resumed work done earlier still states
+what the whole work costs, and how long this run took beside it.
+
+    python scripts/paper_summary.py [--paper reports/paper/timings.md] [--stages ablations,compare,pareto] \\
+        [--budget-hours 2] [--out reports/paper/summary.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
+
+
+def read_table(path: Path) -> dict[str, int]:
+    """``{stage: seconds}`` of a stage-time table (``| stage | seconds | ... |`` rows; the header,
+    separator and non-numeric rows skipped)."""
+    rows = {}
+    for line in path.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) >= 2 and cells[1].isdigit():
+            rows[cells[0]] = int(cells[1])
+    return rows
+
+
+def stage_work(table: dict[str, int]) -> int:
+    """A stage table's work: its ``work`` row, else the sum of its rows less ``total``."""
+    if "work" in table:
+        return table["work"]
+    return sum(v for k, v in table.items() if k != "total")
+
+
+def git_commit(root: Path) -> str:
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, check=False)
+
+    head = git("rev-parse", "--short", "HEAD")
+    if head.returncode != 0:
+        return "unknown"
+    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    return head.stdout.strip() + ("-dirty" if dirty else "")
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def hours(seconds: int) -> str:
+    return f"{seconds / 3600:.2f} h"
+
+
+def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) -> str:
+    """The summary's text (module docstring)."""
+    if not paper.is_file():
+        raise SystemExit(f"error: {paper}: not found (run make paper first)")
+    walls = read_table(paper)
+    missing = [s for s in stages if s not in walls]
+    if missing:
+        raise SystemExit(f"error: {paper}: no row for stage(s) {', '.join(missing)}")
+    rows, total_work = [], 0
+    for name in stages:
+        own = reports / name / "timings.md"
+        if own.is_file():
+            work, source = stage_work(read_table(own)), f"`{own}`"
+        else:
+            work, source = walls[name], f"`{paper}` (the stage keeps no table)"
+        total_work += work
+        rows.append(f"| {name} | {work} | {hours(work)} | {walls[name]} | {source} |")
+    budget = int(round(budget_hours * 3600))
+    verdict = (f"within the budget of {hours(budget)}" if total_work <= budget
+               else f"over the budget of {hours(budget)} by {hours(total_work - budget)} ({total_work / budget:.1f}x)")
+    run_id = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return "\n".join([
+        "# make paper: the work of every stage, against the budget", "",
+        f"- run id: {run_id}",
+        f"- commit: {git_commit(reports.resolve().parent)}",
+        f"- stages: {', '.join(stages)} (scripts/paper.sh)", "",
+        BEGIN,
+        "| stage | work, s | work | wall time in the last make paper, s | from |",
+        "|---|---:|---:|---:|---|",
+        *rows,
+        f"| all | {total_work} | {hours(total_work)} | {walls.get('total', sum(walls[s] for s in stages))} | |",
+        "",
+        f"Work: every step's wall time in the run that did it (a step a later run reused keeps that "
+        f"run's seconds; scripts/lib.sh). All of it takes {hours(total_work)} on this machine "
+        f"({cpu_model()}, {os.cpu_count()} cores), {verdict}.",
+        END, ""])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--paper", type=Path, default=Path("reports/paper/timings.md"))
+    parser.add_argument("--reports", type=Path, default=Path("reports"))
+    parser.add_argument("--stages", default="ablations,compare,pareto")
+    parser.add_argument("--budget-hours", type=float, default=2.0)
+    parser.add_argument("--out", type=Path, default=Path("reports/paper/summary.md"))
+    args = parser.parse_args()
+    text = summary(args.paper, [s for s in args.stages.split(",") if s], args.reports, args.budget_hours)
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -86,7 +86,7 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) 
             work, source = walls[name], f"`{paper}` (the stage keeps no table)"
         total_work += work
         rows.append(f"| {name} | {work} | {hours(work)} | {walls[name]} | {source} |")
-    budget = int(round(budget_hours * 3600))
+    budget = round(budget_hours * 3600)
     verdict = (f"within the budget of {hours(budget)}" if total_work <= budget
                else f"over the budget of {hours(budget)} by {hours(total_work - budget)} ({total_work / budget:.1f}x)")
     run_id = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
@@ -101,9 +101,9 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) 
         *rows,
         f"| all | {total_work} | {hours(total_work)} | {walls.get('total', sum(walls[s] for s in stages))} | |",
         "",
-        f"Work: every step's wall time in the run that did it (a step a later run reused keeps that "
-        f"run's seconds; scripts/lib.sh). All of it takes {hours(total_work)} on this machine "
-        f"({cpu_model()}, {os.cpu_count()} cores), {verdict}.",
+        (f"Work: every step's wall time in the run that did it (a step a later run reused keeps that "
+         f"run's seconds; scripts/lib.sh). All of it takes {hours(total_work)} on this machine "
+         f"({cpu_model()}, {os.cpu_count()} cores), {verdict}."),
         END, ""])
 
 

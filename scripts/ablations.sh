@@ -74,18 +74,19 @@ TEACHER=$(best "$DEMO/teacher")   # the checkpoint make demo's distilled student
 timings_begin
 
 train() {  # train <variant>_s<seed>: one run, its output in <run>.log
-    local name=$1 variant=${1%_s*} seed=${1##*_s}
+    local name=$1 variant=${1%_s*} seed=${1##*_s} t0=$SECONDS
     echo "==> [$name]"
-    OMP_NUM_THREADS=$THREADS stage --reuse "$RUNS/$name" DONE "$name" train_run "$RUNS/$name" experiment=demo_distill \
-        "model.teacher_ckpt=$TEACHER" "ablation=$variant" "seed=$seed" ${STEPS:+"trainer.max_steps=$STEPS"} \
+    OMP_NUM_THREADS=$THREADS train_run "$RUNS/$name" experiment=demo_distill "model.teacher_ckpt=$TEACHER" \
+        "ablation=$variant" "seed=$seed" ${STEPS:+"trainer.max_steps=$STEPS"} \
         trainer.enable_progress_bar=false callbacks.progress=null > "$RUNS/$name.log" 2>&1 \
         || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
     [ -f "$RUNS/$name/COLLAPSED" ] && echo "warning: [$name] $(cat "$RUNS/$name/COLLAPSED") (kept, marked in the summary)" >&2
-    grep -h '^<== ' "$RUNS/$name.log" | tail -1
+    echo "<== [$name] $(( SECONDS - t0 ))s"
 }
 NAMES=()
 for variant in $VARIANTS; do for seed in $SEEDS; do NAMES+=("${variant}_s$seed"); done; done
-run_jobs "$JOBS" train "${NAMES[@]}" || exit 3
+# one row for the runs, JOBS side by side (their wall time, not the sum of theirs)
+stage --reuse "$RUNS" DONE train run_jobs "$JOBS" train "${NAMES[@]}" || exit 3
 
 CKPTS=""
 SHOWN="'noisy input'"   # the crop images: the same frame of Fig. A.1's networks

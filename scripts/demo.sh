@@ -46,7 +46,7 @@ timings_begin
 
 demo_train() {  # demo_train <run name> <overrides...>: train (skipped when finished, resumed when interrupted)
     local name=$1; shift
-    stage --reuse "$RUNS/$name" DONE "$name" train_run "$RUNS/$name" "$@"
+    train_run "$RUNS/$name" "$@"
     if [ -f "$RUNS/$name/COLLAPSED" ]; then  # written by the CollapseDetector callback
         echo "error: [$name] $(cat "$RUNS/$name/COLLAPSED")" >&2
         exit 3
@@ -57,19 +57,21 @@ demo_train() {  # demo_train <run name> <overrides...>: train (skipped when fini
 stage --reuse "${DENOISER_DATA:-data}/demo" '*.exr' render "$BIN/denoiser-render" dataset=demo
 
 # 2-4. networks
-demo_train teacher experiment=demo_teacher seed=0 "threads=$THREADS"
+stage --reuse "$RUNS/teacher" DONE teacher demo_train teacher experiment=demo_teacher seed=0 "threads=$THREADS"
 TEACHER=$(best "$RUNS/teacher")
 # students: every (kind, seed) pair, DEMO_JOBS at a time, each with its share of the cores
 STUDENTS=()
 for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done
 student_run() {  # student_run <run name>
-    local name=$1 seed=${1##*_s} recipe=(experiment=demo_distill "model.teacher_ckpt=$TEACHER")
+    local name=$1 seed=${1##*_s} recipe=(experiment=demo_distill "model.teacher_ckpt=$TEACHER") t0=$SECONDS
+    echo "==> [$name]"
     [[ $name == student_no_kd_* ]] && recipe=(experiment=demo)  # the same student on references alone
     demo_train "$name" "${recipe[@]}" "seed=$seed" "threads=$JOB_THREADS" trainer.enable_progress_bar=false \
         callbacks.progress=null > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
-    echo "<== [$name] $(grep -h '^<== ' "$RUNS/$name.log" | tail -1 | cut -d' ' -f3-)"
+    echo "<== [$name] $(( SECONDS - t0 ))s"
 }
-run_jobs "$JOBS" student_run "${STUDENTS[@]}" || exit 3
+# one row for the students, JOBS side by side (their wall time, not the sum of theirs)
+stage --reuse "$RUNS" DONE students run_jobs "$JOBS" student_run "${STUDENTS[@]}" || exit 3
 
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
 CKPTS="teacher: $TEACHER"

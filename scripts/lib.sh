@@ -23,10 +23,12 @@ fresh() {  # fresh <dir> <inputs>: <dir>/inputs.txt holds <inputs> and no checkp
     return 0
 }
 
-# The stage-time table: one row per stage, | stage | seconds | run |. A stage whose work an earlier
-# run did (a finished training run skipped, an evaluation of the same checkpoints) keeps that run's
-# seconds and names it in the run column, so that a resumed pipeline's table still says what its
-# work costs: the total row is this run's wall time, the work row the sum of every stage's seconds.
+# The stage-time table: one row per stage, | stage | seconds | run |, the stages one after another
+# (jobs side by side are one stage: run_jobs inside stage). A stage whose work an earlier run did
+# (finished training runs skipped, frames kept, an evaluation of the same checkpoints) keeps that
+# run's seconds and names it in the run column, so that a resumed pipeline's table still says what
+# its work costs: the total row is this run's wall time, the work row the sum of every stage's
+# seconds (the wall time of a run that reused nothing).
 
 timings_begin() {  # a fresh stage-time table ($TIMINGS.tmp until timings_end); the rows of the last one kept
     declare -gA TIMINGS_BEFORE=()

@@ -4,7 +4,8 @@ wrote, against the budget -> ``reports/paper/summary.md`` (``make readme-paper``
 
 A stage's work is the ``work`` row of its own table (``reports/<stage>/timings.md``: every step's
 seconds, the steps that an earlier run did included, with the seconds of that run; ``scripts/lib.sh``),
-or the sum of its rows when the table has no ``work`` row (a table from before the row existed);
+or its ``total`` row when the table has no ``work`` row (a table from before the row existed, whose
+run did the work: its rows, runs side by side, add up to more than its wall time);
 a stage without a table counts its wall time in ``make paper``'s own table
 (``reports/paper/timings.md``). So a ``make paper`` that resumed work done earlier still states
 what the whole work costs, and how long this run took beside it.
@@ -38,10 +39,12 @@ def read_table(path: Path) -> dict[str, int]:
 
 
 def stage_work(table: dict[str, int]) -> int:
-    """A stage table's work: its ``work`` row, else the sum of its rows less ``total``."""
-    if "work" in table:
-        return table["work"]
-    return sum(v for k, v in table.items() if k != "total")
+    """A stage table's work: its ``work`` row, else (a table from before the row existed, written
+    by a run that did all of the work) its ``total`` row, else the sum of its rows."""
+    for row in ("work", "total"):
+        if row in table:
+            return table[row]
+    return sum(table.values())
 
 
 def git_commit(root: Path) -> str:

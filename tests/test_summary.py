@@ -174,7 +174,7 @@ def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_coll
     assert _arg(distilled, "experiment") == "demo_distill" and _arg(distilled, "seed") == "1"
     assert _arg(distilled, "model.teacher_ckpt") == runs + "teacher/checkpoints/last.ckpt"   # no best.ckpt: last
     timings = (tmp_path / "reports" / "demo" / "timings.md").read_text()
-    assert "| teacher |" in timings and "| student_no_kd_s1 |" in timings and "| total |" in timings
+    assert "| teacher |" in timings and "| students |" in timings and "| total |" in timings
     # a run the CollapseDetector stopped ends the demo (exit 3), before any evaluation
     (tmp_path / "reports" / "demo" / "runs" / "student_no_kd_s0" / "COLLAPSED").write_text("collapse at step 90\n")
     calls = _demo_sh(tmp_path, 3, DEMO_SEEDS="0 1")

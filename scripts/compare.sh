@@ -9,7 +9,8 @@
 #      steps and crops, taught by the demo teacher), one run per seed of COMPARE_SEEDS (default "0 1 2")
 #   3. denoiser-eval on data/demo_compare's test split: noisy input, OIDN fast/balanced/high, ONND
 #      (baselines=compare; COMPARE_ONND=0 leaves it out: baselines=default), teacher, students, NPPD, WS
-#   4. denoiser-bench at 1080p (OpenVINO bf16 and eager) for the same methods (networks: first seed)
+#   4. denoiser-bench at 1080p (OpenVINO f32 and bf16, eager) for the same methods (networks: first seed;
+#      f32 beside bf16: a CPU without bf16 skips bf16, and the students run OpenVINO f32 there)
 #   5. summary.md with the Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml)
 # denoiser-train skips a finished run (skip_done=true) and resumes an interrupted one from its
 # last.ckpt (ckpt_path=auto; scripts/lib.sh). Stage times: $REPORT/timings.md (a reused run keeps
@@ -57,7 +58,7 @@ done
 stage eval "$BIN/denoiser-eval" data=demo_compare "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
 stage bench "$BIN/denoiser-bench" data=demo_compare "baselines=$BASELINES" "ckpt={$BENCH_CKPTS}" \
     "eval_csv=$REPORT/eval/metrics.csv" "out_dir=$REPORT/bench" "sizes=[[1080,1920]]" \
-    "use_backends=[eager,openvino_bf16]" "skip={teacher: [[1080,1920]]}" repeats=3 quality=false
+    "use_backends=[eager,openvino_f32,openvino_bf16]" "skip={teacher: [[1080,1920]]}" repeats=3 quality=false
 stage summary "$PY" -m denoiser.commands.demo_summary --config-name compare_summary "report=$REPORT" "seeds=[${SEEDS// /,}]"
 timings_end
 echo "==== compare finished: $REPORT/summary.md (Fig. A.2 / A.3 tables), $REPORT/eval/images (crops), $REPORT/bench (plot) ===="

@@ -326,6 +326,20 @@ def fastest(clocks: Sequence[Clock]) -> Clock:
 ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_fp16")
 
 
+def cpu_model() -> str:
+    """The CPU's model name from ``/proc/cpuinfo``, else :func:`platform.processor` or the machine
+    type: what every timing report names its machine by."""
+    import platform
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def cpu_isa(cpuinfo: str | None = None) -> dict[str, bool]:
     """``{flag: present}`` for :data:`ISA_FLAGS` from ``/proc/cpuinfo`` (all False when unreadable)."""
     if cpuinfo is None:

@@ -19,10 +19,11 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
-import subprocess
 import sys
 from pathlib import Path
+
+from denoiser.measure import cpu_model
+from denoiser.report.summary import git_commit
 
 BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
 
@@ -45,27 +46,6 @@ def stage_work(table: dict[str, int]) -> int:
         if row in table:
             return table[row]
     return sum(table.values())
-
-
-def git_commit(root: Path) -> str:
-    def git(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, check=False)
-
-    head = git("rev-parse", "--short", "HEAD")
-    if head.returncode != 0:
-        return "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
-    return head.stdout.strip() + ("-dirty" if dirty else "")
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def hours(seconds: int) -> str:
@@ -96,7 +76,7 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) 
     return "\n".join([
         "# make paper: the work of every stage, against the budget", "",
         f"- run id: {run_id}",
-        f"- commit: {git_commit(reports.resolve().parent)}",
+        f"- commit: {git_commit()}",
         f"- stages: {', '.join(stages)} (scripts/paper.sh)", "",
         BEGIN,
         "| stage | work, s | work | wall time in the last make paper, s | from |",

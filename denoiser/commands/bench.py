@@ -80,7 +80,6 @@ import contextlib
 import json
 import math
 import os
-import platform
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -100,6 +99,7 @@ from denoiser.measure import (
     StagedStep,
     count_flops,
     cpu_isa,
+    cpu_model,
     markdown_table,
     matmul_peak,
     median_interval,
@@ -568,13 +568,7 @@ def machine_info(threads: int, peak_gflops: float, versions: dict[str, str], isa
     """The machine and software of a run: ``cpu`` (model name), ``logical_cores``, ``isa``
     (:func:`cpu_isa`), ``versions`` (:func:`engine_versions`), ``threads_requested``,
     ``matmul_peak_gflops``, ``gpu``."""
-    cpu = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    return {"cpu": cpu, "logical_cores": os.cpu_count(), "isa": dict(isa), "versions": dict(versions),
+    return {"cpu": cpu_model(), "logical_cores": os.cpu_count(), "isa": dict(isa), "versions": dict(versions),
             "threads_requested": threads, "matmul_peak_gflops": peak_gflops,
             "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"}
 

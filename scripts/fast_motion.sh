@@ -20,7 +20,8 @@
 #
 # Knobs (environment): FAST_TEACHERS (candidates, "name:override,override;name:..."; default the
 # demo's lr, a lower lr and a longer warm-up; none: no teacher step), FAST_SEEDS (default "0 1 2"), FAST_JOBS (default 2),
-# FAST_THREADS (torch threads per run, default 1), FAST_STUDENT_TEACHER (default empty: no step 5),
+# FAST_THREADS (torch threads per run, default 1), FAST_ROOTS (the dataset presets rendered and joined
+# through data.extra_roots, default "fast"; e.g. "fast fast_more"), FAST_REPORT (default reports/fast), FAST_STUDENT_TEACHER (default empty: no step 5),
 # FAST_STUDENTS (student candidates, the same form; default "fast:" (the recipe on the new data) and
 # "disagree:ablation=history_disagreement" (the history disagreement input, denoiser.nn.temporal)).
 # Resumable as the other pipelines: denoiser-train skips a finished run (skip_done=true) and
@@ -34,14 +35,17 @@ PY="$VENV/bin/python"
 BIN="$VENV/bin"
 DATA=${DENOISER_DATA:-data}
 DEMO=reports/demo/runs
-REPORT=reports/fast
+REPORT=${FAST_REPORT:-reports/fast}
+ROOTS=${FAST_ROOTS:-fast}
 SEEDS=${FAST_SEEDS:-0 1 2}
 JOBS=${FAST_JOBS:-2}
 THREADS=${FAST_THREADS:-1}
 TEACHERS=${FAST_TEACHERS:-"lr2e3:model.optimizer.lr=2e-3;lr1e3:model.optimizer.lr=1e-3;warmup200:model.scheduler.warmup_steps=200"}
 STUDENT_TEACHER=${FAST_STUDENT_TEACHER:-}
 STUDENTS=${FAST_STUDENTS:-"fast:;disagree:ablation=history_disagreement"}
-EXTRA="data.extra_roots=[$DATA/fast]"
+ROOT_DIRS=()
+for root in $ROOTS; do ROOT_DIRS+=("$DATA/$root"); done
+EXTRA="data.extra_roots=[$(IFS=,; echo "${ROOT_DIRS[*]}")]"
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
 
@@ -72,8 +76,10 @@ if [ -n "$STUDENT_TEACHER" ] && [ "$STUDENT_TEACHER" != demo ] && [ -z "${OVERRI
     exit 2
 fi
 
-echo "==> [render] $DATA/fast"
-"$BIN/denoiser-render" dataset=fast
+for root in $ROOTS; do
+    echo "==> [render] $DATA/$root"
+    "$BIN/denoiser-render" "dataset=$root"
+done
 
 evaluate() {  # evaluate <out dir> <ckpt map>: the Mitsuba val and, when rendered, the Blender val
     local out=$1 ckpts=$2
@@ -97,7 +103,9 @@ evaluate() {  # evaluate <out dir> <ckpt map>: the Mitsuba val and, when rendere
     fi
 }
 table() {  # table <out dir> <reference> <candidates> <baselines> <title>: val_table over what was evaluated
-    local out=$1 evals="{mitsuba: {title: 'Mitsuba val ($DATA/demo/val + $DATA/fast/val)', csv: $1/mitsuba_val/metrics.csv}"
+    local out=$1 vals evals
+    vals=$(printf ' + %s/val' "${ROOT_DIRS[@]}")
+    evals="{mitsuba: {title: 'Mitsuba val ($DATA/demo/val$vals)', csv: $1/mitsuba_val/metrics.csv}"
     [ -f "$out/blender_val/metrics.csv" ] && evals="$evals, blender: {title: 'Blender Cycles val ($DATA/blender/val)', csv: $out/blender_val/metrics.csv}"
     "$PY" -m denoiser.commands.val_table "out=$out/val_table.md" "evals=$evals}" "reference=$2" \
         "candidates=$3" "plain_rows=$4" "seeds=$SEEDS_LIST" "labels=$5"

@@ -111,6 +111,24 @@ def test_fast_motion_students_of_the_demo_teacher_alone(tree):
         ["reports/fast/students/mitsuba_val", "reports/fast/students/blender_val"]
 
 
+def test_fast_motion_joins_more_roots_into_its_own_report(tree):
+    proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="more:",
+                       FAST_ROOTS="fast fast_more", FAST_REPORT="reports/fast_more")
+    assert proc.returncode == 0, proc.stderr
+    assert [c for c in calls if c[0] == "denoiser-render"] == [["denoiser-render", "dataset=fast"],
+                                                               ["denoiser-render", "dataset=fast_more"]]
+    trained = [c for c in calls if c[0] == "denoiser-train"]
+    assert sorted(_arg(c, "hydra.run.dir") for c in trained) == [f"reports/fast_more/students/runs/more_s{s}"
+                                                                 for s in (0, 1, 2)]
+    evals = [c for c in calls if c[0] == "denoiser-eval"]
+    assert all(_arg(c, "data.extra_roots") == "[data/fast,data/fast_more]" for c in trained + evals[:1])
+    assert [_arg(c, "out_dir") for c in evals] == ["reports/fast_more/students/mitsuba_val",
+                                                   "reports/fast_more/students/blender_val"]
+    table = next(c for c in calls if c[:3] == ["python", "-m", "denoiser.commands.val_table"])
+    assert _arg(table, "out") == "reports/fast_more/students/val_table.md"
+    assert "Mitsuba val (data/demo/val + data/fast/val + data/fast_more/val)" in _arg(table, "evals")
+
+
 @pytest.mark.parametrize(("env", "message"), [
     ({"FAST_TEACHERS": "lr-1:model.optimizer.lr=1e-3"}, "FAST_TEACHERS: 'lr-1:model.optimizer.lr=1e-3' is not"),
     ({"FAST_STUDENT_TEACHER": "nope"}, "FAST_STUDENT_TEACHER: 'nope' is not demo or a candidate"),

@@ -18,7 +18,8 @@
 #      (experiment=demo_distill), the same seeds, evaluated with make demo's distilled students
 #      ("base": today's recipe) -> reports/fast/students/val_table.md
 #
-# Knobs (environment): FAST_TEACHERS (candidates, "name:override,override;name:..."; default the
+# Knobs (environment): FAST_TEACHERS (candidates, "name:override,override;name:..."; an override's
+# value may hold a list or a map, whose commas do not split: data.augment.noise_scale=[0.2,1.0]; default the
 # demo's lr, a lower lr and a longer warm-up; none: no teacher step), FAST_SEEDS (default "0 1 2"), FAST_JOBS (default 2),
 # FAST_THREADS (torch threads per run, default 1), FAST_ROOTS (the dataset presets rendered and joined
 # through data.extra_roots, default "fast"; e.g. "fast fast_more"), FAST_REPORT (default reports/fast), FAST_STUDENT_TEACHER (default empty: no step 5),
@@ -64,6 +65,17 @@ candidates() {  # candidates <knob> <value> <names array> <overrides map>: parse
         overrides[$name]=${spec#*:}
         names+=("$name")
     done
+}
+split_overrides() {  # split_overrides <"o,o,..."> <array name>: split at the commas outside [] and {}
+    local s=$1 cur="" ch depth=0 i
+    local -n parts=$2
+    parts=()
+    for ((i = 0; i < ${#s}; i++)); do
+        ch=${s:i:1}
+        case $ch in '[' | '{') depth=$((depth + 1)) ;; ']' | '}') depth=$((depth - 1)) ;; esac
+        if [ "$ch" = , ] && [ "$depth" -eq 0 ]; then parts+=("$cur"); cur=""; else cur+=$ch; fi
+    done
+    [ -z "$cur" ] || parts+=("$cur")
 }
 declare -A OVERRIDES=() SOVERRIDES=()
 NAMES=()
@@ -126,7 +138,7 @@ if [ "${#NAMES[@]}" -gt 0 ]; then
     teacher_run() {  # teacher_run <name>_s<seed>
         local name=${1%_s*} seed=${1##*_s}
         local -a extra
-        IFS=',' read -ra extra <<< "${OVERRIDES[$name]}"
+        split_overrides "${OVERRIDES[$name]}" extra
         train "$TRUNS/$1" experiment=demo_teacher "seed=$seed" "${extra[@]}"
     }
     RUNS_LIST=()
@@ -153,7 +165,7 @@ if [ -n "$STUDENT_TEACHER" ]; then
     student_run() {  # student_run <name>_s<seed>
         local name=${1%_s*}
         local -a extra=()
-        [ -n "${SOVERRIDES[$name]}" ] && IFS=',' read -ra extra <<< "${SOVERRIDES[$name]}"
+        split_overrides "${SOVERRIDES[$name]}" extra
         train "$SRUNS/$1" experiment=demo_distill "model.teacher_ckpt=$TEACHER" "seed=${1##*_s}" "${extra[@]}"
     }
     RUNS_LIST=()

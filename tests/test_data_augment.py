@@ -156,3 +156,53 @@ def test_transpose_skipped_for_non_square_crops():
 def test_bad_exposure_range():
     with pytest.raises(ConfigError, match="data.augment.exposure"):
         Augment(exposure=[2.0, 1.0])
+
+
+def _noise_reference(x: np.ndarray, ref: np.ndarray, f: float) -> np.ndarray:
+    """ref + f (x - ref), one pixel at a time (``x`` ``[..., 3, H, W]``, ``ref`` broadcast to it)."""
+    ref = np.broadcast_to(ref, x.shape)
+    out = np.empty_like(x)
+    for idx in np.ndindex(*x.shape):
+        out[idx] = ref[idx] + f * (x[idx] - ref[idx])
+    return out
+
+
+def test_noise_scale_shrinks_the_residual_of_labeled_items(dataset):
+    item = dataset[0]
+    out = Augment(flip=False, transpose=False, noise_scale=[0.4, 0.4])(item, generator=torch.Generator().manual_seed(0))
+    ref = item["reference"].numpy()
+    np.testing.assert_allclose(out["color"].numpy(), _noise_reference(item["color"].numpy(), ref, 0.4),
+                               rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(out["samples"].numpy(), _noise_reference(item["samples"].numpy(), ref[:, None], 0.4),
+                               rtol=1e-6, atol=1e-6)
+    for b in ("reference", *FRAME_INPUTS[1:]):  # the target and the guides stay
+        assert torch.equal(out[b], item[b])
+    residual = (out["color"] - out["reference"]).std() / (item["color"] - item["reference"]).std()
+    assert abs(float(residual) - 0.4) < 1e-4
+
+
+def test_noise_scale_draws_within_its_range_and_skips_unlabeled_items(dataset):
+    item = dataset[0]
+    a = Augment(flip=False, transpose=False, noise_scale=[0.2, 1.0], noise_scale_prob=0.5)
+    g = torch.Generator().manual_seed(1)
+    factors = []
+    for _ in range(24):
+        out = a(item, generator=g)
+        d = item["color"] - item["reference"]
+        factors.append(float(((out["color"] - item["reference"]) * d).sum() / (d * d).sum()))
+    kept = [f for f in factors if f == 1.0]
+    assert 4 <= len(kept) <= 20 and all(0.2 - 1e-6 <= f <= 1.0 + 1e-6 for f in factors)
+    assert max(f for f in factors if f != 1.0) / min(factors) > 1.5
+    unlabeled = {**item, "labeled": torch.tensor(False)}
+    assert torch.equal(a(unlabeled, generator=g)["color"], item["color"])
+    no_reference = {k: v for k, v in item.items() if k != "reference"}
+    out = Augment(flip=False, transpose=False, noise_scale=[0.5, 0.5])(no_reference, generator=g)
+    assert torch.equal(out["color"], item["color"])
+
+
+@pytest.mark.parametrize(("kwargs", "key"), [({"noise_scale": [0.5, 1.5]}, "noise_scale"),
+                                            ({"noise_scale": [0.0, 1.0]}, "noise_scale"),
+                                            ({"noise_scale": [0.5, 1.0], "noise_scale_prob": 2}, "noise_scale_prob")])
+def test_bad_noise_scale(kwargs, key):
+    with pytest.raises(ConfigError, match=f"data.augment.{key}"):
+        Augment(**kwargs)

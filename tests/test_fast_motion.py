@@ -111,6 +111,17 @@ def test_fast_motion_students_of_the_demo_teacher_alone(tree):
         ["reports/fast/students/mitsuba_val", "reports/fast/students/blender_val"]
 
 
+def test_fast_motion_candidate_overrides_keep_their_lists_whole(tree):
+    proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo",
+                       FAST_STUDENTS="nz:ablation=no_kd,data.augment.noise_scale=[0.2,1.0],data.crop={a: 1, b: 2}")
+    assert proc.returncode == 0, proc.stderr
+    trained = [c for c in calls if c[0] == "denoiser-train"]
+    assert len(trained) == 3
+    for c in trained:
+        assert _arg(c, "ablation") == "no_kd" and _arg(c, "data.augment.noise_scale") == "[0.2,1.0]"
+        assert _arg(c, "data.crop") == "{a: 1, b: 2}"
+
+
 def test_fast_motion_joins_more_roots_into_its_own_report(tree):
     proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="more:",
                        FAST_ROOTS="fast fast_more", FAST_REPORT="reports/fast_more")

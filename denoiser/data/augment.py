@@ -14,7 +14,14 @@ transposes are then free views and one copy follows) or torch tensors (same resu
 * exposure: ``color``, ``samples`` and ``reference`` are multiplied by one factor drawn
   log-uniformly from ``exposure = [lo, hi]`` (albedo, normals, depth, motion unchanged);
 * channel permutation: one random permutation of R, G, B applied to ``color``, ``samples``,
-  ``albedo`` and ``reference``.
+  ``albedo`` and ``reference``;
+* noise scale (labeled items only, with probability ``noise_scale_prob``): ``color`` (and each of
+  ``samples``) becomes ``reference + f * (color - reference)`` for one ``f`` drawn log-uniformly
+  from ``noise_scale = [lo, hi]``, ``0 < lo <= hi <= 1``. The residual is scaled by ``f``, so its
+  variance is that of a render with ``spp / f^2`` samples: the network sees inputs cleaner than
+  the dataset's own and learns to keep what a cleaner input already has (an unbiased estimate
+  stays unbiased; with ``f <= 1`` the result is a convex mix of two non-negative images, so it
+  stays non-negative). Unlabeled items (no reference, or ``labeled`` false) are left as they are.
 
 Depth is planar (unchanged by mirrors). Random draws use torch's generator (``generator``
 argument, else the global one, which DataLoader seeds per worker). The pixel work is numpy:
@@ -99,6 +106,20 @@ def scale_exposure(item: Mapping, factor: float) -> dict:
     return _on_arrays(item, lambda a: {k: a[k] * np.float32(factor) for k in RADIANCE if k in a})
 
 
+def scale_noise(item: Mapping, factor: float) -> dict:
+    """``color`` and ``samples`` -> ``reference + factor * (x - reference)`` (``samples``
+    ``[T, S, 3, H, W]`` against ``reference [T, 3, H, W]``)."""
+
+    def fn(a: Arrays) -> Arrays:
+        ref = a["reference"]
+        out = {"color": ref + np.float32(factor) * (a["color"] - ref)}
+        if "samples" in a:
+            out["samples"] = ref[:, None] + np.float32(factor) * (a["samples"] - ref[:, None])
+        return out
+
+    return _on_arrays(item, fn)
+
+
 def permute_channels(item: Mapping, perm: Sequence[int]) -> dict:
     """Reorder R, G, B of ``color``, ``samples``, ``albedo``, ``reference`` by ``perm``."""
     idx = list(perm)
@@ -110,11 +131,14 @@ class Augment:
 
     ``flip``: random horizontal and vertical flips (each with probability 1/2); ``transpose``:
     random axis swap (probability 1/2, square crops only); ``exposure``: ``[lo, hi]`` range of
-    the log-uniform exposure factor, or null; ``permute_channels``: random RGB permutation.
+    the log-uniform exposure factor, or null; ``permute_channels``: random RGB permutation;
+    ``noise_scale``: ``[lo, hi]`` range of the log-uniform residual factor of labeled items
+    (module docstring), or null; ``noise_scale_prob``: the chance that a labeled window gets it.
     """
 
     def __init__(self, flip: bool = True, transpose: bool = True, exposure: Sequence[float] | None = None,
-                 permute_channels: bool = False):
+                 permute_channels: bool = False, noise_scale: Sequence[float] | None = None,
+                 noise_scale_prob: float = 1.0):
         self.flip = bool(flip)
         self.transpose = bool(transpose)
         if exposure is not None:
@@ -126,6 +150,19 @@ class Augment:
             exposure = (lo, hi)
         self.exposure = exposure
         self.permute = bool(permute_channels)
+        if noise_scale is not None:
+            lo, hi = (float(v) for v in noise_scale)
+            if not 0 < lo <= hi <= 1:
+                from denoiser.errors import ConfigError
+
+                raise ConfigError(f"data.augment.noise_scale: need 0 < lo <= hi <= 1, got {list(noise_scale)}")
+            noise_scale = (lo, hi)
+        if not 0 <= float(noise_scale_prob) <= 1:
+            from denoiser.errors import ConfigError
+
+            raise ConfigError(f"data.augment.noise_scale_prob: need a probability in [0, 1], got {noise_scale_prob}")
+        self.noise_scale = noise_scale
+        self.noise_prob = float(noise_scale_prob)
 
     def __call__(self, item: Mapping, generator: torch.Generator | None = None) -> dict:
         out = dict(item)
@@ -147,8 +184,13 @@ class Augment:
             out = scale_exposure(out, math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
         if self.permute:
             out = permute_channels(out, torch.randperm(3, generator=generator).tolist())
+        if self.noise_scale is not None and "reference" in out and bool(out.get("labeled", True)):
+            if float(torch.rand((), generator=generator)) < self.noise_prob:
+                lo, hi = self.noise_scale
+                u = float(torch.rand((), generator=generator))
+                out = scale_noise(out, math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
         return out
 
     def __repr__(self) -> str:
         return (f"Augment(flip={self.flip}, transpose={self.transpose}, exposure={self.exposure}, "
-                f"permute_channels={self.permute})")
+                f"permute_channels={self.permute}, noise_scale={self.noise_scale}, noise_scale_prob={self.noise_prob})")

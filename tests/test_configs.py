@@ -87,6 +87,13 @@ def test_demo_experiments():
     assert {"none", "no_kd", "no_pyramid", "no_temporal"} <= set(sweep.hydra.sweeper.params.ablation.split(","))
 
 
+def test_noise_scale_ablation_reaches_the_augmentation():
+    off = instantiate(compose_train("experiment=demo_distill").data.augment)
+    on = instantiate(compose_train("experiment=demo_distill", "ablation=noise_scale").data.augment)
+    assert off.noise_scale is None and (on.noise_scale, on.noise_prob) == ((0.2, 1.0), 0.5)
+    assert (on.flip, on.transpose, on.exposure) == (off.flip, off.transpose, off.exposure)
+
+
 def test_distillation_ablations_switch_off_their_parts():
     base = compose_train("model=distill")
     assert base.model.loss.adversarial_weight > 0 and base.model.param_transfer is not None

@@ -18,13 +18,22 @@
 #      (experiment=demo_distill), the same seeds, evaluated with make demo's distilled students
 #      ("base": today's recipe) -> reports/fast/students/val_table.md
 #
-# Knobs (environment): FAST_TEACHERS (candidates, "name:override,override;name:..."; an override's
-# value may hold a list or a map, whose commas do not split: data.augment.noise_scale=[0.2,1.0]; default the
-# demo's lr, a lower lr and a longer warm-up; none: no teacher step), FAST_SEEDS (default "0 1 2"), FAST_JOBS (default 2),
-# FAST_THREADS (torch threads per run, default 1), FAST_ROOTS (the dataset presets rendered and joined
-# through data.extra_roots, default "fast"; e.g. "fast fast_more"), FAST_REPORT (default reports/fast), FAST_STUDENT_TEACHER (default empty: no step 5),
-# FAST_STUDENTS (student candidates, the same form; default "fast:" (the recipe on the new data) and
-# "disagree:ablation=history_disagreement" (the history disagreement input, denoiser.nn.temporal)).
+# Knobs (environment):
+#   FAST_TEACHERS         teacher candidates, "name:override,override;name:..." (an override's value
+#                         may hold a list or a map, whose commas do not split:
+#                         data.augment.noise_scale=[0.2,1.0]); default the demo's lr, a lower lr and
+#                         a longer warm-up; none: no teacher step
+#   FAST_SEEDS            default "0 1 2"
+#   FAST_TEACHER_SEEDS    the teachers' seeds (default FAST_SEEDS); the students learn from the first
+#   FAST_JOBS             runs side by side (default 2)
+#   FAST_THREADS          torch threads per run (default 1); FAST_TEACHER_THREADS for the teachers
+#   FAST_ROOTS            the dataset presets rendered and joined through data.extra_roots
+#                         (default "fast"; e.g. "fast fast_more")
+#   FAST_REPORT           default reports/fast
+#   FAST_STUDENT_TEACHER  default empty: no step 5
+#   FAST_STUDENTS         student candidates, the same form; default "fast:" (the recipe on the new
+#                         data) and "disagree:ablation=history_disagreement" (the history disagreement
+#                         input, denoiser.nn.temporal)
 # Resumable as the other pipelines: denoiser-train skips a finished run (skip_done=true) and
 # resumes an interrupted one (ckpt_path=auto; scripts/lib.sh); an evaluation is redone only when
 # its checkpoints changed.
@@ -39,8 +48,10 @@ DEMO=reports/demo/runs
 REPORT=${FAST_REPORT:-reports/fast}
 ROOTS=${FAST_ROOTS:-fast}
 SEEDS=${FAST_SEEDS:-0 1 2}
+TSEEDS=${FAST_TEACHER_SEEDS:-$SEEDS}
 JOBS=${FAST_JOBS:-2}
 THREADS=${FAST_THREADS:-1}
+TTHREADS=${FAST_TEACHER_THREADS:-$THREADS}
 TEACHERS=${FAST_TEACHERS:-"lr2e3:model.optimizer.lr=2e-3;lr1e3:model.optimizer.lr=1e-3;warmup200:model.scheduler.warmup_steps=200"}
 STUDENT_TEACHER=${FAST_STUDENT_TEACHER:-}
 STUDENTS=${FAST_STUDENTS:-"fast:;disagree:ablation=history_disagreement"}
@@ -83,6 +94,7 @@ SNAMES=()
 candidates FAST_TEACHERS "$TEACHERS" NAMES OVERRIDES
 candidates FAST_STUDENTS "$STUDENTS" SNAMES SOVERRIDES
 SEEDS_LIST="[${SEEDS// /,}]"
+TSEEDS_LIST="[${TSEEDS// /,}]"
 if [ -n "$STUDENT_TEACHER" ] && [ "$STUDENT_TEACHER" != demo ] && [ -z "${OVERRIDES[$STUDENT_TEACHER]+x}" ]; then
     echo "error: FAST_STUDENT_TEACHER: '$STUDENT_TEACHER' is not demo or a candidate of FAST_TEACHERS (${NAMES[*]})" >&2
     exit 2
@@ -114,13 +126,13 @@ evaluate() {  # evaluate <out dir> <ckpt map>: the Mitsuba val and, when rendere
         echo "$ckpts" > "$out/blender_val/inputs.txt"
     fi
 }
-table() {  # table <out dir> <reference> <candidates> <baselines> <title>: val_table over what was evaluated
+table() {  # table <out dir> <reference> <candidates> <baselines> <title> <seeds>: val_table over what was evaluated
     local out=$1 vals evals
     vals=$(printf ' + %s/val' "${ROOT_DIRS[@]}")
     evals="{mitsuba: {title: 'Mitsuba val ($DATA/demo/val$vals)', csv: $1/mitsuba_val/metrics.csv}"
     [ -f "$out/blender_val/metrics.csv" ] && evals="$evals, blender: {title: 'Blender Cycles val ($DATA/blender/val)', csv: $out/blender_val/metrics.csv}"
     "$PY" -m denoiser.commands.val_table "out=$out/val_table.md" "evals=$evals}" "reference=$2" \
-        "candidates=$3" "plain_rows=$4" "seeds=$SEEDS_LIST" "labels=$5"
+        "candidates=$3" "plain_rows=$4" "seeds=$6" "labels=$5"
 }
 train() {  # train <run dir> <overrides...>: one run, its output in <run dir>.log; a collapse is listed
     local dir=$1; shift
@@ -139,27 +151,27 @@ if [ "${#NAMES[@]}" -gt 0 ]; then
         local name=${1%_s*} seed=${1##*_s}
         local -a extra
         split_overrides "${OVERRIDES[$name]}" extra
-        train "$TRUNS/$1" experiment=demo_teacher "seed=$seed" "${extra[@]}"
+        THREADS=$TTHREADS train "$TRUNS/$1" experiment=demo_teacher "seed=$seed" "${extra[@]}"
     }
     RUNS_LIST=()
-    for name in "${NAMES[@]}"; do for seed in $SEEDS; do RUNS_LIST+=("${name}_s$seed"); done; done
+    for name in "${NAMES[@]}"; do for seed in $TSEEDS; do RUNS_LIST+=("${name}_s$seed"); done; done
     run_jobs "$JOBS" teacher_run "${RUNS_LIST[@]}" || exit 3
     CKPTS="demo_teacher: $(best "$DEMO/teacher")"
     LABELS="{"
     for name in "${NAMES[@]}"; do
-        for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$TRUNS/${name}_s$seed")"; done
+        for seed in $TSEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$TRUNS/${name}_s$seed")"; done
         LABELS="$LABELS$name: 'experiment=demo_teacher $EXTRA ${OVERRIDES[$name]}', "
     done
     LABELS="${LABELS%, }}"
     evaluate "$REPORT/teachers" "$CKPTS"
     find "$TRUNS" -name COLLAPSED -printf '%h: ' -exec cat {} \; > "$REPORT/teachers/collapsed.txt" 2>/dev/null || true
     CANDIDATES=$(IFS=,; echo "[${NAMES[*]}]")
-    table "$REPORT/teachers" "${NAMES[0]}" "$CANDIDATES" "['noisy input',OIDN-fast,demo_teacher]" "$LABELS"
+    table "$REPORT/teachers" "${NAMES[0]}" "$CANDIDATES" "['noisy input',OIDN-fast,demo_teacher]" "$LABELS" "$TSEEDS_LIST"
 fi
 
 # -- student candidates, taught by the chosen teacher
 if [ -n "$STUDENT_TEACHER" ]; then
-    FIRST=${SEEDS%% *}
+    FIRST=${TSEEDS%% *}
     if [ "$STUDENT_TEACHER" = demo ]; then TEACHER=$(best "$DEMO/teacher"); else TEACHER=$(best "$TRUNS/${STUDENT_TEACHER}_s$FIRST"); fi
     SRUNS=$REPORT/students/runs
     student_run() {  # student_run <name>_s<seed>
@@ -183,6 +195,6 @@ if [ -n "$STUDENT_TEACHER" ]; then
         LABELS="$LABELS, $name: 'experiment=demo_distill $EXTRA ${SOVERRIDES[$name]}, taught by $TEACHER'"
     done
     evaluate "$REPORT/students" "$CKPTS"
-    table "$REPORT/students" base "[base,$(IFS=,; echo "${SNAMES[*]}")]" "['noisy input',OIDN-fast]" "$LABELS}"
+    table "$REPORT/students" base "[base,$(IFS=,; echo "${SNAMES[*]}")]" "['noisy input',OIDN-fast]" "$LABELS}" "$SEEDS_LIST"
 fi
 echo "==== fast-motion finished: $(ls "$REPORT"/{teachers,students}/val_table.md 2>/dev/null | tr '\n' ' ')===="

@@ -122,6 +122,23 @@ def test_fast_motion_candidate_overrides_keep_their_lists_whole(tree):
         assert _arg(c, "data.crop") == "{a: 1, b: 2}"
 
 
+def test_fast_motion_one_teacher_seed_with_its_own_threads_teaches_every_student_seed(tree):
+    proc, calls = _run(tree, FAST_TEACHERS="t:ablation=noise_scale", FAST_TEACHER_SEEDS="0", FAST_TEACHER_THREADS="2",
+                       FAST_STUDENT_TEACHER="t", FAST_STUDENTS="s:")
+    assert proc.returncode == 0, proc.stderr
+    trained = [c for c in calls if c[0] == "denoiser-train"]
+    teachers = [c for c in trained if _arg(c, "experiment") == "demo_teacher"]
+    students = [c for c in trained if _arg(c, "experiment") == "demo_distill"]
+    assert [_arg(c, "hydra.run.dir") for c in teachers] == ["reports/fast/teachers/runs/t_s0"]
+    assert _arg(teachers[0], "threads") == "2" and _arg(teachers[0], "ablation") == "noise_scale"
+    assert sorted(_arg(c, "seed") for c in students) == ["0", "1", "2"]
+    assert all(_arg(c, "threads") == "1" and _arg(c, "model.teacher_ckpt") ==
+               "reports/fast/teachers/runs/t_s0/checkpoints/last.ckpt" for c in students)
+    tables = [c for c in calls if c[:3] == ["python", "-m", "denoiser.commands.val_table"]]
+    assert [(_arg(c, "out"), _arg(c, "seeds")) for c in tables] == [
+        ("reports/fast/teachers/val_table.md", "[0]"), ("reports/fast/students/val_table.md", "[0,1,2]")]
+
+
 def test_fast_motion_joins_more_roots_into_its_own_report(tree):
     proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="more:",
                        FAST_ROOTS="fast fast_more", FAST_REPORT="reports/fast_more")

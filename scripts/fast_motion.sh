@@ -34,6 +34,8 @@
 #   FAST_STUDENTS         student candidates, the same form; default "fast:" (the recipe on the new
 #                         data) and "disagree:ablation=history_disagreement" (the history disagreement
 #                         input, denoiser.nn.temporal)
+#   FAST_ALSO_STUDENTS    finished candidates of another run of this script, evaluated and tabled
+#                         beside these (paired): "name:<its students/runs dir>;..." (default none)
 # Resumable as the other pipelines: denoiser-train skips a finished run (skip_done=true) and
 # resumes an interrupted one (ckpt_path=auto; scripts/lib.sh); an evaluation is redone only when
 # its checkpoints changed.
@@ -88,11 +90,20 @@ split_overrides() {  # split_overrides <"o,o,..."> <array name>: split at the co
     done
     [ -z "$cur" ] || parts+=("$cur")
 }
-declare -A OVERRIDES=() SOVERRIDES=()
+declare -A OVERRIDES=() SOVERRIDES=() ALSO=()
 NAMES=()
 SNAMES=()
 candidates FAST_TEACHERS "$TEACHERS" NAMES OVERRIDES
 candidates FAST_STUDENTS "$STUDENTS" SNAMES SOVERRIDES
+ANAMES=()
+candidates FAST_ALSO_STUDENTS "${FAST_ALSO_STUDENTS:-none}" ANAMES ALSO
+for name in "${ANAMES[@]}"; do
+    [ -z "${SOVERRIDES[$name]+x}" ] || { echo "error: FAST_ALSO_STUDENTS: '$name' is also a candidate of FAST_STUDENTS" >&2; exit 2; }
+    for seed in $SEEDS; do
+        [ -f "${ALSO[$name]}/${name}_s$seed/DONE" ] \
+            || { echo "error: FAST_ALSO_STUDENTS: ${ALSO[$name]}/${name}_s$seed: no finished run" >&2; exit 2; }
+    done
+done
 SEEDS_LIST="[${SEEDS// /,}]"
 TSEEDS_LIST="[${TSEEDS// /,}]"
 if [ -n "$STUDENT_TEACHER" ] && [ "$STUDENT_TEACHER" != demo ] && [ -z "${OVERRIDES[$STUDENT_TEACHER]+x}" ]; then
@@ -194,7 +205,12 @@ if [ -n "$STUDENT_TEACHER" ]; then
         for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "$SRUNS/${name}_s$seed")"; done
         LABELS="$LABELS, $name: 'experiment=demo_distill $EXTRA ${SOVERRIDES[$name]}, taught by $TEACHER'"
     done
+    for name in "${ANAMES[@]}"; do
+        for seed in $SEEDS; do CKPTS="$CKPTS, ${name}_s$seed: $(best "${ALSO[$name]}/${name}_s$seed")"; done
+        LABELS="$LABELS, $name: 'the runs ${ALSO[$name]}/${name}_s* (their recipe: the val_table.md beside that folder)'"
+    done
     evaluate "$REPORT/students" "$CKPTS"
-    table "$REPORT/students" base "[base,$(IFS=,; echo "${SNAMES[*]}")]" "['noisy input',OIDN-fast]" "$LABELS}" "$SEEDS_LIST"
+    ALL=("${SNAMES[@]}" "${ANAMES[@]}")
+    table "$REPORT/students" base "[base,$(IFS=,; echo "${ALL[*]}")]" "['noisy input',OIDN-fast]" "$LABELS}" "$SEEDS_LIST"
 fi
 echo "==== fast-motion finished: $(ls "$REPORT"/{teachers,students}/val_table.md 2>/dev/null | tr '\n' ' ')===="

@@ -139,6 +139,26 @@ def test_fast_motion_one_teacher_seed_with_its_own_threads_teaches_every_student
         ("reports/fast/teachers/val_table.md", "[0]"), ("reports/fast/students/val_table.md", "[0,1,2]")]
 
 
+def test_fast_motion_tables_finished_students_of_another_report_beside_its_own(tree):
+    other = tree / "reports" / "other" / "students" / "runs"
+    for seed in (0, 1, 2):
+        (other / f"o_s{seed}" / "checkpoints").mkdir(parents=True)
+        (other / f"o_s{seed}" / "DONE").touch()
+    proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="s:",
+                       FAST_ALSO_STUDENTS="o:reports/other/students/runs")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(_arg(c, "hydra.run.dir") for c in calls if c[0] == "denoiser-train") == [
+        f"reports/fast/students/runs/s_s{s}" for s in (0, 1, 2)]  # the other runs are not trained again
+    ckpts = dict(kv.split(": ") for kv in _arg(next(c for c in calls if c[0] == "denoiser-eval"), "ckpt")
+                 .strip("{}").split(", "))
+    assert ckpts["o_s2"] == "reports/other/students/runs/o_s2/checkpoints/last.ckpt" and "s_s0" in ckpts
+    table = next(c for c in calls if c[:3] == ["python", "-m", "denoiser.commands.val_table"])
+    assert _arg(table, "candidates") == "[base,s,o]"
+    proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="s:",
+                       FAST_ALSO_STUDENTS="p:reports/other/students/runs")
+    assert proc.returncode == 2 and "reports/other/students/runs/p_s0: no finished run" in proc.stderr and not calls
+
+
 def test_fast_motion_joins_more_roots_into_its_own_report(tree):
     proc, calls = _run(tree, FAST_TEACHERS="none", FAST_STUDENT_TEACHER="demo", FAST_STUDENTS="more:",
                        FAST_ROOTS="fast fast_more", FAST_REPORT="reports/fast_more")

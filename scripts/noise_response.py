@@ -1,0 +1,57 @@
+"""How a checkpoint's output follows the noise level of its input (denoiser.report.noise_response).
+
+    python scripts/noise_response.py ckpt=S.ckpt sequences=[data/blender/val/fast_101,data/blender/val/fast_102] \
+        layout=blender factors=[0.25,0.5,1,2] out=reports/noise_response.md
+
+Prints the table (and writes it to ``out`` when given): per sequence and factor f, the PSNR of the
+input (the residual against the reference scaled by f) and of the output, on frame 0 and over
+frames 2+.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _list(text: str) -> list[str]:
+    return [t.strip() for t in text.strip().strip("[]").split(",") if t.strip()]
+
+
+def parse_args(argv):
+    argv = [f"--{a.split('=', 1)[0].replace('_', '-')}={a.split('=', 1)[1]}"
+            if "=" in a and not a.startswith("-") else a for a in argv]
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--ckpt", required=True, type=Path, help="checkpoint of a Denoiser")
+    p.add_argument("--sequences", required=True, type=_list, help="[dir,dir,...]: labeled sequence directories")
+    p.add_argument("--layout", default="native", help="native (default) or blender")
+    p.add_argument("--factors", type=_list, default=["0.25", "0.5", "1", "2"], help="[f,...] (default [0.25,0.5,1,2])")
+    p.add_argument("--out", type=Path, default=None, help="also write the table here")
+    p.add_argument("--trust-checkpoint", action="store_true", help="load a checkpoint the safe loader refuses")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    from denoiser.errors import UserError
+    from denoiser.report.noise_response import run
+
+    try:
+        try:
+            factors = [float(f) for f in args.factors]
+        except ValueError:
+            raise UserError(f"factors: not numbers: {args.factors}") from None
+        _, text = run(args.ckpt, args.sequences, args.layout, factors, args.out, trust=args.trust_checkpoint)
+    except UserError as e:  # ExrError and ConfigError included
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(text, end="")
+    if args.out is not None:
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.checkpoint import save_checkpoint
 from denoiser.configs import build_net, compose_net_config, load_layout
 from denoiser.data.evalset import read_frame
@@ -63,7 +64,7 @@ def test_scaled_inputs_scale_the_residual_of_color_and_samples(sequence):
                                rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(scaled_inputs(inputs, ref, 1.0)["color"], inputs["color"], rtol=1e-6, atol=1e-6)
     assert float(scaled_inputs(inputs, ref, 40.0)["color"].min()) >= 0.0       # clamped where f > 1 overshoots
-    for key in ("albedo", "normal", "depth", "motion"):
+    for key in FRAME_INPUTS[1:]:  # the guides pass unchanged
         assert scaled_inputs(inputs, ref, 0.5)[key] is inputs[key]
     assert "reference" not in half
 

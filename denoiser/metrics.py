@@ -221,7 +221,7 @@ def tpsnr_pair(prev_out_tm, out_tm, prev_ref_tm, ref_tm) -> torch.Tensor:
 _FLIP_ACES = (0.6 * 0.6 * 2.51, 0.6 * 0.03, 0.0, 0.6 * 0.6 * 2.43, 0.6 * 0.59, 0.14)
 _FLIP_T = 0.85
 #: Linear sRGB -> CIE Y (luminance) weights used by FLIP.
-_LUMINANCE = (0.2126729, 0.7151522, 0.0721750)
+LUMINANCE = (0.2126729, 0.7151522, 0.0721750)
 
 
 @dataclass(frozen=True)
@@ -247,7 +247,7 @@ def flip_exposure(reference: torch.Tensor | np.ndarray) -> FlipExposure:
     ref = reference.detach().float().cpu().numpy() if isinstance(reference, torch.Tensor) else np.asarray(reference)
     if ref.ndim == 3:
         ref = ref[None]
-    w = np.asarray(_LUMINANCE, dtype=np.float64)
+    w = np.asarray(LUMINANCE, dtype=np.float64)
     lum = np.tensordot(np.clip(ref.astype(np.float64), 0.0, None), w, axes=([1], [0]))
     a, b, c, d, e, f = _FLIP_ACES
     qa, qb, qc = a - _FLIP_T * d, b - _FLIP_T * e, c - _FLIP_T * f

@@ -21,7 +21,7 @@ from denoiser.data.synthetic import write_synthetic_sequence
 from denoiser.errors import UserError
 from denoiser.metrics import tonemap
 from denoiser.report.history_diagnosis import open_sequence
-from denoiser.report.noise_response import response, run, scaled_inputs
+from denoiser.report.noise_response import grey, grey_frame, response, run, scaled_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
@@ -87,17 +87,39 @@ def test_response_reports_the_networks_figures(sequence):
         response(Passthrough(), dataset, source, [0.0])
 
 
+def test_grey_is_the_luminance_in_every_channel(sequence):
+    x = torch.rand(2, 3, 4, 5, generator=torch.Generator().manual_seed(1))
+    g = grey(x)
+    for b in range(2):
+        for y in range(4):
+            for i in range(5):
+                lum = 0.2126729 * x[b, 0, y, i] + 0.7151522 * x[b, 1, y, i] + 0.0721750 * x[b, 2, y, i]
+                assert torch.allclose(g[b, :, y, i], lum.expand(3), atol=1e-6)
+    source, dataset = open_sequence(sequence, load_layout("native"))
+    inputs, ref, _ = read_frame(dataset, source, 0)
+    gi, gref = grey_frame(inputs, ref)
+    assert torch.equal(gref, grey(ref)) and torch.equal(gi["albedo"], grey(inputs["albedo"]))
+    assert all(gi[k] is inputs[k] for k in FRAME_INPUTS[2:])           # geometry unchanged
+    coloured, greyed = (response(Passthrough(), dataset, source, [1.0], grey_inputs=g)[0] for g in (False, True))
+    assert (coloured["inputs"], greyed["inputs"]) == ("colour", "grey")
+    frames = [read_frame(dataset, source, i) for i in range(source.frames)]
+    assert greyed["input_f0"] == pytest.approx(plain_psnr(grey(frames[0][0]["color"]), grey(frames[0][1])), abs=1e-3)
+
+
 def test_the_script_writes_the_table_and_refuses_bad_input_in_one_line(sequence, tmp_path):
     torch.manual_seed(0)
     cfg = compose_net_config("tiny")
     ckpt = save_checkpoint(tmp_path / "tiny.ckpt", build_net(cfg).eval(), cfg)
     out = tmp_path / "response.md"
-    results, text = run(ckpt, [sequence], "native", [0.5, 1.0], out)
-    assert out.read_text() == text and len(results["seq"]) == 2
-    assert "| seq | 0.5 |" in text and "| seq | 1 |" in text
+    results, text = run(ckpt, [sequence], "native", [0.5, 1.0], out, grey_too=True)
+    assert out.read_text() == text and len(results["seq"]) == 4
+    for row in ("| seq | colour | 0.5 |", "| seq | colour | 1 |", "| seq | grey | 0.5 |", "| seq | grey | 1 |"):
+        assert row in text
     script = [sys.executable, str(ROOT / "scripts" / "noise_response.py"), f"ckpt={ckpt}"]
     proc = subprocess.run([*script, f"sequences=[{tmp_path / 'nope'}]"], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1
     proc = subprocess.run([*script, f"sequences=[{sequence}]", "factors=[a]"], capture_output=True, text=True,
                           cwd=ROOT)
     assert proc.returncode == 2 and "factors: not numbers" in proc.stderr and proc.stderr.count("\n") == 1
+    proc = subprocess.run([*script, f"sequences=[{sequence}]", "grey=maybe"], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 2 and "grey: true or false" in proc.stderr and proc.stderr.count("\n") == 1

@@ -9,7 +9,10 @@ sequence (state carried, reset at cuts) and the table gives the PSNR (dB, tonema
 2+ (the history in use). A denoiser that adapts to the noise gives a cleaner output for a cleaner
 input and, for a clean enough input, at least the input's PSNR; one trained on a single noise
 level blurs every input to about the same output (docs/results_log.md, "Fast object motion:
-noise-level augmentation").
+noise-level augmentation"). With ``grey``, every frame's colour, per-sample colours, albedo and
+reference are first replaced by their luminance (:data:`denoiser.metrics.LUMINANCE`) in all three
+channels, so that one network's figures on the colour and the grey versions of a sequence show
+what its colours cost.
 
     python scripts/noise_response.py ckpt=S.ckpt sequences=[data/blender/val/fast_101] layout=blender
 """
@@ -36,22 +39,42 @@ def scaled_inputs(inputs: dict, reference: torch.Tensor, factor: float) -> dict:
 
     out = scale_noise({**inputs, "reference": reference}, factor)
     del out["reference"]
-    for key in ("color", "samples"):
+    for key in ("color", "samples", "albedo"):
         if key in out:
             out[key] = out[key].clamp_min(0)
     return out
 
 
-def response(net, dataset, source, factors: Sequence[float]) -> list[dict]:
+def grey(x: torch.Tensor) -> torch.Tensor:
+    """``[..., 3, H, W]`` linear RGB -> its luminance in all three channels (same shape)."""
+    from denoiser.metrics import LUMINANCE
+
+    w = torch.tensor(LUMINANCE, dtype=x.dtype, device=x.device).view(3, 1, 1)
+    return (x * w).sum(dim=-3, keepdim=True).expand_as(x).contiguous()
+
+
+def grey_frame(inputs: dict, reference: torch.Tensor) -> tuple[dict, torch.Tensor]:
+    """``(inputs, reference)`` with ``color``, ``samples``, ``albedo`` and ``reference`` in grey."""
+    out = dict(inputs)
+    for key in ("color", "samples", "albedo"):
+        if key in out:
+            out[key] = grey(out[key])
+    return out, grey(reference)
+
+
+def response(net, dataset, source, factors: Sequence[float], grey_inputs: bool = False) -> list[dict]:
     """One row per factor: ``{"factor", "input_f0", "output_f0", "input_f2", "output_f2"}`` (PSNR dB;
     the ``_f2`` means are over frames 2+, None for sequences of 2 frames or fewer). ``net``: a
     :class:`~denoiser.nn.denoiser.Denoiser` in eval mode; ``dataset``, ``source``: as
-    :func:`denoiser.report.history_diagnosis.open_sequence` returns them."""
+    :func:`denoiser.report.history_diagnosis.open_sequence` returns them; ``grey_inputs``: the
+    sequence in grey (:func:`grey_frame`)."""
     from denoiser.data.evalset import read_frame
     from denoiser.metrics import psnr
     from denoiser.runner import RecurrentRunner
 
     frames = [read_frame(dataset, source, i) for i in range(source.frames)]
+    if grey_inputs:
+        frames = [(*grey_frame(inputs, ref), reset) for inputs, ref, reset in frames]
     rows = []
     for f in factors:
         if not f > 0:
@@ -62,7 +85,7 @@ def response(net, dataset, source, factors: Sequence[float]) -> list[dict]:
         p_in = [float(psnr(x["color"].float(), ref.float())) for x, ref, _ in scaled]
         p_out = [float(psnr(o.float(), ref.float())) for o, (_, ref, _) in zip(outputs, scaled)]
         later = slice(FIRST_HISTORY_FRAME, None)
-        rows.append({"factor": float(f), "input_f0": p_in[0], "output_f0": p_out[0],
+        rows.append({"inputs": "grey" if grey_inputs else "colour", "factor": float(f), "input_f0": p_in[0], "output_f0": p_out[0],
                      "input_f2": _mean(p_in[later]), "output_f2": _mean(p_out[later])})
     return rows
 
@@ -79,23 +102,25 @@ def markdown(results: dict[str, list[dict]], title: str) -> str:
     """The table of :func:`run`'s results ``{sequence: rows}``."""
     lines = [f"# {title}", "",
              "PSNR dB of the input (the residual against the reference scaled by f; f = 1 is the sequence) and of "
-             "the network's output; frames 2+: the history in use. A denoiser that adapts to the noise "
-             "keeps at least the input's PSNR once the input is clean enough.", "",
-             "| sequence | f | input, frame 0 | output, frame 0 | input, frames 2+ | output, frames 2+ | "
-             "output - input, frames 2+ |", "|---|---:|---:|---:|---:|---:|---:|"]
+             "the network's output; frames 2+: the history in use; inputs grey: colour, albedo and reference "
+             "replaced by their luminance. A denoiser that adapts to the noise keeps at least the input's PSNR "
+             "once the input is clean enough.", "",
+             "| sequence | inputs | f | input, frame 0 | output, frame 0 | input, frames 2+ | output, frames 2+ | "
+             "output - input, frames 2+ |", "|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, rows in results.items():
         for r in rows:
             gain = None if r["input_f2"] is None else r["output_f2"] - r["input_f2"]
-            lines.append(f"| {name} | {r['factor']:g} | {_num(r['input_f0'])} | {_num(r['output_f0'])} | "
+            lines.append(f"| {name} | {r['inputs']} | {r['factor']:g} | {_num(r['input_f0'])} | {_num(r['output_f0'])} | "
                          f"{_num(r['input_f2'])} | {_num(r['output_f2'])} | {_num(gain, sign=True)} |")
     return "\n".join(lines) + "\n"
 
 
 def run(ckpt: str | os.PathLike, sequences: Sequence[str | os.PathLike], layout: str = "native",
         factors: Sequence[float] = (0.25, 0.5, 1.0, 2.0), out: str | os.PathLike | None = None,
-        trust: bool = False, net=None) -> tuple[dict[str, list[dict]], str]:
+        trust: bool = False, net=None, grey_too: bool = False) -> tuple[dict[str, list[dict]], str]:
     """Load ``ckpt`` (or use ``net``), run :func:`response` on every sequence directory (in
-    ``layout``); write the table to ``out`` when given. Returns ``({sequence name: rows}, markdown)``."""
+    ``layout``; with ``grey_too``, on its grey version as well); write the table to ``out`` when
+    given. Returns ``({sequence name: rows}, markdown)``."""
     from denoiser.atomic import atomic_write_text
     from denoiser.checkpoint import load_denoiser
     from denoiser.configs import load_layout
@@ -110,11 +135,14 @@ def run(ckpt: str | os.PathLike, sequences: Sequence[str | os.PathLike], layout:
     results = {}
     for seq in sequences:
         source, dataset = open_sequence(seq, lay)
-        results[Path(seq).name] = response(net, dataset, source, factors)
+        rows = response(net, dataset, source, factors)
+        if grey_too:
+            rows += response(net, dataset, source, factors, grey_inputs=True)
+        results[Path(seq).name] = rows
     text = markdown(results, f"Noise response of {Path(ckpt).name if ckpt else 'a network'} (layout={layout})")
     if out is not None:
         atomic_write_text(Path(out), text)
     return results, text
 
 
-__all__ = ["markdown", "response", "run", "scaled_inputs"]
+__all__ = ["grey", "grey_frame", "markdown", "response", "run", "scaled_inputs"]

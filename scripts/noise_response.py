@@ -1,7 +1,7 @@
 """How a checkpoint's output follows the noise level of its input (denoiser.report.noise_response).
 
     python scripts/noise_response.py ckpt=S.ckpt sequences=[data/blender/val/fast_101,data/blender/val/fast_102] \
-        layout=blender factors=[0.25,0.5,1,2] grey=true out=reports/noise_response.md
+        layout=blender factors=[0.25,0.5,1,2] grey=true out=reports/noise_response.md plot=reports/noise_response.png
 
 Prints the table (and writes it to ``out`` when given): per sequence and factor f, the PSNR of the
 input (the residual against the reference scaled by f) and of the output, on frame 0 and over
@@ -31,6 +31,7 @@ def parse_args(argv):
     p.add_argument("--factors", type=_list, default=["0.25", "0.5", "1", "2"], help="[f,...] (default [0.25,0.5,1,2])")
     p.add_argument("--out", type=Path, default=None, help="also write the table here")
     p.add_argument("--grey", default="false", help="true: the grey version of every sequence too")
+    p.add_argument("--plot", type=Path, default=None, help="also write a PNG: output against input PSNR")
     p.add_argument("--trust-checkpoint", action="store_true", help="load a checkpoint the safe loader refuses")
     return p.parse_args(argv)
 
@@ -48,13 +49,14 @@ def main(argv=None) -> int:
         if args.grey.lower() not in ("true", "false"):
             raise UserError(f"grey: true or false, got {args.grey}")
         _, text = run(args.ckpt, args.sequences, args.layout, factors, args.out, trust=args.trust_checkpoint,
-                      grey_too=args.grey.lower() == "true")
+                      grey_too=args.grey.lower() == "true", plot=args.plot)
     except UserError as e:  # ExrError and ConfigError included
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(text, end="")
-    if args.out is not None:
-        print(f"wrote {args.out}")
+    for path in (args.out, args.plot):
+        if path is not None:
+            print(f"wrote {path}")
     return 0
 
 

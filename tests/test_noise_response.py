@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.checkpoint import save_checkpoint
@@ -111,8 +112,10 @@ def test_the_script_writes_the_table_and_refuses_bad_input_in_one_line(sequence,
     cfg = compose_net_config("tiny")
     ckpt = save_checkpoint(tmp_path / "tiny.ckpt", build_net(cfg).eval(), cfg)
     out = tmp_path / "response.md"
-    results, text = run(ckpt, [sequence], "native", [0.5, 1.0], out, grey_too=True)
+    results, text = run(ckpt, [sequence], "native", [0.5, 1.0], out, grey_too=True, plot=tmp_path / "r.png")
     assert out.read_text() == text and len(results["seq"]) == 4
+    with Image.open(tmp_path / "r.png") as im:
+        assert im.format == "PNG" and im.width >= 400
     for row in ("| seq | colour | 0.5 |", "| seq | colour | 1 |", "| seq | grey | 0.5 |", "| seq | grey | 1 |"):
         assert row in text
     script = [sys.executable, str(ROOT / "scripts" / "noise_response.py"), f"ckpt={ckpt}"]

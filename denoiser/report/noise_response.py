@@ -39,7 +39,7 @@ def scaled_inputs(inputs: dict, reference: torch.Tensor, factor: float) -> dict:
 
     out = scale_noise({**inputs, "reference": reference}, factor)
     del out["reference"]
-    for key in ("color", "samples", "albedo"):
+    for key in ("color", "samples"):
         if key in out:
             out[key] = out[key].clamp_min(0)
     return out
@@ -115,12 +115,44 @@ def markdown(results: dict[str, list[dict]], title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def save_plot(path: str | os.PathLike, results: dict[str, list[dict]], title: str) -> Path:
+    """A PNG of :func:`run`'s results: per sequence, the output's PSNR over frames 2+ against the
+    input's (one point per factor; colour solid, grey dashed), with the line output = input."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from denoiser.atomic import atomic_save_figure
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=100)
+    points = []
+    for i, (name, rows) in enumerate(results.items()):
+        colour = f"C{i % 10}"
+        for inputs, style in (("colour", "-"), ("grey", "--")):
+            xy = sorted((r["input_f2"], r["output_f2"]) for r in rows if r["inputs"] == inputs and r["input_f2"] is not None)
+            if xy:
+                ax.plot(*zip(*xy), style, marker="o", color=colour, label=f"{name} ({inputs})")
+                points += xy
+    if points:
+        lo, hi = min(min(p) for p in points), max(max(p) for p in points)
+        ax.plot([lo, hi], [lo, hi], ":", color="grey", label="output = input")
+    ax.set_xlabel("input PSNR dB, frames 2+ (the residual scaled by f)")
+    ax.set_ylabel("output PSNR dB, frames 2+")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return atomic_save_figure(fig, path)
+
+
 def run(ckpt: str | os.PathLike, sequences: Sequence[str | os.PathLike], layout: str = "native",
         factors: Sequence[float] = (0.25, 0.5, 1.0, 2.0), out: str | os.PathLike | None = None,
-        trust: bool = False, net=None, grey_too: bool = False) -> tuple[dict[str, list[dict]], str]:
+        trust: bool = False, net=None, grey_too: bool = False, plot: str | os.PathLike | None = None
+        ) -> tuple[dict[str, list[dict]], str]:
     """Load ``ckpt`` (or use ``net``), run :func:`response` on every sequence directory (in
-    ``layout``; with ``grey_too``, on its grey version as well); write the table to ``out`` when
-    given. Returns ``({sequence name: rows}, markdown)``."""
+    ``layout``; with ``grey_too``, on its grey version as well); write the table to ``out`` and the
+    plot (:func:`save_plot`) to ``plot`` when given. Returns ``({sequence name: rows}, markdown)``."""
     from denoiser.atomic import atomic_write_text
     from denoiser.checkpoint import load_denoiser
     from denoiser.configs import load_layout
@@ -139,10 +171,13 @@ def run(ckpt: str | os.PathLike, sequences: Sequence[str | os.PathLike], layout:
         if grey_too:
             rows += response(net, dataset, source, factors, grey_inputs=True)
         results[Path(seq).name] = rows
-    text = markdown(results, f"Noise response of {Path(ckpt).name if ckpt else 'a network'} (layout={layout})")
+    title = f"Noise response of {ckpt if ckpt else 'a network'} (layout={layout})"
+    text = markdown(results, title)
     if out is not None:
         atomic_write_text(Path(out), text)
+    if plot is not None:
+        save_plot(plot, results, title)
     return results, text
 
 
-__all__ = ["grey", "grey_frame", "markdown", "response", "run", "scaled_inputs"]
+__all__ = ["grey", "grey_frame", "markdown", "response", "run", "save_plot", "scaled_inputs"]

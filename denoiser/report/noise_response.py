@@ -20,6 +20,7 @@ what its colours cost.
 from __future__ import annotations
 
 import os
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -139,7 +140,7 @@ def save_plot(path: str | os.PathLike, results: dict[str, list[dict]], title: st
         ax.plot([lo, hi], [lo, hi], ":", color="grey", label="output = input")
     ax.set_xlabel("input PSNR dB, frames 2+ (the residual scaled by f)")
     ax.set_ylabel("output PSNR dB, frames 2+")
-    ax.set_title(title, fontsize=10)
+    ax.set_title("\n".join(textwrap.wrap(title, 70)), fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()

@@ -18,9 +18,9 @@ from pathlib import Path
 
 
 def parse_args(argv):
-    # key=value (the project's command style) is the same as --key value
-    argv = [f"--{a.split('=', 1)[0].replace('_', '-')}={a.split('=', 1)[1]}"
-            if "=" in a and not a.startswith("-") else a for a in argv]
+    from denoiser.commands.app import key_value_argv
+
+    argv = key_value_argv(argv)  # key=value (the project's command style) is the same as --key value
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--ckpt", required=True, type=Path, help="checkpoint of a recurrent Denoiser")

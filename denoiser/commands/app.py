@@ -30,6 +30,14 @@ def report_user_error(exc: BaseException) -> None:
     sys.exit(2)
 
 
+def key_value_argv(argv: list[str]) -> list[str]:
+    """The project's ``key=value`` command style for argparse scripts: each ``key=value`` (not
+    starting with ``-``) becomes ``--key=value`` with ``_`` in the key read as ``-``; other
+    arguments pass unchanged."""
+    return [f"--{a.split('=', 1)[0].replace('_', '-')}={a.split('=', 1)[1]}"
+            if "=" in a and not a.startswith("-") else a for a in argv]
+
+
 def guarded(task: Callable) -> Callable:
     """Wrap a task so user errors end the process with one line instead of a traceback."""
     from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue

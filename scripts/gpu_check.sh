@@ -50,4 +50,8 @@ timeout $(( left > 90 ? left : 90 )) "$PY" -m denoiser.commands.gpu_check out="$
 # keep what comes back small: the last checkpoint only (the one evaluated)
 find "$OUT/train/checkpoints" -name '*.ckpt' ! -name last.ckpt -delete 2>/dev/null
 mkdir -p docs/results && cp "$OUT/gpu.md" docs/results/gpu.md
-echo "report: $OUT/gpu.md"
+# the run tool brings back at most 8 files, 2 folders down: the report, its rows and the logs stay
+# loose, the training run, its evaluation and the smaller logs go into one archive
+extras=$(cd "$OUT" && ls -d train eval train.log nvidia-smi.txt 2>/dev/null)
+[ -n "$extras" ] && (cd "$OUT" && tar czf runs.tar.gz $extras && rm -rf $extras)
+echo "report: $OUT/gpu.md; $(find "$OUT" -type f | wc -l) files in $OUT"

@@ -4,6 +4,8 @@
 # the CPU evaluation of its checkpoint). Results go to $OUT (the run tool brings it back) or
 # outputs/gpu_check, and docs/results/gpu.md when run in a checkout.
 #   scripts/gpu_check.sh             # make gpu-check
+#   RESUME=prev/gpu.md SKIP_TESTS=1 TOTAL_S=230 scripts/gpu_check.sh sections=[train_step,train_run]
+#                                    # a second lease: only those sections, the others kept from prev
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-outputs/gpu_check}
@@ -33,17 +35,21 @@ fi
 export PYTHONDONTWRITEBYTECODE=1
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv 2>&1 | tee "$OUT/nvidia-smi.txt"
 started=$(date +%s)
+extra=("$@")
+if [ -n "${RESUME:-}" ]; then cp "$RESUME" "$OUT/gpu.md" && extra+=(keep_report=true); fi
 # the GPU tests, and the Triton filter's tests compiled for the GPU
+if [ -z "${SKIP_TESTS:-}" ]; then
 timeout 150 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/test_cuda_backend.py tests/test_train_performance.py \
     > "$OUT/pytest_gpu.log" 2>&1; echo "pytest -m gpu: exit $?" | tee -a "$OUT/pytest_gpu.log"
 timeout 90 "$PY" -m pytest -q -p no:cacheprovider tests/test_triton_filter.py \
     > "$OUT/pytest_triton.log" 2>&1; echo "pytest triton: exit $?" | tee -a "$OUT/pytest_triton.log"
 tail -n 3 "$OUT/pytest_gpu.log" "$OUT/pytest_triton.log"
-left=$(( 460 - ($(date +%s) - started) ))
+fi
+left=$(( ${TOTAL_S:-460} - ($(date +%s) - started) ))
 budget=$(( left - 60 > 60 ? left - 60 : 60 ))
-timeout $(( left > 90 ? left : 90 )) "$PY" -m denoiser.commands.gpu_check out="$OUT" budget_s="$budget" 2>&1 \
+timeout $(( left > 90 ? left : 90 )) "$PY" -m denoiser.commands.gpu_check out="$OUT" budget_s="$budget" "${extra[@]}" 2>&1 \
     | tee "$OUT/gpu_check.log" | grep -v "^\s*$" | tail -n 60
-{
+[ -z "${SKIP_TESTS:-}" ] && {
     echo; echo "## Tests"; echo
     echo '```'; tail -n 3 "$OUT/pytest_gpu.log"; tail -n 3 "$OUT/pytest_triton.log"; echo '```'
 } >> "$OUT/gpu.md"

@@ -208,3 +208,45 @@ def test_gpu_check_reports_the_device_and_stops_without_one(tmp_path):
     text = (tmp_path / "gpu.md").read_text()
     assert result["device"]["torch"] == torch.__version__ and f"torch: {torch.__version__}" in text
     assert "no CUDA device: nothing measured" in text
+
+
+def test_gpu_check_training_step_reduces_the_per_item_loss_to_a_scalar_and_steps():
+    """The device check's training step (run on the CPU here): DenoiseLoss's per-item terms [B] are
+    averaged into one scalar, whose backward and AdamW step change the weights (a lent H200 once
+    failed on `loss.backward()` of the [B] sum)."""
+    from denoiser.commands.gpu_check import train_step
+    from denoiser.configs import build_net, compose_net_config
+    from denoiser.frames import random_frame
+    from denoiser.lit.losses import DenoiseLoss
+
+    torch.manual_seed(0)
+    net = build_net(compose_net_config("tiny", "student")).train()
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-3)
+    seq = [random_frame(2, 16, 16, seed=i) for i in range(3)]
+    window = {k: torch.stack([f[k] for f in seq], dim=1) for k in seq[0]}
+    reset = torch.zeros(2, 3, dtype=torch.bool)
+    reset[:, 0] = True
+    before = [p.detach().clone() for p in net.parameters()]
+    loss_fn = DenoiseLoss()
+    loss = train_step(net, opt, loss_fn, window, window["color"] * 0.5, reset)()
+    assert loss.dim() == 0 and torch.isfinite(loss)
+    with torch.no_grad():
+        outputs, _, _ = net(window, reset=reset)
+    assert any(not torch.equal(a, p) for a, p in zip(before, net.parameters()))
+    assert torch.isfinite(outputs).all()
+
+
+def test_gpu_check_resumed_report_keeps_the_sections_it_does_not_set(tmp_path):
+    from denoiser.commands.gpu_check import Report
+
+    first = Report(tmp_path / "gpu.md")
+    first.set("Device", "- gpu: A")
+    first.set("Inference", "| a |\n|---|\n| 1 |")
+    first.set("Training step", "failed")
+    second = Report(tmp_path / "gpu.md", keep=True)
+    second.set("Training step", "| ms |\n|---|\n| 30 |")
+    second.set("Training run", "exit 0")
+    text = (tmp_path / "gpu.md").read_text()
+    assert text == ("# GPU check\n\n## Device\n\n- gpu: A\n\n## Inference\n\n| a |\n|---|\n| 1 |\n\n"
+                    "## Training step\n\n| ms |\n|---|\n| 30 |\n\n## Training run\n\nexit 0\n")
+    assert Report(tmp_path / "other.md", keep=True).sections == {}

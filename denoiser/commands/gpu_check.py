@@ -46,9 +46,14 @@ ROOT = Path(__file__).resolve().parents[2]
 class Report:
     """``gpu.md``: sections in order, the file rewritten whenever one is set."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, keep: bool = False):
+        """``keep``: start from the sections of an existing ``path`` (a check resumed in a second lease)."""
         self.path = path
         self.sections: dict[str, str] = {}
+        if keep and path.exists():
+            for chunk in path.read_text().split("\n## ")[1:]:
+                title, _, body = chunk.partition("\n\n")
+                self.sections[title.strip()] = body.rstrip() + "\n"
 
     def set(self, title: str, body: str) -> None:
         self.sections[title] = body.rstrip() + "\n"
@@ -151,6 +156,26 @@ def inference_text(rows, columns, h, w, markdown_table) -> str:
 # ----------------------------------------------------------------------------- training
 
 
+def train_step(net: torch.nn.Module, opt: torch.optim.Optimizer, loss_fn: torch.nn.Module, window: dict,
+               reference: torch.Tensor, reset: torch.Tensor):
+    """One training step as a closure returning the loss (a detached scalar): forward under bf16 autocast
+    on the window's device, ``DenoiseLoss`` (its per-item terms ``[B]`` averaged over the batch and
+    summed, as the Lightning module does), backward, optimizer step.
+
+    ``window``: the frame buffers ``[B, T, C, H, W]``; ``reference: [B, T, 3, H, W]``; ``reset: [B, T]``.
+    """
+    def step() -> torch.Tensor:
+        with torch.autocast(reference.device.type, dtype=torch.bfloat16):
+            outputs, _, _ = net(window, reset=reset)
+        terms = loss_fn(outputs.float(), reference, window["motion"], reset)
+        loss = sum(term.mean() for term in terms.values())
+        loss.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        return loss.detach()
+    return step
+
+
 def train_step_rows(cfg: DictConfig, deadline: float, report: Report) -> list[dict]:
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
@@ -181,14 +206,7 @@ def train_step_rows(cfg: DictConfig, deadline: float, report: Report) -> list[di
             if spec.compile:
                 net.compile()
 
-            def step(net=net, opt=opt):
-                with torch.autocast("cuda", dtype=torch.bfloat16):
-                    outputs, _, _ = net(window, reset=reset)
-                loss = sum(loss_fn(outputs.float(), reference, window["motion"], reset).values())
-                loss.backward()
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-
+            step = train_step(net, opt, loss_fn, window, reference, reset)
             started = time.monotonic()
             times = []
             for i in range(int(ts.warmup) + int(ts.repeats)):
@@ -286,7 +304,7 @@ def run(cfg: DictConfig) -> dict:
     from denoiser.measure import write_csv
 
     out = Path(cfg.out)
-    report = Report(out / "gpu.md")
+    report = Report(out / "gpu.md", keep=bool(cfg.keep_report))
     info = device_report()
     report.set("Device", "\n".join(f"- {k}: {v}" for k, v in info.items()))
     if not torch.cuda.is_available():
@@ -297,15 +315,17 @@ def run(cfg: DictConfig) -> dict:
     report.set("Device", "\n".join(f"- {k}: {v}" for k, v in info.items()) + "\n" + "\n".join(
         [f"- measured fp16 matmul: {peaks['tflops_fp16']:.0f} TFLOP/s, bf16: {peaks['tflops_bf16']:.0f} TFLOP/s",
          f"- measured copy bandwidth: {peaks['gbps']:.0f} GB/s (read + write)"]))
-    rows = inference_rows(cfg, peaks, deadline, report)
-    step_rows = [] if timed_out(deadline, report, "Training step") else train_step_rows(cfg, deadline, report)
+    sections = set(cfg.sections)
+    rows = inference_rows(cfg, peaks, deadline, report) if "inference" in sections else []
+    step_rows = [] if "train_step" not in sections or timed_out(deadline, report, "Training step") \
+        else train_step_rows(cfg, deadline, report)
     write_csv(out / "rows.csv", [{"section": "inference", **r} for r in rows] +
               [{"section": "train_step", **r} for r in step_rows])
     root = Path(cfg.data_root or os.path.join(os.environ.get("DENOISER_DATA", "data"), "demo")).resolve()
     if not (root / "train").is_dir():
         report.set("Training run", f"not run: no {root}/train")
         return {"device": info, "inference": rows, "train_step": step_rows}
-    if timed_out(deadline, report, "Training run"):
+    if "train_run" not in sections or timed_out(deadline, report, "Training run"):
         return {"device": info, "inference": rows, "train_step": step_rows}
     ckpt = train_run(cfg, root, out, step_rows, report)
     if ckpt is not None:

@@ -250,3 +250,16 @@ def test_gpu_check_resumed_report_keeps_the_sections_it_does_not_set(tmp_path):
     assert text == ("# GPU check\n\n## Device\n\n- gpu: A\n\n## Inference\n\n| a |\n|---|\n| 1 |\n\n"
                     "## Training step\n\n| ms |\n|---|\n| 30 |\n\n## Training run\n\nexit 0\n")
     assert Report(tmp_path / "other.md", keep=True).sections == {}
+
+
+def test_gpu_check_loader_rate_runs_past_one_epoch(tmp_path):
+    """The data module's rate is timed over more batches than one epoch of a small carried subset
+    holds (a lent H200's check stopped on StopIteration): the loader goes round again."""
+    from test_eval_data import write_dataset
+
+    from denoiser.commands.gpu_check import loader_rate
+
+    root = write_dataset(tmp_path, split="train", sequences=1, frames=4, size=32)
+    overrides = ["experiment=demo", *["net=tiny", "kernel=student"], f"data.root={root}", "data.val_split=null",
+                 "data.window=2", "data.crop=16", "data.batch_size=1", "data.num_workers=0", "data.pin_memory=false"]
+    assert loader_rate(overrides, batches=12) > 0

@@ -53,3 +53,22 @@ def test_fused_optimizer_on_cuda():
     _, model = module(["trainer=gpu"])
     model.net.cuda()
     assert model.configure_optimizers()["optimizer"].defaults["fused"] is True
+
+
+def test_fused_optimizer_clips_under_bf16_mixed():
+    """A fused AdamW with grad_clip under bf16-mixed: Lightning's precision plugin refuses to clip
+    for an optimizer that unscales internally (a lent H200's training run stopped on it), though
+    bf16 has no scaler. The norm is clipped directly, to grad_clip."""
+    import lightning
+
+    _, model = module(["model.grad_clip=1.0"])  # the distillation module clips through the same clip_norm
+    model.trainer = lightning.Trainer(accelerator="cpu", precision="bf16-mixed", logger=False,
+                                      enable_checkpointing=False, enable_progress_bar=False)
+    params = list(model.net.parameters())
+    optimizer = torch.optim.AdamW(params, lr=1e-3, fused=True)
+    assert optimizer._step_supports_amp_scaling  # the case the plugin refuses
+    (model.net(window())[0].square().mean() * 1e6).backward()
+    assert torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in params if p.grad is not None])) > 10
+    model.on_before_optimizer_step(optimizer)
+    norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in params if p.grad is not None]))
+    assert norm == pytest.approx(1.0, rel=1e-3)

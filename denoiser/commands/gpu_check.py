@@ -238,7 +238,11 @@ def loader_rate(overrides: list[str], batches: int) -> float:
     cfg = compose_config(overrides, "train")
     dm = instantiate_config(cfg.data, "data")
     dm.setup("fit")
-    loader = iter(dm.train_dataloader())
+    def cycle():  # epochs after epochs: a few short sequences give fewer batches than asked for
+        while True:
+            yield from dm.train_dataloader()
+
+    loader = cycle()
     next(loader)
     frames, started = 0, time.monotonic()
     for _ in range(batches):

@@ -139,11 +139,26 @@ class DenoiserModule(pl.LightningModule):
 
     # ----------------------------------------------------------------- optimizers
 
+    def clip_norm(self, optimizer) -> None:
+        """Clip the gradient norm of ``optimizer``'s parameters to ``grad_clip`` (called from
+        ``on_before_optimizer_step``, after the precision plugin has unscaled them). Lightning's
+        plugin refuses any optimizer that unscales internally (a fused AdamW), even under bf16-mixed,
+        which has no scaler: there nothing is scaled, and the norm is clipped directly."""
+        scaler = getattr(self.trainer.precision_plugin, "scaler", None)
+        if getattr(optimizer, "_step_supports_amp_scaling", False) and scaler is None:
+            params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+            torch.nn.utils.clip_grad_norm_(params, self.grad_clip)
+        else:
+            self.clip_gradients(optimizer, gradient_clip_val=self.grad_clip, gradient_clip_algorithm="norm")
+
     def build_optimizer(self, params, factory: Callable | None = None) -> dict:
         """``{"optimizer": .., "lr_scheduler": ..}`` for Lightning from the configured factories."""
         make = factory or self._optimizer_factory
         params = list(params)
-        if self.fused_optimizer and params and all(p.is_cuda for p in params) and \
+        trainer = self._trainer  # under 16-mixed a fused optimizer's gradients cannot be clipped unscaled
+        scaled = trainer is not None and getattr(trainer.precision_plugin, "scaler", None) is not None
+        if self.fused_optimizer and not (scaled and self.grad_clip > 0) and params and \
+                all(p.is_cuda for p in params) and \
                 "fused" in inspect.signature(getattr(make, "func", make)).parameters:
             make = functools.partial(make, fused=True)
         opt = make(params)

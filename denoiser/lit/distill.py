@@ -214,7 +214,7 @@ class DistillationModule(DenoiserModule):
         this inside the optimizer step, after the precision plugin has unscaled the gradients
         (clipping before ``step()`` would clip the scaled gradients under 16-mixed)."""
         if self.grad_clip > 0 and (self.critic is None or optimizer is self._student_optimizer()):
-            self.clip_gradients(optimizer, gradient_clip_val=self.grad_clip, gradient_clip_algorithm="norm")
+            self.clip_norm(optimizer)
 
     def _student_optimizer(self):
         optimizers = self.optimizers(use_pl_optimizer=False)

@@ -75,7 +75,7 @@ class SupervisedModule(DenoiserModule):
 
     def on_before_optimizer_step(self, optimizer) -> None:
         if self.grad_clip > 0:
-            self.clip_gradients(optimizer, gradient_clip_val=self.grad_clip, gradient_clip_algorithm="norm")
+            self.clip_norm(optimizer)
 
     def configure_optimizers(self):
         return self.build_optimizer(self.net.parameters())

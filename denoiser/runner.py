@@ -40,7 +40,7 @@ class Network(Protocol):
     """The network contract: what training, the runner, the exporter, the backends and
     :class:`~denoiser.methods.baselines.NetworkMethod` call on a denoising network
     (:class:`~denoiser.nn.denoiser.Denoiser`, with any of its filters: the pyramid, NPPD's
-    learned upsampling, WS). ``isinstance(x, Network)`` checks that the members exist.
+    learned upsampling, WS). :func:`is_network` checks that the members exist.
 
     ``step(frame, state=None, reset=None) -> (output, state, extras)``: one frame, the step
     function contract above (``frame`` ``{buffer: [B, C, H, W]}``, ``output [B, 3, H, W]``
@@ -56,6 +56,17 @@ class Network(Protocol):
 
     def step(self, frame: Mapping[str, Any], state: dict | None = None, reset: Any = None) -> tuple:
         ...
+
+
+NETWORK_MEMBERS = ("step", "feature_channels", "multiple", "temporal")
+
+
+def is_network(x: Any) -> bool:
+    """Whether ``x`` has the members of :class:`Network` (``step`` callable). Use this, not
+    ``isinstance(x, Network)``: from Python 3.12 that looks the members up with
+    ``inspect.getattr_static``, which does not see an ``nn.Module``'s submodules (``temporal``
+    lives in ``_modules``), so a real Denoiser failed it on a lent GPU machine's Python 3.12."""
+    return callable(getattr(x, "step", None)) and all(hasattr(x, m) for m in NETWORK_MEMBERS[1:])
 
 
 @runtime_checkable

@@ -15,7 +15,7 @@ from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.methods.baselines import NetworkMethod, NoisyInput, OidnDenoiser, StepperMethod, build_baselines
 from denoiser.methods.onnd import OnlineCrossRegression
-from denoiser.runner import Method, Network, Stepper, Temporal
+from denoiser.runner import NETWORK_MEMBERS, Method, Network, Stepper, Temporal, is_network
 
 NETS = sorted(p.stem for p in (Path(CONF_DIR) / "net").glob("*.yaml"))
 
@@ -23,7 +23,7 @@ NETS = sorted(p.stem for p in (Path(CONF_DIR) / "net").glob("*.yaml"))
 @pytest.mark.parametrize("name", NETS)
 def test_every_network_config_builds_a_network(name):
     net = build_net(compose_net_config(name))
-    assert isinstance(net, Network)
+    assert is_network(net)
     assert net.temporal is None or isinstance(net.temporal, Temporal)
     # the members say what step does: features as wide as feature_channels, state as state_channels
     frame = random_frame(1, 16, 24, seed=0)
@@ -41,9 +41,24 @@ def test_a_module_without_step_is_not_a_network():
     class Plain(torch.nn.Module):
         feature_channels, multiple, temporal = [8], 1, None
 
-    assert not isinstance(Plain(), Network)
+    assert not is_network(Plain())
     with pytest.raises(ConfigError, match="tiny: a Plain is not a denoising network module"):
         NetworkMethod(Plain(), "tiny")
+
+
+def test_the_network_check_sees_members_held_as_submodules():
+    """Python 3.12's isinstance() on a runtime protocol looks members up with inspect.getattr_static,
+    which misses an nn.Module's submodules: a lent H200 (Python 3.12) refused a real Denoiser there.
+    is_network looks them up as attributes, on any Python."""
+    import inspect
+
+    net = build_net(compose_net_config("demo_student", "student"))
+    assert "temporal" in net._modules  # where the static lookup does not look
+    with pytest.raises(AttributeError):
+        inspect.getattr_static(net, "temporal")
+    assert set(NETWORK_MEMBERS) == {*Network.__annotations__, "step"}  # the protocol's members, said once
+    assert is_network(net)
+    NetworkMethod(net, "student")  # accepted
 
 
 def test_every_baseline_is_a_method():

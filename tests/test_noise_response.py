@@ -119,10 +119,10 @@ def test_the_script_writes_the_table_and_refuses_bad_input_in_one_line(sequence,
     for row in ("| seq | colour | 0.5 |", "| seq | colour | 1 |", "| seq | grey | 0.5 |", "| seq | grey | 1 |"):
         assert row in text
     script = [sys.executable, str(ROOT / "scripts" / "noise_response.py"), f"ckpt={ckpt}"]
-    proc = subprocess.run([*script, f"sequences=[{tmp_path / 'nope'}]"], capture_output=True, text=True, cwd=ROOT)
+    proc = subprocess.run([*script, f"sequences=[{tmp_path / 'nope'}]"], capture_output=True, text=True, cwd=ROOT, check=False)
     assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1
     proc = subprocess.run([*script, f"sequences=[{sequence}]", "factors=[a]"], capture_output=True, text=True,
-                          cwd=ROOT)
+                          cwd=ROOT, check=False)
     assert proc.returncode == 2 and "factors: not numbers" in proc.stderr and proc.stderr.count("\n") == 1
-    proc = subprocess.run([*script, f"sequences=[{sequence}]", "grey=maybe"], capture_output=True, text=True, cwd=ROOT)
+    proc = subprocess.run([*script, f"sequences=[{sequence}]", "grey=maybe"], capture_output=True, text=True, cwd=ROOT, check=False)
     assert proc.returncode == 2 and "grey: true or false" in proc.stderr and proc.stderr.count("\n") == 1

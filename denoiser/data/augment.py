@@ -184,11 +184,11 @@ class Augment:
             out = scale_exposure(out, math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
         if self.permute:
             out = permute_channels(out, torch.randperm(3, generator=generator).tolist())
-        if self.noise_scale is not None and "reference" in out and bool(out.get("labeled", True)):
-            if float(torch.rand((), generator=generator)) < self.noise_prob:
-                lo, hi = self.noise_scale
-                u = float(torch.rand((), generator=generator))
-                out = scale_noise(out, math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
+        if self.noise_scale is not None and "reference" in out and bool(out.get("labeled", True)) \
+                and float(torch.rand((), generator=generator)) < self.noise_prob:  # drawn only when on
+            lo, hi = self.noise_scale
+            u = float(torch.rand((), generator=generator))
+            out = scale_noise(out, math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
         return out
 
     def __repr__(self) -> str:

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from denoiser.errors import ConfigError
-from denoiser.runner import Method, Network, RecurrentRunner
+from denoiser.runner import Method, Network, RecurrentRunner, is_network
 
 #: OIDN quality names -> pyoidn constants (resolved lazily, pyoidn is an optional extra)
 OIDN_QUALITIES = ("fast", "balanced", "high")
@@ -172,7 +172,7 @@ class NetworkMethod:
     recurrent = True
 
     def __init__(self, net: Network, label: str, device: str | torch.device = "cpu"):
-        if not isinstance(net, Network) or not isinstance(net, torch.nn.Module):
+        if not is_network(net) or not isinstance(net, torch.nn.Module):
             raise ConfigError(f"{label}: a {type(net).__name__} is not a denoising network module "
                               "(denoiser.runner.Network: step, feature_channels, multiple, temporal)")
         self.net = net.eval().to(device)

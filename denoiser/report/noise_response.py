@@ -102,12 +102,12 @@ def _num(x: float | None, sign: bool = False) -> str:
 def markdown(results: dict[str, list[dict]], title: str) -> str:
     """The table of :func:`run`'s results ``{sequence: rows}``."""
     lines = [f"# {title}", "",
-             "PSNR dB of the input (the residual against the reference scaled by f; f = 1 is the sequence) and of "
-             "the network's output; frames 2+: the history in use; inputs grey: colour, albedo and reference "
-             "replaced by their luminance. A denoiser that adapts to the noise keeps at least the input's PSNR "
-             "once the input is clean enough.", "",
-             "| sequence | inputs | f | input, frame 0 | output, frame 0 | input, frames 2+ | output, frames 2+ | "
-             "output - input, frames 2+ |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+             ("PSNR dB of the input (the residual against the reference scaled by f; f = 1 is the sequence) and of "
+              "the network's output; frames 2+: the history in use; inputs grey: colour, albedo and reference "
+              "replaced by their luminance. A denoiser that adapts to the noise keeps at least the input's PSNR "
+              "once the input is clean enough."), "",
+             ("| sequence | inputs | f | input, frame 0 | output, frame 0 | input, frames 2+ | output, frames 2+ | "
+              "output - input, frames 2+ |"), "|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, rows in results.items():
         for r in rows:
             gain = None if r["input_f2"] is None else r["output_f2"] - r["input_f2"]

@@ -38,7 +38,6 @@ VENV=${VENV:-.venv}
 PY="$VENV/bin/python"
 BIN="$VENV/bin"
 DATA=${DENOISER_DATA:-data}/demo
-DEMO=reports/demo/runs
 REPORT=reports/ablations
 RUNS=$REPORT/runs
 SEEDS=${ABLATION_SEEDS:-0 1 2}
@@ -53,6 +52,7 @@ mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
+DEMO=reports/$DEMO_RECIPE_NAME/runs   # make demo's runs of the same DEMO_RECIPE
 need() {  # need <path> <what>: stop with one line naming make demo when it is missing
     [ -e "$1" ] || { echo "error: $1: $2 missing (run make demo first)" >&2; exit 2; }
 }
@@ -76,7 +76,7 @@ timings_begin
 train() {  # train <variant>_s<seed>: one run, its output in <run>.log
     local name=$1 variant=${1%_s*} seed=${1##*_s} t0=$SECONDS
     echo "==> [$name]"
-    OMP_NUM_THREADS=$THREADS train_run "$RUNS/$name" experiment=demo_distill "model.teacher_ckpt=$TEACHER" \
+    OMP_NUM_THREADS=$THREADS train_run "$RUNS/$name" "experiment=$DEMO_DISTILL_EXPERIMENT" "model.teacher_ckpt=$TEACHER" \
         "ablation=$variant" "seed=$seed" ${STEPS:+"trainer.max_steps=$STEPS"} \
         trainer.enable_progress_bar=false callbacks.progress=null > "$RUNS/$name.log" 2>&1 \
         || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }

@@ -20,7 +20,6 @@ cd "$(dirname "$0")/.."
 VENV=${VENV:-.venv}
 PY="$VENV/bin/python"
 BIN="$VENV/bin"
-DEMO=reports/demo/runs
 REPORT=reports/compare
 RUNS=$REPORT/runs
 SEEDS=${COMPARE_SEEDS:-0 1 2}
@@ -31,6 +30,7 @@ mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
+DEMO=reports/$DEMO_RECIPE_NAME/runs   # make demo's runs of the same DEMO_RECIPE
 [ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
 timings_begin
 # its references: data/demo's, copied
@@ -49,7 +49,7 @@ for seed in $SEEDS; do
     fi
     for net in nppd_demo ws_demo; do
         dir=$RUNS/${net}_s$seed
-        stage --reuse "$dir" DONE "${net}_s$seed" train_run "$dir" experiment=demo_distill "net=$net" \
+        stage --reuse "$dir" DONE "${net}_s$seed" train_run "$dir" "experiment=$DEMO_DISTILL_EXPERIMENT" "net=$net" \
             "model.teacher_ckpt=$TEACHER" "seed=$seed"
         CKPTS="$CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
         [ "$seed" = "$FIRST" ] && BENCH_CKPTS="$BENCH_CKPTS, ${net%_demo}_s$seed: $(best "$dir")"

@@ -22,14 +22,18 @@
 # Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
 # each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
 # teacher, default: all cores), DEMO_BLENDER (Blender sequences to evaluate on when
-# <dir>/test exists; default data/blender, empty: off).
+# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default, or motion:
+# issue 33's recipe for fast-moving objects, scripts/lib.sh), DEMO_REPORT (default reports/demo,
+# reports/demo_motion for DEMO_RECIPE=motion).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 VENV=${VENV:-.venv}
 PY="$VENV/bin/python"
 BIN="$VENV/bin"
-REPORT=reports/demo
+# shellcheck source=scripts/lib.sh
+. scripts/lib.sh   # DEMO_RECIPE: the experiments and datasets
+REPORT=${DEMO_REPORT:-reports/$DEMO_RECIPE_NAME}
 RUNS=$REPORT/runs
 THREADS=${DEMO_THREADS:-null}
 SEEDS=${DEMO_SEEDS:-0 1 2}
@@ -39,8 +43,6 @@ CORES=$(nproc)
 JOB_THREADS=$(( CORES / JOBS > 0 ? CORES / JOBS : 1 ))
 mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
-# shellcheck source=scripts/lib.sh
-. scripts/lib.sh
 [ "${DEMO_FRESH:-0}" = 1 ] && rm -rf "$RUNS"/* "$REPORT"/eval "$REPORT"/bench
 timings_begin
 
@@ -55,17 +57,21 @@ demo_train() {  # demo_train <run name> <overrides...>: train (skipped when fini
 
 # 1. data (denoiser-render keeps frames that exist, so a second run costs seconds)
 stage --reuse "${DENOISER_DATA:-data}/demo" '*.exr' render "$BIN/denoiser-render" dataset=demo
+# DEMO_RECIPE=motion: the fast-moving and saturated families it trains on (conf/base/motion_recipe.yaml)
+for family in $DEMO_EXTRA_DATASETS; do
+    stage --reuse "${DENOISER_DATA:-data}/$family" '*.exr' "render_$family" "$BIN/denoiser-render" "dataset=$family"
+done
 
 # 2-4. networks
-stage --reuse "$RUNS/teacher" DONE teacher demo_train teacher experiment=demo_teacher seed=0 "threads=$THREADS"
+stage --reuse "$RUNS/teacher" DONE teacher demo_train teacher "experiment=$DEMO_TEACHER_EXPERIMENT" seed=0 "threads=$THREADS"
 TEACHER=$(best "$RUNS/teacher")
 # students: every (kind, seed) pair, DEMO_JOBS at a time, each with its share of the cores
 STUDENTS=()
 for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done
 student_run() {  # student_run <run name>
-    local name=$1 seed=${1##*_s} recipe=(experiment=demo_distill "model.teacher_ckpt=$TEACHER") t0=$SECONDS
+    local name=$1 seed=${1##*_s} recipe=("experiment=$DEMO_DISTILL_EXPERIMENT" "model.teacher_ckpt=$TEACHER") t0=$SECONDS
     echo "==> [$name]"
-    [[ $name == student_no_kd_* ]] && recipe=(experiment=demo)  # the same student on references alone
+    [[ $name == student_no_kd_* ]] && recipe=("experiment=$DEMO_NO_KD_EXPERIMENT")  # the same student on references alone
     demo_train "$name" "${recipe[@]}" "seed=$seed" "threads=$JOB_THREADS" trainer.enable_progress_bar=false \
         callbacks.progress=null > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
     echo "<== [$name] $(( SECONDS - t0 ))s"

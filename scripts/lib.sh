@@ -5,6 +5,19 @@
 # Needs: BIN (the virtual environment's bin directory); TIMINGS (the stage-time table) for
 # timings_begin, stage and timings_end.
 
+# make demo's recipe (scripts/demo.sh), said once for the scripts that train beside its runs and reuse
+# them (ablations.sh, compare.sh): the teacher, the distilled student, the student on references alone,
+# and the datasets rendered besides data/demo. DEMO_RECIPE=demo (the default) or motion: the same
+# experiments plus conf/base/motion_recipe.yaml (issue 33's fast-motion families and noise-level
+# augmentation; docs/results_log.md says what it gains on the Cycles val and costs on the demo's test).
+case "${DEMO_RECIPE:-demo}" in
+    demo) DEMO_TEACHER_EXPERIMENT=demo_teacher DEMO_DISTILL_EXPERIMENT=demo_distill DEMO_NO_KD_EXPERIMENT=demo
+          DEMO_EXTRA_DATASETS="" DEMO_RECIPE_NAME=demo ;;
+    motion) DEMO_TEACHER_EXPERIMENT=demo_motion_teacher DEMO_DISTILL_EXPERIMENT=demo_motion_distill
+            DEMO_NO_KD_EXPERIMENT=demo_motion DEMO_EXTRA_DATASETS="fast fast_more vivid" DEMO_RECIPE_NAME=demo_motion ;;
+    *) echo "error: DEMO_RECIPE=$DEMO_RECIPE: demo or motion" >&2; exit 2 ;;
+esac
+
 best() {  # best <run dir>: the checkpoint a run is evaluated with: best validation PSNR, else the last
     # (what ckpt=<run dir> loads; a path is printed so that reports name the file)
     if [ -f "$1/checkpoints/best.ckpt" ]; then echo "$1/checkpoints/best.ckpt"; else echo "$1/checkpoints/last.ckpt"; fi

@@ -94,6 +94,24 @@ def test_noise_scale_ablation_reaches_the_augmentation():
     assert (on.flip, on.transpose, on.exposure) == (off.flip, off.transpose, off.exposure)
 
 
+def test_the_motion_recipe_adds_the_fast_families_and_the_noise_scale_to_each_demo_experiment():
+    """make demo's experiments (conf/base/motion_recipe.yaml, said once) are the demo ones plus the
+    fast and vivid families and the noise-level augmentation; the demo ones, which the README's
+    ablation and comparison blocks measured, are unchanged; ablation=no_noise_scale turns it off."""
+    for motion, base in (("demo_motion", "demo"), ("demo_motion_distill", "demo_distill"),
+                         ("demo_motion_teacher", "demo_teacher")):
+        cfg, plain = compose_train(f"experiment={motion}"), compose_train(f"experiment={base}")
+        augment = instantiate(cfg.data.augment)
+        assert (augment.noise_scale, augment.noise_prob) == ((0.1, 1.0), 0.75)
+        assert [str(r).rsplit("/", 1)[-1] for r in cfg.data.extra_roots] == ["fast", "fast_more", "vivid"]
+        assert instantiate(plain.data.augment).noise_scale is None and list(plain.data.extra_roots) == []
+        assert cfg.net == plain.net and cfg.trainer.max_steps == plain.trainer.max_steps
+        off = instantiate(compose_train(f"experiment={motion}", "ablation=no_noise_scale").data.augment)
+        assert off.noise_scale is None and (off.flip, off.exposure) == (augment.flip, augment.exposure)
+    assert compose_train("experiment=demo_motion_teacher").model.optimizer.lr == 1e-3
+    assert compose_train("experiment=demo_teacher").model.optimizer.lr == 2e-3
+
+
 def test_distillation_ablations_switch_off_their_parts():
     base = compose_train("model=distill")
     assert base.model.loss.adversarial_weight > 0 and base.model.param_transfer is not None

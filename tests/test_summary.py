@@ -172,6 +172,7 @@ def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_coll
     assert _arg(trained[runs + "student_no_kd_s1"], "experiment") == "demo"
     distilled = trained[runs + "student_distilled_s1"]
     assert _arg(distilled, "experiment") == "demo_distill" and _arg(distilled, "seed") == "1"
+    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo"]
     assert _arg(distilled, "model.teacher_ckpt") == runs + "teacher/checkpoints/last.ckpt"   # no best.ckpt: last
     timings = (tmp_path / "reports" / "demo" / "timings.md").read_text()
     assert "| teacher |" in timings and "| students |" in timings and "| total |" in timings
@@ -179,6 +180,22 @@ def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_coll
     (tmp_path / "reports" / "demo" / "runs" / "student_no_kd_s0" / "COLLAPSED").write_text("collapse at step 90\n")
     calls = _demo_sh(tmp_path, 3, DEMO_SEEDS="0 1")
     assert not [c for c in calls if c[0] == "denoiser-eval"]
+
+
+def test_demo_sh_motion_recipe_trains_its_experiments_into_its_own_report(tmp_path):
+    """DEMO_RECIPE=motion (scripts/lib.sh): the demo_motion* experiments, the datasets they read
+    rendered too, and reports/demo_motion, so that reports/demo keeps the default recipe's runs."""
+    stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
+    calls = _demo_sh(tmp_path, DEMO_RECIPE="motion")
+    trained = {_arg(c, "hydra.run.dir"): _arg(c, "experiment") for c in calls if c[0] == "denoiser-train"}
+    runs = "reports/demo_motion/runs/"
+    assert trained == {runs + "teacher": "demo_motion_teacher", runs + "student_distilled_s0": "demo_motion_distill",
+                       runs + "student_no_kd_s0": "demo_motion"}
+    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo", "fast", "fast_more", "vivid"]
+    assert not (tmp_path / "reports" / "demo").exists()
+    bad = subprocess.run(["bash", str(tmp_path / "scripts" / "demo.sh")], capture_output=True, text=True,
+                         check=False, env={"PATH": "/usr/bin:/bin", "VENV": "venv", "DEMO_RECIPE": "fast"})
+    assert bad.returncode == 2 and bad.stderr == "error: DEMO_RECIPE=fast: demo or motion\n"
 
 
 def _arg(call: list[str], key: str) -> str:

@@ -119,6 +119,12 @@ def test_a_candidate_behind_and_the_reference_first(tmp_path):
     assert rows["worse"][3] == "-1.50 [-1.50, -1.50] behind"
 
 
+def test_the_heading_is_the_title(tmp_path):
+    assert run_table(tmp_path).startswith("# Val table: training candidates on validation splits\n")
+    text = run_table(tmp_path, "title='Demo test split: the recipes, looked at once'")
+    assert text.startswith("# Demo test split: the recipes, looked at once\n")
+
+
 def test_every_seed_group_when_candidates_is_null(tmp_path):
     rows = table(run_table(tmp_path), "### one val")
     assert list(rows)[-3:] == ["base", "ahead", "same"]  # first-appearance order

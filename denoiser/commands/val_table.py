@@ -21,7 +21,8 @@ such as ``noisy input`` and ``OIDN-fast`` without the suffix) and writes, per ev
 * a per-sequence table of ``metric``, seeds averaged, one column per method shown.
 
 The header names the run id, commit, seeds, the command line and the inputs (with their
-SHA-256). Runs of seeds outside ``seeds`` are left out (and named). Missing input (a file, a
+SHA-256), under ``title`` (another for a test split: its candidates are then
+fixed, and the split is looked at once). Runs of seeds outside ``seeds`` are left out (and named). Missing input (a file, a
 baseline, a candidate, one of its seeds) is one error line and exit code 2.
 """
 
@@ -191,7 +192,7 @@ def run(cfg: DictConfig) -> Path:
     overrides = hydra_runtime()[0]
     command = " ".join(["python -m denoiser.commands.val_table", *overrides])
     lines = [
-        "# Val table: training candidates on validation splits",
+        f"# {cfg.title}",
         "",
         f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
         f"- commit: {git_commit()}",

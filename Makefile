@@ -6,7 +6,7 @@ PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
 
-.PHONY: gpu-check setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper readme-paper fast-motion lint clean-cache blender blender-val
+.PHONY: gpu-check readme-gpu setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper readme-paper fast-motion lint clean-cache blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -113,6 +113,10 @@ lint: setup
 # lent machine has its own torch; scripts/gpu_carry.sh prepares what it lacks (.gpu_carry/).
 gpu-check:
 	bash scripts/gpu_check.sh
+
+# Copy the README block of docs/results/gpu.md (make gpu-check's report: the card, inference, training) into README.md.
+readme-gpu:
+	python3 scripts/readme_results.py --summary docs/results/gpu.md --marker gpu
 
 # Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
 # rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/ (orbit,

@@ -39,6 +39,9 @@ for entry in $SEQUENCES; do
         cp -r "$seq" "$DEST/data/demo/$split/"
     done
 done
+# the commit of the code that travels (the lent machine gets the working tree without .git)
+git rev-parse --short HEAD > "$DEST/commit"
+[ -z "$(git status --porcelain --untracked-files=no)" ] || sed -i 's/$/-dirty/' "$DEST/commit"
 mib=$(du -sm "$DEST" | cut -f1)
 echo "$DEST: ${mib} MiB ($(ls "$DEST/wheels" | wc -l) wheels; data: $(cd "$DEST/data/demo" && find . -mindepth 2 -maxdepth 2 -type d | tr '\n' ' '))"
 if [ "$mib" -gt "$CARRY_MIB" ]; then

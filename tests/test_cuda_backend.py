@@ -246,9 +246,13 @@ def test_gpu_check_resumed_report_keeps_the_sections_it_does_not_set(tmp_path):
     second = Report(tmp_path / "gpu.md", keep=True)
     second.set("Training step", "| ms |\n|---|\n| 30 |")
     second.set("Training run", "exit 0")
-    text = (tmp_path / "gpu.md").read_text()
+    text, block = (tmp_path / "gpu.md").read_text().split("\n<!-- gpu:begin -->\n")
     assert text == ("# GPU check\n\n## Device\n\n- gpu: A\n\n## Inference\n\n| a |\n|---|\n| 1 |\n\n"
                     "## Training step\n\n| ms |\n|---|\n| 30 |\n\n## Training run\n\nexit 0\n")
+    # the README block (make readme-gpu): the card, then the sections it repeats, kept across a resume
+    assert block == ("gpu: A\n\n**Inference.**\n\n| a |\n|---|\n| 1 |\n\n**Training step.**\n\n| ms |\n|---|\n"
+                     "| 30 |\n\n**Training run.** exit 0\n<!-- gpu:end -->\n")
+    assert Report(tmp_path / "gpu.md", keep=True).sections == second.sections
     assert Report(tmp_path / "other.md", keep=True).sections == {}
 
 
@@ -263,3 +267,26 @@ def test_gpu_check_loader_rate_runs_past_one_epoch(tmp_path):
     overrides = ["experiment=demo", *["net=tiny", "kernel=student"], f"data.root={root}", "data.val_split=null",
                  "data.window=2", "data.crop=16", "data.batch_size=1", "data.num_workers=0", "data.pin_memory=false"]
     assert loader_rate(overrides, batches=12) > 0
+
+
+def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
+    """sections=[cpu_eval]: a checkpoint (trained on a lent GPU) evaluated where this runs, into the
+    kept report, which keeps the sections of the lease; without eval_ckpt: one clear error."""
+    from conftest import compose_command, tiny_checkpoint
+    from test_eval_data import write_dataset
+
+    from denoiser.commands.gpu_check import Report, run
+    from denoiser.errors import ConfigError
+
+    Report(tmp_path / "gpu.md").set("Device", "- gpu: NVIDIA H200")
+    root = write_dataset(tmp_path / "demo", split="test", sequences=1, frames=3, size=32)
+    ckpt = tiny_checkpoint(tmp_path / "gpu.ckpt")
+    overrides = [f"out={tmp_path}", "sections=[cpu_eval]", "keep_report=true", f"data_root={root}"]
+    with pytest.raises(ConfigError, match="eval_ckpt"):
+        run(compose_command("gpu_check", overrides))
+    run(compose_command("gpu_check", [*overrides, f"eval_ckpt={ckpt}"]))
+    report = Report(tmp_path / "gpu.md", keep=True).sections
+    assert report["Device"] == "- gpu: NVIDIA H200\n"
+    body = report["CPU evaluation of the GPU-trained checkpoint"]
+    assert "`gpu.ckpt` on" in body and "split test" in body and "exit 0" in body
+    assert "| gpu_student |" in body and "| noisy input |" in body and "##" not in body

@@ -40,27 +40,59 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
+from denoiser.errors import ConfigError
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
+#: sections of gpu.md that its README block (``<!-- gpu:begin -->``, copied by ``make readme-gpu``) repeats
+README_SECTIONS = ("Inference", "Training step", "Training run", "CPU evaluation of the GPU-trained checkpoint")
+#: the Device lines the README block names the card and the software with
+README_DEVICE = ("gpu", "driver", "torch", "cuda", "triton")
+
+
 class Report:
-    """``gpu.md``: sections in order, the file rewritten whenever one is set."""
+    """``gpu.md``: sections in order, the file rewritten whenever one is set, and a README block
+    after them: the card and versions, then :data:`README_SECTIONS`."""
 
     def __init__(self, path: Path, keep: bool = False):
         """``keep``: start from the sections of an existing ``path`` (a check resumed in a second lease)."""
         self.path = path
         self.sections: dict[str, str] = {}
         if keep and path.exists():
-            for chunk in path.read_text().split("\n## ")[1:]:
+            for chunk in path.read_text().split("<!-- gpu:begin -->")[0].split("\n## ")[1:]:
                 title, _, body = chunk.partition("\n\n")
                 self.sections[title.strip()] = body.rstrip() + "\n"
 
     def set(self, title: str, body: str) -> None:
         self.sections[title] = body.rstrip() + "\n"
-        text = "# GPU check\n\n" + "\n".join(f"## {t}\n\n{b}" for t, b in self.sections.items())
+        text = "# GPU check\n\n" + "\n".join(f"## {t}\n\n{b}" for t, b in self.sections.items()) + self.block()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.path.write_text(text)
         print(f"== {title}\n{body}", flush=True)
+
+
+    def block(self) -> str:
+        """The README block: the card and versions (:data:`README_DEVICE` of the Device section), then
+        each of :data:`README_SECTIONS` that is set, its title in bold."""
+        device = [line for line in self.sections.get("Device", "").splitlines()
+                  if line.startswith(tuple(f"- {k}:" for k in README_DEVICE))]
+        parts = ["; ".join(line[2:] for line in device)] if device else []
+        parts += [f"**{t}.**" + ("\n\n" if self.sections[t].startswith("|") else " ") + self.sections[t].rstrip()
+                  for t in README_SECTIONS if t in self.sections]  # a table starts on its own line
+        return "\n<!-- gpu:begin -->\n" + "\n\n".join(parts) + "\n<!-- gpu:end -->\n" if parts else ""
+
+
+def code_commit() -> str:
+    """The commit of the code that runs: git's, else the one ``scripts/gpu_carry.sh`` wrote into
+    ``.gpu_carry/commit`` (the working tree travels to a lent machine without ``.git``)."""
+    from denoiser.report.summary import git_commit
+
+    commit = git_commit() if (ROOT / ".git").exists() else "unknown"
+    carried = ROOT / ".gpu_carry" / "commit"
+    if commit == "unknown" and carried.is_file():
+        commit = carried.read_text().strip() or "unknown"
+    return commit
 
 
 def timed_out(deadline: float, report: Report, title: str) -> bool:
@@ -284,7 +316,16 @@ def train_run(cfg: DictConfig, root: Path, out: Path, step_rows: list[dict], rep
     return ckpt if ckpt.exists() else None
 
 
+def overall_table(metrics_md: str) -> str:
+    """The table of the "Overall" section of denoiser-eval's ``metrics.md``."""
+    section = metrics_md.split("## Overall", 1)[-1]
+    return "\n".join(line for line in section.split("\n## ", 1)[0].splitlines() if line.startswith("|"))
+
+
 def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report) -> None:
+    """``ckpt`` evaluated on this machine's CPU (CUDA hidden) on the first split of ``root`` there is."""
+    from denoiser.measure import cpu_model
+
     split = next((s for s in ("test", "val", "train") if (root / s).is_dir()), "train")
     overrides = ["data=demo", f"data.root={root}", f"split={split}", f"ckpt={{gpu_student: {ckpt}}}",
                  "device=cpu", f"out_dir={out / 'eval'}", *cfg.eval.overrides]
@@ -293,9 +334,11 @@ def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report)
         proc = subprocess.run([sys.executable, "-m", "denoiser.commands.evaluate", *overrides], check=False,
                               capture_output=True, text=True, timeout=int(cfg.eval.timeout_s), cwd=ROOT, env=env)
         table = out / "eval" / "metrics.md"
-        body = table.read_text() if proc.returncode == 0 and table.exists() else \
+        body = overall_table(table.read_text()) if proc.returncode == 0 and table.exists() else \
             "```\n" + "\n".join(proc.stderr.strip().splitlines()[-8:]) + "\n```"
-        report.set("CPU evaluation of the GPU-trained checkpoint", f"split {split}, exit {proc.returncode}\n\n{body}")
+        report.set("CPU evaluation of the GPU-trained checkpoint",
+                   f"`{ckpt.name}` on {cpu_model()}, CUDA hidden; split {split} of `{root.name}`, exit "
+                   f"{proc.returncode}\n\n{body}")
     except subprocess.TimeoutExpired:
         report.set("CPU evaluation of the GPU-trained checkpoint", f"killed after {cfg.eval.timeout_s} s")
 
@@ -309,7 +352,14 @@ def run(cfg: DictConfig) -> dict:
 
     out = Path(cfg.out)
     report = Report(out / "gpu.md", keep=bool(cfg.keep_report))
-    info = device_report()
+    root = Path(cfg.data_root or os.path.join(os.environ.get("DENOISER_DATA", "data"), "demo")).resolve()
+    if list(cfg.sections) == ["cpu_eval"]:  # a checkpoint the GPU trained, evaluated where this runs
+        if not cfg.eval_ckpt:
+            raise ConfigError("sections=[cpu_eval] needs eval_ckpt=<the GPU-trained checkpoint>")
+        cpu_eval(cfg, root, Path(cfg.eval_ckpt).resolve(), out, report)
+        return {"ckpt": str(cfg.eval_ckpt)}
+    info = {"run id": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "commit": code_commit(),
+            **device_report()}
     report.set("Device", "\n".join(f"- {k}: {v}" for k, v in info.items()))
     if not torch.cuda.is_available():
         report.set("Result", "no CUDA device: nothing measured")
@@ -325,7 +375,6 @@ def run(cfg: DictConfig) -> dict:
         else train_step_rows(cfg, deadline, report)
     write_csv(out / "rows.csv", [{"section": "inference", **r} for r in rows] +
               [{"section": "train_step", **r} for r in step_rows])
-    root = Path(cfg.data_root or os.path.join(os.environ.get("DENOISER_DATA", "data"), "demo")).resolve()
     if not (root / "train").is_dir():
         report.set("Training run", f"not run: no {root}/train")
         return {"device": info, "inference": rows, "train_step": step_rows}

@@ -31,7 +31,8 @@ ovext: setup
 
 # The whole pipeline on the simulated demo dataset (render, teacher, distilled and no-KD
 # students with 3 seeds each, evaluation, benchmark): reports/demo/ and its summary.md.
-# Step budgets; about 40 minutes on 2 idle CPU cores from a fresh clone.
+# Step budgets; about 40 minutes on 2 idle CPU cores from a fresh clone. DEMO_RECIPE=motion make demo:
+# the recipe for fast-moving objects (conf/base/motion_recipe.yaml) into reports/demo_motion/ (scripts/lib.sh).
 demo: setup
 	VENV=$(VENV) bash scripts/demo.sh
 

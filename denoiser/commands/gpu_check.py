@@ -71,7 +71,6 @@ class Report:
         self.path.write_text(text)
         print(f"== {title}\n{body}", flush=True)
 
-
     def block(self) -> str:
         """The README block: the card and versions (:data:`README_DEVICE` of the Device section), then
         each of :data:`README_SECTIONS` that is set, its title in bold."""
@@ -88,7 +87,7 @@ def code_commit() -> str:
     ``.gpu_carry/commit`` (the working tree travels to a lent machine without ``.git``)."""
     from denoiser.report.summary import git_commit
 
-    commit = git_commit() if (ROOT / ".git").exists() else "unknown"
+    commit = git_commit()  # "unknown" outside a git checkout
     carried = ROOT / ".gpu_carry" / "commit"
     if commit == "unknown" and carried.is_file():
         commit = carried.read_text().strip() or "unknown"
@@ -270,6 +269,7 @@ def loader_rate(overrides: list[str], batches: int) -> float:
     cfg = compose_config(overrides, "train")
     dm = instantiate_config(cfg.data, "data")
     dm.setup("fit")
+
     def cycle():  # epochs after epochs: a few short sequences give fewer batches than asked for
         while True:
             yield from dm.train_dataloader()
@@ -375,10 +375,12 @@ def run(cfg: DictConfig) -> dict:
         else train_step_rows(cfg, deadline, report)
     write_csv(out / "rows.csv", [{"section": "inference", **r} for r in rows] +
               [{"section": "train_step", **r} for r in step_rows])
+    if "train_run" not in sections:
+        return {"device": info, "inference": rows, "train_step": step_rows}
     if not (root / "train").is_dir():
         report.set("Training run", f"not run: no {root}/train")
         return {"device": info, "inference": rows, "train_step": step_rows}
-    if "train_run" not in sections or timed_out(deadline, report, "Training run"):
+    if timed_out(deadline, report, "Training run"):
         return {"device": info, "inference": rows, "train_step": step_rows}
     ckpt = train_run(cfg, root, out, step_rows, report)
     if ckpt is not None:

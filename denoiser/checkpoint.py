@@ -226,6 +226,22 @@ def load_denoiser(path: str | os.PathLike, map_location: str | torch.device = "c
     return net.to(map_location).eval()
 
 
+def load_weights(net: torch.nn.Module, path: str | os.PathLike, *, trust: bool = False) -> torch.nn.Module:
+    """Load the network weights of the checkpoint at ``path`` into ``net`` (fine-tuning from it).
+
+    The checkpoint's architecture must be ``net``'s: a missing or extra weight or another shape is
+    a ``UserError`` naming ``path`` and the first difference. Returns ``net``.
+    """
+    path = resolve_checkpoint(path)
+    ckpt = read_checkpoint(path, "cpu", trust=trust)
+    state = net_state_dict(ckpt, path)
+    problem = describe_mismatch(net, state)
+    if problem:
+        raise UserError(f"{path}: its weights do not fit the network being trained ({problem})")
+    net.load_state_dict(state, strict=True)
+    return net
+
+
 def save_checkpoint(path: str | os.PathLike, net: torch.nn.Module, net_cfg: Mapping, **extra: Any) -> Path:
     """Write ``net`` as a minimal checkpoint in the Lightning format above, atomically.
 

@@ -163,7 +163,8 @@ SHARED_MODEL = {
 }
 DENOISE_LOSS = {"_target_": "denoiser.lit.losses.DenoiseLoss", "smape_weight": 1.0, "gradient_weight": 0.5,
                 "temporal_weight": 0.25}
-SUPERVISED_MODEL = {**SHARED_MODEL, "_target_": "denoiser.lit.supervised.SupervisedModule", "loss": DENOISE_LOSS}
+SUPERVISED_MODEL = {**SHARED_MODEL, "_target_": "denoiser.lit.supervised.SupervisedModule", "loss": DENOISE_LOSS,
+                    "init_ckpt": None}
 DISTILL_MODEL = {
     **SHARED_MODEL, "_target_": "denoiser.lit.distill.DistillationModule", "teacher_ckpt": None,
     "trust_teacher_ckpt": False,

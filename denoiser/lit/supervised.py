@@ -10,6 +10,10 @@ frame of the window against the reference; unlabeled items (``labeled`` False) a
 Logged: ``train/loss`` and ``train/loss_<term>`` (weighted terms), validation metrics
 (``val/psnr``, ``val/ssim``, ``val/tpsnr``, ``val/smape`` and the noisy input's
 ``val/input_psnr``/``val/input_ssim``), image panels (see :mod:`denoiser.lit.common`).
+
+``init_ckpt`` (a checkpoint of the same architecture, or null) starts the network from that
+checkpoint's weights instead of a random draw: fine-tuning (the optimizer, the schedule and the
+step count start afresh; a resumed run's own checkpoint then replaces these weights).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from typing import Any
 
 import torch
 
+from denoiser.checkpoint import load_weights
 from denoiser.configs import plain
 from denoiser.lit.common import DenoiserModule, labeled_mask
 from denoiser.lit.losses import DenoiseLoss, masked_mean
@@ -34,16 +39,18 @@ class SupervisedModule(DenoiserModule):
     def __init__(self, net: Mapping, loss: Mapping | DenoiseLoss, optimizer: Callable | Mapping,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
                  detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
-                 logit_penalty: float = 0.0, performance: Mapping | None = None):
+                 logit_penalty: float = 0.0, performance: Mapping | None = None, init_ckpt: str | None = None):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
                          image_interval, grad_clip, logit_penalty, performance)
+        if init_ckpt:
+            load_weights(self.net, init_ckpt)
         self.save_hyperparameters({
             "net": plain(net), "loss": plain(loss) if not callable(loss) else repr(loss),
             "optimizer": plain(optimizer) if not callable(optimizer) else repr(optimizer),
             "scheduler": plain(scheduler) if not callable(scheduler) else repr(scheduler),
             "scheduler_interval": scheduler_interval, "detach_every": detach_every,
             "warmup_frames": warmup_frames, "image_interval": image_interval, "grad_clip": grad_clip,
-            "logit_penalty": logit_penalty,
+            "logit_penalty": logit_penalty, "init_ckpt": init_ckpt,
         })
         self.loss = self._factory(loss) if not isinstance(loss, DenoiseLoss) else loss
 

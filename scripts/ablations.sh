@@ -65,12 +65,12 @@ run_dir() {  # the run directory of <variant> <seed>: make demo's for none and n
 }
 
 need "$DATA/test" "the demo's test split"
-need "$DEMO/teacher/DONE" "the finished demo teacher"
+need "$DEMO/$DEMO_TEACHER_RUN/DONE" "the finished demo teacher"
 for seed in $SEEDS; do
     need "$DEMO/student_distilled_s$seed/DONE" "make demo's distilled student of seed $seed (DEMO_SEEDS)"
     need "$DEMO/student_no_kd_s$seed/DONE" "make demo's no-KD student of seed $seed (DEMO_SEEDS)"
 done
-TEACHER=$(best "$DEMO/teacher")   # the checkpoint make demo's distilled students were taught by
+TEACHER=$(best "$DEMO/$DEMO_TEACHER_RUN")   # the checkpoint make demo's distilled students were taught by
 timings_begin
 
 train() {  # train <variant>_s<seed>: one run, its output in <run>.log

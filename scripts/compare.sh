@@ -31,12 +31,12 @@ TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
 DEMO=reports/$DEMO_RECIPE_NAME/runs   # make demo's runs of the same DEMO_RECIPE
-[ -f "$DEMO/teacher/DONE" ] || { echo "error: $DEMO/teacher: no finished demo teacher (run make demo first)" >&2; exit 2; }
+[ -f "$DEMO/$DEMO_TEACHER_RUN/DONE" ] || { echo "error: $DEMO/$DEMO_TEACHER_RUN: no finished demo teacher (run make demo first)" >&2; exit 2; }
 timings_begin
 # its references: data/demo's, copied
 stage --reuse "${DENOISER_DATA:-data}/demo_compare" '*.exr' render "$BIN/denoiser-render" dataset=demo_compare \
     "reference_from=${DENOISER_DATA:-data}/demo"
-TEACHER=$(best "$DEMO/teacher")
+TEACHER=$(best "$DEMO/$DEMO_TEACHER_RUN")
 CKPTS="teacher: $TEACHER"
 BENCH_CKPTS="teacher: $TEACHER"   # a seed group is timed once (its networks are the same size)
 for seed in $SEEDS; do

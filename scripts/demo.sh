@@ -2,11 +2,13 @@
 # `make demo`: the whole pipeline on the small simulated demo dataset, on the CPU.
 #
 #   1. render data/demo (denoiser-render dataset=demo; frames that exist are kept: cached)
-#   2. train the demo teacher                 (experiment=demo_teacher, seed 0)
-#   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_distill seed=k,
-#      teacher from step 2)
-#   4. train the same student without KD, on references alone (experiment=demo seed=k), same
-#      seeds and the same number of steps
+#      and the families the recipe adds (data/fast, data/fast_more, data/vivid)
+#   2. train the demo teacher (experiment=demo_teacher, seed 0), then fine-tune it on the recipe's
+#      data (experiment=demo_motion_tune model.init_ckpt=<teacher>: reports/demo/runs/teacher_tuned)
+#   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_motion_distill
+#      seed=k, teacher from step 2)
+#   4. train the same student without KD, on references alone (experiment=demo_motion seed=k),
+#      same seeds and the same number of steps
 #   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench); the same networks on the Blender Cycles
 #      sequences when they exist (DEMO_BLENDER, default data/blender: `make blender` renders
@@ -22,9 +24,9 @@
 # Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
 # each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
 # teacher, default: all cores), DEMO_BLENDER (Blender sequences to evaluate on when
-# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default, or motion:
-# issue 33's recipe for fast-moving objects, scripts/lib.sh), DEMO_REPORT (default reports/demo,
-# reports/demo_motion for DEMO_RECIPE=motion).
+# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default; plain: the
+# recipe before issue 33's fast-moving objects; motion: a teacher trained on them from scratch;
+# scripts/lib.sh), DEMO_REPORT (default reports/demo, reports/demo_plain or reports/demo_motion).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -57,7 +59,7 @@ demo_train() {  # demo_train <run name> <overrides...>: train (skipped when fini
 
 # 1. data (denoiser-render keeps frames that exist, so a second run costs seconds)
 stage --reuse "${DENOISER_DATA:-data}/demo" '*.exr' render "$BIN/denoiser-render" dataset=demo
-# DEMO_RECIPE=motion: the fast-moving and saturated families it trains on (conf/base/motion_recipe.yaml)
+# the fast-moving and saturated families the recipe trains on (conf/base/motion_recipe.yaml)
 for family in $DEMO_EXTRA_DATASETS; do
     stage --reuse "${DENOISER_DATA:-data}/$family" '*.exr' "render_$family" "$BIN/denoiser-render" "dataset=$family"
 done
@@ -65,6 +67,11 @@ done
 # 2-4. networks
 stage --reuse "$RUNS/teacher" DONE teacher demo_train teacher "experiment=$DEMO_TEACHER_EXPERIMENT" seed=0 "threads=$THREADS"
 TEACHER=$(best "$RUNS/teacher")
+if [ -n "$DEMO_TUNE_EXPERIMENT" ]; then  # the teacher fine-tuned on the recipe's data teaches the students
+    stage --reuse "$RUNS/teacher_tuned" DONE teacher_tuned demo_train teacher_tuned "experiment=$DEMO_TUNE_EXPERIMENT" \
+        "model.init_ckpt=$TEACHER" seed=0 "threads=$THREADS"
+    TEACHER=$(best "$RUNS/teacher_tuned")
+fi
 # students: every (kind, seed) pair, DEMO_JOBS at a time, each with its share of the cores
 STUDENTS=()
 for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done

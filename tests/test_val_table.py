@@ -172,3 +172,25 @@ def test_a_missing_seed_is_one_error_naming_the_csv_and_the_group(tmp_path, caps
     # a group absent altogether: the same kind of line
     with pytest.raises(UserError, match=f"^{re.escape(str(good))}: no runs of candidate 'nope'"):
         run(config(tmp_path, {"good": good}, "candidates=[nope]"))
+
+
+def test_two_runs_of_one_split_read_as_one(tmp_path):
+    """``csv: [a, b]``: candidates from two evaluation runs of the same split, paired as if one run
+    had evaluated them all; the baselines both runs hold are taken once."""
+    from denoiser.commands.val_table import run
+
+    baselines = {k: VALUES[k] for k in ("noisy input", "OIDN-fast")}
+    first = write_metrics(tmp_path / "a" / "metrics.csv", {**baselines, **{f"base_s{s}": v for s, v in BASE.items()}})
+    ahead = {k: v for k, v in VALUES.items() if k.startswith("ahead_s")}
+    second = write_metrics(tmp_path / "b" / "metrics.csv", {**baselines, **ahead})
+    cfg = config(tmp_path, {"one": first}, "candidates=[ahead]")
+    cfg.evals.one.csv = [str(first), str(second)]
+    two = run(cfg).read_text()
+    one = run_table(tmp_path / "single", "candidates=[ahead]", values={**baselines, **VALUES})
+    assert table(two, "### one val: 4 sequences") == table(one, "### one val: 4 sequences")
+    assert f"From `{first}` and `{second}`." in two and two.count("SHA-256") == 2
+    # a baseline that differs between the runs: they did not see the same frames
+    other = dict(baselines, **{"OIDN-fast": [x + 0.5 for x in VALUES["OIDN-fast"]]})
+    write_metrics(tmp_path / "b" / "metrics.csv", {**other, **ahead})
+    with pytest.raises(UserError, match=r"b/metrics\.csv: method 'OIDN-fast' differs from .*a/metrics\.csv on val/a_000"):
+        run(cfg)

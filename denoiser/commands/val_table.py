@@ -11,6 +11,10 @@ over issue 33's candidates; the command above is that study's first table). It r
 (``denoiser-eval ... split=val``; every candidate's runs labelled ``<group>_s<seed>``, baselines
 such as ``noisy input`` and ``OIDN-fast`` without the suffix) and writes, per evaluation:
 
+(``csv`` may also be a list: evaluation runs of the same split, read as one. A method in more than
+one of them is taken from the first, and must have the same values in the others: a baseline's
+rows that differ mean the runs did not see the same frames, one error line naming both files.)
+
 * a table: the ``plain_rows`` (methods without seeds, e.g. the noisy input and OIDN), then every candidate (``reference`` first) with the mean over
   sequences of ``metric`` and of each ``also`` column (mean ± std over seeds,
   :mod:`denoiser.report.summary`), and two paired differences in ``metric``: the candidate minus
@@ -32,7 +36,7 @@ import datetime
 import hashlib
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from denoiser.atomic import atomic_write_text
 from denoiser.commands.app import hydra_runtime
@@ -54,8 +58,8 @@ from denoiser.report.summary import (
 
 
 def check_config(cfg: DictConfig) -> tuple[str, list[str], dict[str, dict[str, str]]]:
-    """``(metric, also, evals {key: {title, csv}})`` of the config; ConfigError on an unknown
-    column or an evaluation without a csv."""
+    """``(metric, also, evals {key: {title, csv: [paths]}})`` of the config; ConfigError on an
+    unknown column or an evaluation without a csv."""
     metric, also = str(cfg.metric), [str(m) for m in (cfg.get("also") or [])]
     unknown = [m for m in [metric, *also] if m not in COLUMNS]
     if unknown:
@@ -64,7 +68,8 @@ def check_config(cfg: DictConfig) -> tuple[str, list[str], dict[str, dict[str, s
     for key, spec in (cfg.get("evals") or {}).items():
         if not spec or not spec.get("csv"):
             raise ConfigError(f"evals.{key}: needs csv (denoiser-eval's metrics.csv) and title")
-        evals[str(key)] = {"title": str(spec.get("title") or key), "csv": str(spec.csv)}
+        csvs = [str(c) for c in spec.csv] if isinstance(spec.csv, (list, ListConfig)) else [str(spec.csv)]
+        evals[str(key)] = {"title": str(spec.get("title") or key), "csv": csvs}
     if not evals:
         raise ConfigError("evals: no evaluation configured ({key: {title, csv}})")
     if not cfg.get("reference"):
@@ -87,14 +92,44 @@ def keep_seeds(rows: list[dict], seeds: list[int] | None) -> tuple[list[dict], l
     return kept, list(dropped)
 
 
-def evaluation(path: Path, cfg: DictConfig, columns: list[str],
+def merged_rows(paths: list[Path], columns: list[str]) -> list[dict]:
+    """The rows of every metrics.csv of ``paths`` (runs of one split) as one: a method found in an
+    earlier file is skipped in a later one, after a check that its ``columns`` agree on every
+    sequence (UserError naming both files where not)."""
+    rows, first = [], {}
+    for path in paths:
+        if not path.exists():
+            raise UserError(f"{path}: not found (denoiser-eval ... split=val writes it)")
+        own = read_csv(path)
+        seen = {str(r["method"]) for r in own} & set(first)
+        for name in sorted(seen):
+            before, now = ({(r["sequence"], c): r.get(c) for r in rs if str(r["method"]) == name for c in columns}
+                           for rs in (rows, own))
+            differ = [k for k in before.keys() | now.keys() if not _same(before.get(k), now.get(k))]
+            if differ:
+                seq, column = sorted(differ)[0]
+                raise UserError(f"{path}: method '{name}' differs from {first[name]} on {seq} ({column}; "
+                                f"{len(differ)} value(s)): not evaluations of the same split")
+        for r in own:
+            first.setdefault(str(r["method"]), path)
+        rows += [r for r in own if str(r["method"]) not in seen]
+    return rows
+
+
+def _same(a, b) -> bool:
+    try:
+        return abs(float(a) - float(b)) <= 1e-6 * max(1.0, abs(float(a)))
+    except (TypeError, ValueError):
+        return a == b
+
+
+def evaluation(paths: list[Path], cfg: DictConfig, columns: list[str],
                seeds: list[int] | None) -> tuple[list[str], list[str], dict[str, dict], dict, list[str]]:
     """``(baselines, candidates, {name: seed group row}, per-sequence values per group, methods left
-    out)`` of a metrics.csv; UserError naming the file when a baseline, a candidate or one of its
-    seeds is missing."""
-    if not path.exists():
-        raise UserError(f"{path}: not found (denoiser-eval ... split=val writes it)")
-    rows, dropped = keep_seeds(read_csv(path), seeds)
+    out)`` of one or more metrics.csv (:func:`merged_rows`); UserError naming the file when a
+    baseline, a candidate or one of its seeds is missing."""
+    path = paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))  # named in errors
+    rows, dropped = keep_seeds(merged_rows(paths, columns), seeds)
     groups = {g["method"]: g for g in seed_groups(method_means(rows, columns))}
     base = str(cfg.reference)
     if cfg.get("candidates") is None:
@@ -175,14 +210,15 @@ def run(cfg: DictConfig) -> Path:
     labels = {str(k): str(v) for k, v in (cfg.get("labels") or {}).items()}
     sections, dropped = [], {}
     for key, spec in evals.items():
-        path = Path(spec["csv"])
-        baselines, candidates, groups, per_sequence, left_out = evaluation(path, cfg, columns, seeds)
+        paths = [Path(c) for c in spec["csv"]]
+        path = paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))
+        baselines, candidates, groups, per_sequence, left_out = evaluation(paths, cfg, columns, seeds)
         dropped[path] = left_out
         n = len(per_sequence[str(cfg.reference)].get(metric, {}))
         legend = [f"- `{name}`: {labels[name]}" for name in candidates if name in labels]
-        sections.append((key, spec, path, [
+        sections.append((key, spec, paths, [
             f"### {spec['title']}: {n} sequences", "",
-            f"From `{path}`.", "",
+            "From " + " and ".join(f"`{p}`" for p in paths) + ".", "",
             candidate_table(cfg, baselines, candidates, groups, per_sequence, metric, also, n).rstrip(), "",
             *([*legend, ""] if legend else []),
         ], [
@@ -198,7 +234,7 @@ def run(cfg: DictConfig) -> Path:
         f"- commit: {git_commit()}",
         f"- seeds (every candidate): {seeds if seeds is not None else 'all evaluated'}",
         f"- command: `{command}`",
-        *(f"- {spec['title']}: `{path}`, SHA-256 {sha256(path)}" for _, spec, path, _, _ in sections),
+        *(f"- {spec['title']}: `{p}`, SHA-256 {sha256(p)}" for _, spec, paths, _, _ in sections for p in paths),
         *(f"- left out of `{p}` (seeds not in {seeds}): {', '.join(d)}" for p, d in dropped.items() if d),
         "",
         (f"Means: over the sequences of each evaluation; mean ± std over seeds for a candidate (column "

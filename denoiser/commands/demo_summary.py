@@ -165,19 +165,21 @@ def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
                           headers={**HEADERS, "gain": "PSNR gain dB"})
 
 
-def extra_sections(report: Path, extra: dict, claims: list[dict]) -> list[str]:
-    """Markdown lines of one table (and the claims) per ``{dir: title}`` whose
-    ``<report>/<dir>/metrics.csv`` exists, between ``<!-- <dir>:begin -->`` and
-    ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
+def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric: str | None = None) -> list[str]:
+    """Markdown lines of one table (and the claims, and with ``family_metric`` their per-family
+    table in that metric) per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists, between
+    ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
     lines: list[str] = []
     for name, title in extra.items():
         csv_path = report / str(name) / "metrics.csv"
         if csv_path.exists():
             groups, per_sequence = evaluation(csv_path)
             groups = merge_identical(groups, per_sequence)
+            by_family = (family_lines(claims, per_sequence, families(csv_path), family_metric) + [""]
+                         if claims and family_metric else [])
             lines += [f"## {title}", "", f"From `{csv_path}`; students: mean ± std over seeds.", "",
                       f"<!-- {name}:begin -->", gain_table(groups).rstrip(), *merged_note(groups), "",
-                      *claim_lines(claims, per_sequence), f"<!-- {name}:end -->", ""]
+                      *claim_lines(claims, per_sequence), *by_family, f"<!-- {name}:end -->", ""]
     return lines
 
 
@@ -193,8 +195,9 @@ def run(cfg: DictConfig) -> Path:
     if not metrics_csv.exists():
         raise UserError(f"{metrics_csv}: no evaluation found (run denoiser-eval first)")
     claims = check_claims(cfg.get("claims") or [])
-    if cfg.family_metric not in COLUMNS:
-        raise ConfigError(f"family_metric: unknown {cfg.family_metric!r} (one of {', '.join(COLUMNS)})")
+    for key in ("family_metric", "extra_family_metric"):
+        if cfg.get(key) is not None and cfg[key] not in COLUMNS:
+            raise ConfigError(f"{key}: unknown {cfg[key]!r} (one of {', '.join(COLUMNS)})")
     groups, per_sequence = evaluation(metrics_csv)
     merged = merge_identical(groups, per_sequence)
     size = (int(cfg.bench_size[0]), int(cfg.bench_size[1]))
@@ -237,7 +240,7 @@ def run(cfg: DictConfig) -> Path:
         markers(cfg.marker)[1],
         "",
         *(family_lines(claims, per_sequence, families(metrics_csv), cfg.family_metric) + [""] if claims else []),
-        *extra_sections(report, cfg.get("extra_evals") or {}, claims),
+        *extra_sections(report, cfg.get("extra_evals") or {}, claims, cfg.get("extra_family_metric")),
         "## Training runs (steps and best validation PSNR)",
         "",
         markdown_table(runs, ["run", "seed", "steps", "val_psnr", "collapsed"], formats={"val_psnr": ".2f"},

@@ -194,3 +194,22 @@ def test_two_runs_of_one_split_read_as_one(tmp_path):
     write_metrics(tmp_path / "b" / "metrics.csv", {**other, **ahead})
     with pytest.raises(UserError, match=r"b/metrics\.csv: method 'OIDN-fast' differs from .*a/metrics\.csv on val/a_000"):
         run(cfg)
+
+
+def test_prefix_pairs_two_runs_of_the_same_labels(tmp_path):
+    """``prefix``: two runs that label their students alike (make demo's before and after) are paired
+    on the same split; the baselines keep their names and are checked equal."""
+    from denoiser.commands.val_table import run
+
+    baselines = {k: VALUES[k] for k in ("noisy input", "OIDN-fast")}
+    before = write_metrics(tmp_path / "a" / "metrics.csv", {**baselines, **{f"s_s{s}": v for s, v in BASE.items()}})
+    after = write_metrics(tmp_path / "b" / "metrics.csv",
+                          {**baselines, **{f"s_s{s}": [x + 1.0 for x in v] for s, v in BASE.items()}})
+    cfg = config(tmp_path, {"one": before}, "reference=prev_s", "candidates=[s]")
+    cfg.evals = {"one": {"title": "one val", "csv": [str(before), str(after)], "prefix": ["prev_", ""]}}
+    rows = table(run(cfg).read_text(), "### one val: 4 sequences")
+    assert list(rows)[2:] == ["noisy input", "OIDN-fast", "prev_s", "s"]
+    assert rows["s"][3] == "+1.00 [+1.00, +1.00] ahead"   # every sequence 1 dB above, after minus before
+    cfg.evals = {"one": {"title": "one val", "csv": [str(before), str(after)], "prefix": [""]}}
+    with pytest.raises(Exception, match="1 prefixes for 2 csv files"):
+        run(cfg)

@@ -13,7 +13,10 @@ such as ``noisy input`` and ``OIDN-fast`` without the suffix) and writes, per ev
 
 (``csv`` may also be a list: evaluation runs of the same split, read as one. A method in more than
 one of them is taken from the first, and must have the same values in the others: a baseline's
-rows that differ mean the runs did not see the same frames, one error line naming both files.)
+rows that differ mean the runs did not see the same frames, one error line naming both files.
+``prefix``, a list as long as ``csv``, renames each file's methods other than the baselines
+(``plain_rows`` and ``baseline``): ``prefix: [prev_, '']`` pairs make demo's students of an earlier
+run, ``prev_student_distilled_s<k>``, with this run's on the same split.)
 
 * a table: the ``plain_rows`` (methods without seeds, e.g. the noisy input and OIDN), then every candidate (``reference`` first) with the mean over
   sequences of ``metric`` and of each ``also`` column (mean ± std over seeds,
@@ -69,7 +72,10 @@ def check_config(cfg: DictConfig) -> tuple[str, list[str], dict[str, dict[str, s
         if not spec or not spec.get("csv"):
             raise ConfigError(f"evals.{key}: needs csv (denoiser-eval's metrics.csv) and title")
         csvs = [str(c) for c in spec.csv] if isinstance(spec.csv, (list, ListConfig)) else [str(spec.csv)]
-        evals[str(key)] = {"title": str(spec.get("title") or key), "csv": csvs}
+        prefixes = [str(p) for p in spec.get("prefix") or [""] * len(csvs)]
+        if len(prefixes) != len(csvs):
+            raise ConfigError(f"evals.{key}.prefix: {len(prefixes)} prefixes for {len(csvs)} csv files")
+        evals[str(key)] = {"title": str(spec.get("title") or key), "csv": csvs, "prefix": prefixes}
     if not evals:
         raise ConfigError("evals: no evaluation configured ({key: {title, csv}})")
     if not cfg.get("reference"):
@@ -92,15 +98,17 @@ def keep_seeds(rows: list[dict], seeds: list[int] | None) -> tuple[list[dict], l
     return kept, list(dropped)
 
 
-def merged_rows(paths: list[Path], columns: list[str]) -> list[dict]:
-    """The rows of every metrics.csv of ``paths`` (runs of one split) as one: a method found in an
-    earlier file is skipped in a later one, after a check that its ``columns`` agree on every
-    sequence (UserError naming both files where not)."""
+def merged_rows(paths: list[Path], columns: list[str], prefixes: list[str] | None = None,
+                keep: frozenset[str] = frozenset()) -> list[dict]:
+    """The rows of every metrics.csv of ``paths`` (runs of one split) as one: each file's methods
+    but those in ``keep`` renamed with its entry of ``prefixes``; a method found in an earlier file
+    is skipped in a later one, after a check that its ``columns`` agree on every sequence
+    (UserError naming both files where not)."""
     rows, first = [], {}
-    for path in paths:
+    for path, prefix in zip(paths, prefixes or [""] * len(paths)):
         if not path.exists():
             raise UserError(f"{path}: not found (denoiser-eval ... split=val writes it)")
-        own = read_csv(path)
+        own = [r if str(r["method"]) in keep else {**r, "method": prefix + str(r["method"])} for r in read_csv(path)]
         seen = {str(r["method"]) for r in own} & set(first)
         for name in sorted(seen):
             before, now = ({(r["sequence"], c): r.get(c) for r in rs if str(r["method"]) == name for c in columns}
@@ -123,13 +131,14 @@ def _same(a, b) -> bool:
         return a == b
 
 
-def evaluation(paths: list[Path], cfg: DictConfig, columns: list[str],
-               seeds: list[int] | None) -> tuple[list[str], list[str], dict[str, dict], dict, list[str]]:
+def evaluation(paths: list[Path], cfg: DictConfig, columns: list[str], seeds: list[int] | None,
+               prefixes: list[str] | None = None) -> tuple[list[str], list[str], dict[str, dict], dict, list[str]]:
     """``(baselines, candidates, {name: seed group row}, per-sequence values per group, methods left
     out)`` of one or more metrics.csv (:func:`merged_rows`); UserError naming the file when a
     baseline, a candidate or one of its seeds is missing."""
     path = paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))  # named in errors
-    rows, dropped = keep_seeds(merged_rows(paths, columns), seeds)
+    keep = frozenset([*map(str, cfg.get("plain_rows") or []), *([str(cfg.baseline)] if cfg.get("baseline") else [])])
+    rows, dropped = keep_seeds(merged_rows(paths, columns, prefixes, keep), seeds)
     groups = {g["method"]: g for g in seed_groups(method_means(rows, columns))}
     base = str(cfg.reference)
     if cfg.get("candidates") is None:
@@ -212,7 +221,7 @@ def run(cfg: DictConfig) -> Path:
     for key, spec in evals.items():
         paths = [Path(c) for c in spec["csv"]]
         path = paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))
-        baselines, candidates, groups, per_sequence, left_out = evaluation(paths, cfg, columns, seeds)
+        baselines, candidates, groups, per_sequence, left_out = evaluation(paths, cfg, columns, seeds, spec["prefix"])
         dropped[path] = left_out
         n = len(per_sequence[str(cfg.reference)].get(metric, {}))
         legend = [f"- `{name}`: {labels[name]}" for name in candidates if name in labels]

@@ -29,11 +29,12 @@ test: setup
 ovext: setup
 	$(PY) -m denoiser.inference.ovext
 
-# The whole pipeline on the simulated demo dataset (render, teacher and its fine-tune on the
-# fast-motion recipe, distilled and no-KD students with 3 seeds each, evaluation, benchmark):
-# reports/demo/ and its summary.md. Step budgets; about 50 minutes on 2 idle CPU cores from a fresh
-# clone. DEMO_RECIPE=plain make demo: the recipe before fast motion, into reports/demo_plain/;
-# DEMO_RECIPE=motion: a teacher trained on it from scratch, into reports/demo_motion/ (scripts/lib.sh).
+# The whole pipeline on the simulated demo dataset (render, teacher, distilled and no-KD
+# students with 3 seeds each, evaluation, benchmark): reports/demo/ and its summary.md.
+# Step budgets; about 40 minutes on 2 idle CPU cores from a fresh clone. DEMO_RECIPE=tune make demo:
+# the recipe for fast-moving objects (conf/base/motion_recipe.yaml) with the demo teacher fine-tuned
+# on it, into reports/demo_tune/; DEMO_RECIPE=motion: a teacher trained on it from scratch, into
+# reports/demo_motion/ (scripts/lib.sh).
 demo: setup
 	VENV=$(VENV) bash scripts/demo.sh
 

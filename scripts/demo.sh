@@ -2,13 +2,13 @@
 # `make demo`: the whole pipeline on the small simulated demo dataset, on the CPU.
 #
 #   1. render data/demo (denoiser-render dataset=demo; frames that exist are kept: cached)
-#      and the families the recipe adds (data/fast, data/fast_more, data/vivid)
-#   2. train the demo teacher (experiment=demo_teacher, seed 0), then fine-tune it on the recipe's
-#      data (experiment=demo_motion_tune model.init_ckpt=<teacher>: reports/demo/runs/teacher_tuned)
-#   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_motion_distill
-#      seed=k, teacher from step 2)
-#   4. train the same student without KD, on references alone (experiment=demo_motion seed=k),
-#      same seeds and the same number of steps
+#      (and the families a recipe adds: DEMO_RECIPE=tune or motion, data/fast, fast_more, vivid)
+#   2. train the demo teacher (experiment=demo_teacher, seed 0; DEMO_RECIPE=tune then fine-tunes it on
+#      the fast-motion recipe: experiment=demo_motion_tune model.init_ckpt=<teacher>, runs/teacher_tuned)
+#   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_distill seed=k,
+#      teacher from step 2)
+#   4. train the same student without KD, on references alone (experiment=demo seed=k), same
+#      seeds and the same number of steps
 #   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench); the same networks on the Blender Cycles
 #      sequences when they exist (DEMO_BLENDER, default data/blender: `make blender` renders
@@ -24,9 +24,10 @@
 # Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
 # each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
 # teacher, default: all cores), DEMO_BLENDER (Blender sequences to evaluate on when
-# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default; plain: the
-# recipe before issue 33's fast-moving objects; motion: a teacher trained on them from scratch;
-# scripts/lib.sh), DEMO_REPORT (default reports/demo, reports/demo_plain or reports/demo_motion).
+# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default; tune or
+# motion: issue 33's recipes for fast-moving objects, with the demo teacher fine-tuned on them or a
+# teacher trained on them from scratch; scripts/lib.sh), DEMO_REPORT (default reports/demo,
+# reports/demo_tune or reports/demo_motion).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -59,7 +60,7 @@ demo_train() {  # demo_train <run name> <overrides...>: train (skipped when fini
 
 # 1. data (denoiser-render keeps frames that exist, so a second run costs seconds)
 stage --reuse "${DENOISER_DATA:-data}/demo" '*.exr' render "$BIN/denoiser-render" dataset=demo
-# the fast-moving and saturated families the recipe trains on (conf/base/motion_recipe.yaml)
+# DEMO_RECIPE=tune or motion: the fast-moving and saturated families they train on (conf/base/motion_recipe.yaml)
 for family in $DEMO_EXTRA_DATASETS; do
     stage --reuse "${DENOISER_DATA:-data}/$family" '*.exr' "render_$family" "$BIN/denoiser-render" "dataset=$family"
 done

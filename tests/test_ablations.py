@@ -358,7 +358,7 @@ def tree(tmp_path):
 def _demo(root: Path, seeds=SEEDS) -> None:
     (root / "data" / "demo" / "test").mkdir(parents=True, exist_ok=True)
     runs = root / "reports" / "demo" / "runs"
-    for run in ("teacher", "teacher_tuned", *(f"student_{k}_s{s}" for s in seeds for k in ("distilled", "no_kd"))):
+    for run in ("teacher", *(f"student_{k}_s{s}" for s in seeds for k in ("distilled", "no_kd"))):
         (runs / run / "checkpoints").mkdir(parents=True, exist_ok=True)
         (runs / run / "checkpoints" / "best.ckpt").touch()
         (runs / run / "DONE").touch()
@@ -380,12 +380,12 @@ def test_ablations_sh_trains_the_variants_reuses_demo_and_resumes(tree):
     env = {"DENOISER_DATA": str(tree / "data")}
     proc, calls = _ablations_sh(tree, **env)
     assert proc.returncode == 0, proc.stderr
-    teacher = "reports/demo/runs/teacher_tuned/checkpoints/best.ckpt"
+    teacher = "reports/demo/runs/teacher/checkpoints/best.ckpt"
     trained = [c for c in calls if c[0] == "denoiser-train"]
     assert sorted((_arg(c, "ablation"), int(_arg(c, "seed"))) for c in trained) == \
         sorted((v, s) for v in script_variants() for s in SEEDS)   # never none or no_kd: make demo's
     for c in trained:
-        assert _arg(c, "experiment") == "demo_motion_distill" and _arg(c, "model.teacher_ckpt") == teacher
+        assert _arg(c, "experiment") == "demo_distill" and _arg(c, "model.teacher_ckpt") == teacher
         assert "skip_done=true" in c and "ckpt_path=auto" in c and not any(a.startswith("trainer.max_steps") for a in c)
         assert _arg(c, "hydra.run.dir") == f"reports/ablations/runs/{_arg(c, 'ablation')}_s{_arg(c, 'seed')}"
     (ev,) = [c for c in calls if c[0] == "denoiser-eval"]

@@ -209,7 +209,7 @@ def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
     stub_pipeline(tmp_path, "compare.sh", ("python", "denoiser-render", "denoiser-train", "denoiser-eval",
                                            "denoiser-bench"), STUB)
     demo = tmp_path / "reports" / "demo" / "runs"
-    for run in ("teacher", "teacher_tuned", "student_distilled_s0", "student_distilled_s1", "student_distilled_s2"):
+    for run in ("teacher", "student_distilled_s0", "student_distilled_s1", "student_distilled_s2"):
         (demo / run / "checkpoints").mkdir(parents=True)
         (demo / run / "checkpoints" / "best.ckpt").touch()
         (demo / run / "DONE").touch()
@@ -222,13 +222,13 @@ def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
     for c in trained:   # a finished run is denoiser-train's to skip, an interrupted one its to resume
         assert "skip_done=true" in c and "ckpt_path=auto" in c
         assert _arg(c, "hydra.run.dir") == f"reports/compare/runs/{_arg(c, 'net')}_s{_arg(c, 'seed')}"
-        assert _arg(c, "model.teacher_ckpt") == "reports/demo/runs/teacher_tuned/checkpoints/best.ckpt"
+        assert _arg(c, "model.teacher_ckpt") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
     (ev,) = [c for c in calls if c[0] == "denoiser-eval"]
     (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
     assert _arg(ev, "data") == _arg(bench, "data") == "demo_compare"
     assert _arg(ev, "baselines") == _arg(bench, "baselines") == "compare"
     ckpts = dict(kv.split(": ") for kv in _arg(ev, "ckpt").strip("{}").split(", "))
-    assert ckpts.pop("teacher") == "reports/demo/runs/teacher_tuned/checkpoints/best.ckpt"
+    assert ckpts.pop("teacher") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
     for s in "012":
         assert ckpts.pop(f"student_s{s}") == f"reports/demo/runs/student_distilled_s{s}/checkpoints/best.ckpt"
         for net in ("nppd", "ws"):

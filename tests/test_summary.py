@@ -165,49 +165,47 @@ def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_coll
     trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
     runs = "reports/demo/runs/"
     assert sorted(trained) == [runs + r for r in ("student_distilled_s0", "student_distilled_s1", "student_no_kd_s0",
-                                                   "student_no_kd_s1", "teacher", "teacher_tuned")]
+                                                   "student_no_kd_s1", "teacher")]
     for run, call in trained.items():
         assert "skip_done=true" in call and "ckpt_path=auto" in call, run
-    # the recipe (scripts/lib.sh): the demo's teacher, fine-tuned on the motion recipe, teaches the students
     assert _arg(trained[runs + "teacher"], "experiment") == "demo_teacher"
-    tuned = trained[runs + "teacher_tuned"]
-    assert _arg(tuned, "experiment") == "demo_motion_tune"
-    assert _arg(tuned, "model.init_ckpt") == runs + "teacher/checkpoints/last.ckpt"   # no best.ckpt: last
-    assert _arg(trained[runs + "student_no_kd_s1"], "experiment") == "demo_motion"
+    assert _arg(trained[runs + "student_no_kd_s1"], "experiment") == "demo"
     distilled = trained[runs + "student_distilled_s1"]
-    assert _arg(distilled, "experiment") == "demo_motion_distill" and _arg(distilled, "seed") == "1"
-    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo", "fast", "fast_more", "vivid"]
-    assert _arg(distilled, "model.teacher_ckpt") == runs + "teacher_tuned/checkpoints/last.ckpt"
-    evaluated = [c for c in calls if c[0] == "denoiser-eval"][0]
-    assert "teacher: " + runs + "teacher_tuned/checkpoints/last.ckpt" in _arg(evaluated, "ckpt")
+    assert _arg(distilled, "experiment") == "demo_distill" and _arg(distilled, "seed") == "1"
+    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo"]
+    assert _arg(distilled, "model.teacher_ckpt") == runs + "teacher/checkpoints/last.ckpt"   # no best.ckpt: last
     timings = (tmp_path / "reports" / "demo" / "timings.md").read_text()
-    assert "| teacher |" in timings and "| teacher_tuned |" in timings and "| students |" in timings
-    assert "| total |" in timings
+    assert "| teacher |" in timings and "| students |" in timings and "| total |" in timings
     # a run the CollapseDetector stopped ends the demo (exit 3), before any evaluation
     (tmp_path / "reports" / "demo" / "runs" / "student_no_kd_s0" / "COLLAPSED").write_text("collapse at step 90\n")
     calls = _demo_sh(tmp_path, 3, DEMO_SEEDS="0 1")
     assert not [c for c in calls if c[0] == "denoiser-eval"]
 
 
-@pytest.mark.parametrize("recipe,experiments,datasets", [
-    ("motion", ("demo_motion_teacher", "demo_motion_distill", "demo_motion"), ["demo", "fast", "fast_more", "vivid"]),
-    ("plain", ("demo_teacher", "demo_distill", "demo"), ["demo"]),
+@pytest.mark.parametrize("recipe,experiments", [
+    ("motion", {"teacher": "demo_motion_teacher"}),
+    ("tune", {"teacher": "demo_teacher", "teacher_tuned": "demo_motion_tune"}),
 ])
-def test_demo_sh_other_recipes_train_their_experiments_into_their_own_report(tmp_path, recipe, experiments, datasets):
-    """DEMO_RECIPE=motion or plain (scripts/lib.sh): their experiments (no fine-tuned teacher), the
-    datasets they read rendered too, and reports/demo_<recipe>, so that reports/demo keeps the
-    default recipe's runs."""
+def test_demo_sh_fast_motion_recipes_train_their_experiments_into_their_own_report(tmp_path, recipe, experiments):
+    """DEMO_RECIPE=motion or tune (scripts/lib.sh): their experiments (tune: the demo teacher, then its
+    fine-tune, which teaches the students), the datasets they read rendered too, and
+    reports/demo_<recipe>, so that reports/demo keeps the default recipe's runs."""
     stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
     calls = _demo_sh(tmp_path, DEMO_RECIPE=recipe)
-    trained = {_arg(c, "hydra.run.dir"): _arg(c, "experiment") for c in calls if c[0] == "denoiser-train"}
+    trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
     runs = f"reports/demo_{recipe}/runs/"
-    assert trained == {runs + "teacher": experiments[0], runs + "student_distilled_s0": experiments[1],
-                       runs + "student_no_kd_s0": experiments[2]}
-    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == datasets
+    assert {run: _arg(c, "experiment") for run, c in trained.items()} == {
+        **{runs + name: experiment for name, experiment in experiments.items()},
+        runs + "student_distilled_s0": "demo_motion_distill", runs + "student_no_kd_s0": "demo_motion"}
+    teacher = runs + ("teacher_tuned" if recipe == "tune" else "teacher") + "/checkpoints/last.ckpt"
+    assert _arg(trained[runs + "student_distilled_s0"], "model.teacher_ckpt") == teacher
+    if recipe == "tune":
+        assert _arg(trained[runs + "teacher_tuned"], "model.init_ckpt") == runs + "teacher/checkpoints/last.ckpt"
+    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo", "fast", "fast_more", "vivid"]
     assert not (tmp_path / "reports" / "demo").exists()
     bad = subprocess.run(["bash", str(tmp_path / "scripts" / "demo.sh")], capture_output=True, text=True,
                          check=False, env={"PATH": "/usr/bin:/bin", "VENV": "venv", "DEMO_RECIPE": "fast"})
-    assert bad.returncode == 2 and bad.stderr == "error: DEMO_RECIPE=fast: demo, plain or motion\n"
+    assert bad.returncode == 2 and bad.stderr == "error: DEMO_RECIPE=fast: demo, tune or motion\n"
 
 
 def _arg(call: list[str], key: str) -> str:

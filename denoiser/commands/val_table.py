@@ -115,7 +115,7 @@ def merged_rows(paths: list[Path], columns: list[str], prefixes: list[str] | Non
                            for rs in (rows, own))
             differ = [k for k in before.keys() | now.keys() if not _same(before.get(k), now.get(k))]
             if differ:
-                seq, column = sorted(differ)[0]
+                seq, column = min(differ)
                 raise UserError(f"{path}: method '{name}' differs from {first[name]} on {seq} ({column}; "
                                 f"{len(differ)} value(s)): not evaluations of the same split")
         for r in own:

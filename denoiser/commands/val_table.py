@@ -124,6 +124,11 @@ def merged_rows(paths: list[Path], columns: list[str], prefixes: list[str] | Non
     return rows
 
 
+def joined(paths: list[Path]) -> Path:
+    """The one path, or ``a + b`` for runs read as one (how errors and the header name them)."""
+    return paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))
+
+
 def _same(a, b) -> bool:
     try:
         return abs(float(a) - float(b)) <= 1e-6 * max(1.0, abs(float(a)))
@@ -136,7 +141,7 @@ def evaluation(paths: list[Path], cfg: DictConfig, columns: list[str], seeds: li
     """``(baselines, candidates, {name: seed group row}, per-sequence values per group, methods left
     out)`` of one or more metrics.csv (:func:`merged_rows`); UserError naming the file when a
     baseline, a candidate or one of its seeds is missing."""
-    path = paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))  # named in errors
+    path = joined(paths)  # named in errors
     keep = frozenset([*map(str, cfg.get("plain_rows") or []), *([str(cfg.baseline)] if cfg.get("baseline") else [])])
     rows, dropped = keep_seeds(merged_rows(paths, columns, prefixes, keep), seeds)
     groups = {g["method"]: g for g in seed_groups(method_means(rows, columns))}
@@ -220,7 +225,7 @@ def run(cfg: DictConfig) -> Path:
     sections, dropped = [], {}
     for key, spec in evals.items():
         paths = [Path(c) for c in spec["csv"]]
-        path = paths[0] if len(paths) == 1 else Path(" + ".join(map(str, paths)))
+        path = joined(paths)
         baselines, candidates, groups, per_sequence, left_out = evaluation(paths, cfg, columns, seeds, spec["prefix"])
         dropped[path] = left_out
         n = len(per_sequence[str(cfg.reference)].get(metric, {}))

@@ -167,7 +167,7 @@ SUPERVISED_MODEL = {**SHARED_MODEL, "_target_": "denoiser.lit.supervised.Supervi
                     "init_ckpt": None}
 DISTILL_MODEL = {
     **SHARED_MODEL, "_target_": "denoiser.lit.distill.DistillationModule", "teacher_ckpt": None,
-    "trust_teacher_ckpt": False,
+    "trust_teacher_ckpt": False, "init_ckpt": None,
     "loss": {"kd_weight": 1.0, "gt_weight": 1.0, "feature_weight": 0.1, "adversarial_weight": 0.01,
              "kd": DENOISE_LOSS, "gt": DENOISE_LOSS},
     "critic": {"_target_": "denoiser.nn.critic.PatchCritic", "in_channels": 3, "widths": [32, 64, 128],

@@ -1,4 +1,4 @@
-"""Fine-tuning: ``model.init_ckpt`` starts supervised training from a checkpoint's weights."""
+"""Fine-tuning: ``model.init_ckpt`` starts supervised training, or distillation, from a checkpoint's weights."""
 
 import pytest
 import torch
@@ -6,7 +6,8 @@ from conftest import compose_command, tiny_checkpoint
 
 from denoiser.checkpoint import load_weights, read_checkpoint
 from denoiser.configs import compose_net_config
-from denoiser.errors import UserError
+from denoiser.errors import ConfigError, UserError
+from denoiser.lit.distill import DistillationModule
 from denoiser.lit.supervised import SupervisedModule
 
 LOSS = {"_target_": "denoiser.lit.losses.DenoiseLoss"}
@@ -43,3 +44,36 @@ def test_demo_motion_tune_composes_the_teacher_recipe_with_a_start(tmp_path):
     assert cfg.model.init_ckpt == "t.ckpt" and teacher.model.init_ckpt is None
     assert cfg.trainer.max_steps == 400 and cfg.model.optimizer.lr == 5e-4
     assert cfg.net == teacher.net and cfg.data == teacher.data  # the motion recipe's data, the teacher's network
+
+
+def student(tmp_path, init_ckpt=None, **kw):
+    torch.manual_seed(123)
+    teacher = tiny_checkpoint(tmp_path / "teacher.ckpt", seed=3)
+    return DistillationModule(net=compose_net_config("tiny", "student"), optimizer=OPTIMIZER,
+                              teacher_ckpt=str(teacher), init_ckpt=init_ckpt, **kw)
+
+
+def test_distillation_starts_from_init_ckpt_not_from_the_teacher(tmp_path):
+    path = tiny_checkpoint(tmp_path / "student.ckpt", seed=7)
+    saved = {k.removeprefix("net."): v for k, v in read_checkpoint(path)["state_dict"].items()}
+    tuned, fresh = student(tmp_path, str(path)).net.state_dict(), student(tmp_path).net.state_dict()
+    assert all(torch.equal(tuned[k], saved[k]) for k in saved)
+    assert any(not torch.equal(fresh[k], saved[k]) for k in saved)
+    assert student(tmp_path, str(path)).hparams["init_ckpt"] == str(path)
+
+
+def test_distillation_refuses_init_ckpt_with_param_transfer(tmp_path):
+    path = tiny_checkpoint(tmp_path / "student.ckpt", seed=7)
+    transfer = {"_target_": "denoiser.lit.transfer.L1ChannelTransfer", "probe_size": 8}
+    with pytest.raises(ConfigError, match=r"model.init_ckpt and model.param_transfer: give one"):
+        student(tmp_path, str(path), param_transfer=transfer)
+
+
+def test_demo_motion_distill_tune_composes_the_student_recipe_with_a_start():
+    cfg = compose_command("train", ["experiment=demo_motion_distill_tune", "model.init_ckpt=s.ckpt",
+                                    "model.teacher_ckpt=t.ckpt"])
+    recipe = compose_command("train", ["experiment=demo_motion_distill", "model.teacher_ckpt=t.ckpt"])
+    assert cfg.model.init_ckpt == "s.ckpt" and recipe.model.init_ckpt is None
+    assert cfg.model.param_transfer is None and recipe.model.param_transfer is not None
+    assert cfg.trainer.max_steps == 400 and cfg.model.optimizer.lr == 5e-4
+    assert cfg.net == recipe.net and cfg.data == recipe.data and cfg.model.loss == recipe.model.loss

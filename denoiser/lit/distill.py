@@ -28,7 +28,10 @@ is not computed, not logged and absent from :meth:`DistillationModule.loss_terms
   clips the student's gradients after unscaling (``on_before_optimizer_step``).
 
 ``param_transfer`` (a ``_target_`` config such as :class:`denoiser.lit.transfer.L1ChannelTransfer`,
-or null) initializes the student from the teacher's weights before training.
+or null) initializes the student from the teacher's weights before training. ``init_ckpt`` (a
+checkpoint of the student's own architecture, or null) starts it from that checkpoint's weights
+instead: fine-tuning a trained student under another teacher or data (the critic, the feature
+adapters, the optimizer and the schedule start afresh). The two are exclusive.
 
 The teacher is loaded only when a term or the transfer needs it (``no_kd`` trains the student
 on references alone, without a teacher).
@@ -42,7 +45,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from denoiser.checkpoint import load_denoiser
+from denoiser.checkpoint import load_denoiser, load_weights
 from denoiser.configs import plain
 from denoiser.errors import ConfigError
 from denoiser.lit.adapters import FeatureAdapters
@@ -71,9 +74,13 @@ class DistillationModule(DenoiserModule):
                  critic_steps: int = 1, param_transfer: Mapping | None = None,
                  scheduler: Callable | Mapping | None = None, scheduler_interval: str = "step",
                  detach_every: int = 0, warmup_frames: int = 2, image_interval: int = 100, grad_clip: float = 0.0,
-                 trust_teacher_ckpt: bool = False, logit_penalty: float = 0.0, performance: Mapping | None = None):
+                 trust_teacher_ckpt: bool = False, logit_penalty: float = 0.0, performance: Mapping | None = None,
+                 init_ckpt: str | None = None):
         super().__init__(net, optimizer, scheduler, scheduler_interval, detach_every, warmup_frames,
                          image_interval, grad_clip, logit_penalty, performance)
+        if init_ckpt and param_transfer:
+            raise ConfigError("model.init_ckpt and model.param_transfer: give one (init_ckpt starts the student "
+                              "from a checkpoint, param_transfer from the teacher; set model.param_transfer=null)")
         self.automatic_optimization = False
         loss_cfg = {**DEFAULT_LOSS, **(plain(loss) or {})}
         self.save_hyperparameters({
@@ -82,7 +89,7 @@ class DistillationModule(DenoiserModule):
             "adversarial": plain(adversarial), "critic_steps": critic_steps, "param_transfer": plain(param_transfer),
             "scheduler": plain(scheduler), "scheduler_interval": scheduler_interval, "detach_every": detach_every,
             "warmup_frames": warmup_frames, "image_interval": image_interval, "grad_clip": grad_clip,
-            "logit_penalty": logit_penalty,
+            "logit_penalty": logit_penalty, "init_ckpt": init_ckpt,
         })
         self.weights = {k: float(loss_cfg[f"{k}_weight"]) for k in ("kd", "gt", "feature", "adversarial")}
         self.kd_loss = self._factory(loss_cfg["kd"])
@@ -101,6 +108,8 @@ class DistillationModule(DenoiserModule):
             self.teacher.eval()
         if param_transfer and self.teacher is not None:
             self._factory(param_transfer)(self.teacher, self.net)
+        if init_ckpt:
+            load_weights(self.net, init_ckpt)
 
         self.adapters = FeatureAdapters.between(self.net, self.teacher) if self.weights["feature"] > 0 else None
         self.critic: nn.Module | None = None

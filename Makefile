@@ -34,7 +34,8 @@ ovext: setup
 # Step budgets; about 40 minutes on 2 idle CPU cores from a fresh clone. DEMO_RECIPE=tune make demo:
 # the recipe for fast-moving objects (conf/base/motion_recipe.yaml) with the demo teacher fine-tuned
 # on it, into reports/demo_tune/; DEMO_RECIPE=motion: a teacher trained on it from scratch, into
-# reports/demo_motion/ (scripts/lib.sh).
+# reports/demo_motion/; DEMO_RECIPE=refine: make demo's teacher and students fine-tuned on it, into
+# reports/demo_refine/ (scripts/lib.sh).
 demo: setup
 	VENV=$(VENV) bash scripts/demo.sh
 

@@ -53,6 +53,7 @@ TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
 DEMO=reports/$DEMO_RECIPE_NAME/runs   # make demo's runs of the same DEMO_RECIPE
+[ -z "$DEMO_REFINE_EXPERIMENT" ] || { echo "error: DEMO_RECIPE=$DEMO_RECIPE: make ablations trains beside students distilled by one recipe, and refine fine-tunes them (use demo, tune or motion)" >&2; exit 2; }
 need() {  # need <path> <what>: stop with one line naming make demo when it is missing
     [ -e "$1" ] || { echo "error: $1: $2 missing (run make demo first)" >&2; exit 2; }
 }

@@ -31,6 +31,7 @@ TIMINGS=$REPORT/timings.md
 # shellcheck source=scripts/lib.sh
 . scripts/lib.sh
 DEMO=reports/$DEMO_RECIPE_NAME/runs   # make demo's runs of the same DEMO_RECIPE
+[ -z "$DEMO_REFINE_EXPERIMENT" ] || { echo "error: DEMO_RECIPE=$DEMO_RECIPE: make compare trains beside students distilled by one recipe, and refine fine-tunes them (use demo, tune or motion)" >&2; exit 2; }
 [ -f "$DEMO/$DEMO_TEACHER_RUN/DONE" ] || { echo "error: $DEMO/$DEMO_TEACHER_RUN: no finished demo teacher (run make demo first)" >&2; exit 2; }
 timings_begin
 # its references: data/demo's, copied

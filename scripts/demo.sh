@@ -8,7 +8,9 @@
 #   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_distill seed=k,
 #      teacher from step 2)
 #   4. train the same student without KD, on references alone (experiment=demo seed=k), same
-#      seeds and the same number of steps
+#      seeds and the same number of steps (DEMO_RECIPE=refine: steps 2-4 are make demo's own runs in
+#      reports/demo/runs, then the teacher's fine-tune and each student fine-tuned from its namesake
+#      there, runs/teacher_tuned and runs/student_*)
 #   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench); the same networks on the Blender Cycles
 #      sequences when they exist (DEMO_BLENDER, default data/blender: `make blender` renders
@@ -24,10 +26,11 @@
 # Knobs (environment): DEMO_SEEDS (default "0 1 2"), DEMO_JOBS (student runs trained at once,
 # each with cores/DEMO_JOBS torch threads; default 2), DEMO_THREADS (torch threads of the
 # teacher, default: all cores), DEMO_BLENDER (Blender sequences to evaluate on when
-# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default; tune or
-# motion: issue 33's recipes for fast-moving objects, with the demo teacher fine-tuned on them or a
-# teacher trained on them from scratch; scripts/lib.sh), DEMO_REPORT (default reports/demo,
-# reports/demo_tune or reports/demo_motion).
+# <dir>/test exists; default data/blender, empty: off), DEMO_RECIPE (demo, the default; tune,
+# motion or refine: issue 33's recipes for fast-moving objects, with the demo teacher fine-tuned on
+# them, a teacher trained on them from scratch, or make demo's teacher and students both fine-tuned
+# on them; scripts/lib.sh), DEMO_REPORT (default reports/demo, reports/demo_tune, reports/demo_motion
+# or reports/demo_refine), DEMO_BASE_RUNS (refine: the runs it fine-tunes, default reports/demo/runs).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -49,11 +52,17 @@ TIMINGS=$REPORT/timings.md
 [ "${DEMO_FRESH:-0}" = 1 ] && rm -rf "$RUNS"/* "$REPORT"/eval "$REPORT"/bench
 timings_begin
 
-demo_train() {  # demo_train <run name> <overrides...>: train (skipped when finished, resumed when interrupted)
-    local name=$1; shift
-    train_run "$RUNS/$name" "$@"
-    if [ -f "$RUNS/$name/COLLAPSED" ]; then  # written by the CollapseDetector callback
-        echo "error: [$name] $(cat "$RUNS/$name/COLLAPSED")" >&2
+# DEMO_RECIPE=refine fine-tunes the default recipe's runs: its teacher and first students are make
+# demo's own (DEMO_BASE_RUNS), the fine-tuned ones go to $RUNS
+BASE_RUNS=$RUNS
+[ -z "$DEMO_REFINE_EXPERIMENT" ] || BASE_RUNS=${DEMO_BASE_RUNS:-reports/demo/runs}
+mkdir -p "$BASE_RUNS"
+
+demo_train() {  # demo_train <run dir> <overrides...>: train (skipped when finished, resumed when interrupted)
+    local dir=$1; shift
+    train_run "$dir" "$@"
+    if [ -f "$dir/COLLAPSED" ]; then  # written by the CollapseDetector callback
+        echo "error: [${dir##*/}] $(cat "$dir/COLLAPSED")" >&2
         exit 3
     fi
 }
@@ -66,26 +75,48 @@ for family in $DEMO_EXTRA_DATASETS; do
 done
 
 # 2-4. networks
-stage --reuse "$RUNS/teacher" DONE teacher demo_train teacher "experiment=$DEMO_TEACHER_EXPERIMENT" seed=0 "threads=$THREADS"
-TEACHER=$(best "$RUNS/teacher")
+stage --reuse "$BASE_RUNS/teacher" DONE teacher demo_train "$BASE_RUNS/teacher" "experiment=$DEMO_TEACHER_EXPERIMENT" \
+    seed=0 "threads=$THREADS"
+TEACHER=$(best "$BASE_RUNS/teacher")
+BASE_TEACHER=$TEACHER   # make demo's teacher, before any fine-tune
 if [ -n "$DEMO_TUNE_EXPERIMENT" ]; then  # the teacher fine-tuned on the recipe's data teaches the students
-    stage --reuse "$RUNS/teacher_tuned" DONE teacher_tuned demo_train teacher_tuned "experiment=$DEMO_TUNE_EXPERIMENT" \
+    stage --reuse "$RUNS/teacher_tuned" DONE teacher_tuned demo_train "$RUNS/teacher_tuned" "experiment=$DEMO_TUNE_EXPERIMENT" \
         "model.init_ckpt=$TEACHER" seed=0 "threads=$THREADS"
     TEACHER=$(best "$RUNS/teacher_tuned")
 fi
+STUDENT_TEACHER=$TEACHER   # the students' teacher; refine's first students are make demo's own, taught by its teacher
+[ -z "$DEMO_REFINE_EXPERIMENT" ] || STUDENT_TEACHER=$BASE_TEACHER
 # students: every (kind, seed) pair, DEMO_JOBS at a time, each with its share of the cores
 STUDENTS=()
 for seed in $SEEDS; do STUDENTS+=("student_distilled_s$seed" "student_no_kd_s$seed"); done
-student_run() {  # student_run <run name>
-    local name=$1 seed=${1##*_s} recipe=("experiment=$DEMO_DISTILL_EXPERIMENT" "model.teacher_ckpt=$TEACHER") t0=$SECONDS
+student_job() {  # student_job <run dir> <overrides...>: one student run, its log beside its directory
+    local dir=$1 name=${1##*/} t0=$SECONDS; shift
     echo "==> [$name]"
-    [[ $name == student_no_kd_* ]] && recipe=("experiment=$DEMO_NO_KD_EXPERIMENT")  # the same student on references alone
-    demo_train "$name" "${recipe[@]}" "seed=$seed" "threads=$JOB_THREADS" trainer.enable_progress_bar=false \
-        callbacks.progress=null > "$RUNS/$name.log" 2>&1 || { echo "error: [$name] failed, see $RUNS/$name.log" >&2; return 1; }
+    demo_train "$dir" "$@" "seed=${name##*_s}" "threads=$JOB_THREADS" trainer.enable_progress_bar=false \
+        callbacks.progress=null > "$dir.log" 2>&1 || { echo "error: [$name] failed, see $dir.log" >&2; return 1; }
     echo "<== [$name] $(( SECONDS - t0 ))s"
 }
+student_run() {  # student_run <run name>: distilled from STUDENT_TEACHER, or on references alone
+    if [[ $1 == student_no_kd_* ]]; then
+        student_job "$BASE_RUNS/$1" "experiment=$DEMO_NO_KD_EXPERIMENT"
+    else
+        student_job "$BASE_RUNS/$1" "experiment=$DEMO_DISTILL_EXPERIMENT" "model.teacher_ckpt=$STUDENT_TEACHER"
+    fi
+}
+refine_run() {  # refine_run <run name>: make demo's student of that name fine-tuned (DEMO_RECIPE=refine)
+    local init
+    init=$(best "$BASE_RUNS/$1")
+    if [[ $1 == student_no_kd_* ]]; then
+        student_job "$RUNS/$1" "experiment=$DEMO_NO_KD_REFINE_EXPERIMENT" "model.init_ckpt=$init"
+    else
+        student_job "$RUNS/$1" "experiment=$DEMO_REFINE_EXPERIMENT" "model.init_ckpt=$init" "model.teacher_ckpt=$TEACHER"
+    fi
+}
 # one row for the students, JOBS side by side (their wall time, not the sum of theirs)
-stage --reuse "$RUNS" DONE students run_jobs "$JOBS" student_run "${STUDENTS[@]}" || exit 3
+stage --reuse "$BASE_RUNS" DONE students run_jobs "$JOBS" student_run "${STUDENTS[@]}" || exit 3
+if [ -n "$DEMO_REFINE_EXPERIMENT" ]; then
+    stage --reuse "$RUNS" DONE refine run_jobs "$JOBS" refine_run "${STUDENTS[@]}" || exit 3
+fi
 
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
 CKPTS="teacher: $TEACHER"

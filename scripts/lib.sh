@@ -16,7 +16,14 @@
 #     data (reports/demo_tune). Ahead of OIDN-fast on the Cycles val, 0.41 dB behind the default on
 #     the demo's test split;
 #   motion: the same with a teacher trained on the motion recipe from scratch (reports/demo_motion),
-#     also 0.41 dB behind on the demo's test split. docs/results_log.md, "Fast object motion", has the figures.
+#     also 0.41 dB behind on the demo's test split;
+#   refine: the default recipe's teacher and students (DEMO_BASE_RUNS, default reports/demo/runs:
+#     make demo's own, trained there first when missing), the teacher fine-tuned as in tune
+#     (runs/teacher_tuned), then each student fine-tuned under it on the same data, 400 steps at lr
+#     5e-4 (experiment=demo_motion_distill_tune; the no-KD students on references,
+#     demo_motion_nokd_tune), into reports/demo_refine. docs/results_log.md, "Fast object motion",
+#     has the figures.
+# DEMO_REFINE_EXPERIMENT and DEMO_NO_KD_REFINE_EXPERIMENT are empty but for refine.
 case "${DEMO_RECIPE:-demo}" in
     demo) DEMO_TEACHER_EXPERIMENT=demo_teacher DEMO_TUNE_EXPERIMENT="" DEMO_DISTILL_EXPERIMENT=demo_distill
           DEMO_NO_KD_EXPERIMENT=demo DEMO_EXTRA_DATASETS="" DEMO_RECIPE_NAME=demo ;;
@@ -25,8 +32,13 @@ case "${DEMO_RECIPE:-demo}" in
           DEMO_EXTRA_DATASETS="fast fast_more vivid" DEMO_RECIPE_NAME=demo_tune ;;
     motion) DEMO_TEACHER_EXPERIMENT=demo_motion_teacher DEMO_TUNE_EXPERIMENT="" DEMO_DISTILL_EXPERIMENT=demo_motion_distill
             DEMO_NO_KD_EXPERIMENT=demo_motion DEMO_EXTRA_DATASETS="fast fast_more vivid" DEMO_RECIPE_NAME=demo_motion ;;
-    *) echo "error: DEMO_RECIPE=$DEMO_RECIPE: demo, tune or motion" >&2; exit 2 ;;
+    refine) DEMO_TEACHER_EXPERIMENT=demo_teacher DEMO_TUNE_EXPERIMENT=demo_motion_tune
+            DEMO_DISTILL_EXPERIMENT=demo_distill DEMO_NO_KD_EXPERIMENT=demo
+            DEMO_REFINE_EXPERIMENT=demo_motion_distill_tune DEMO_NO_KD_REFINE_EXPERIMENT=demo_motion_nokd_tune
+            DEMO_EXTRA_DATASETS="fast fast_more vivid" DEMO_RECIPE_NAME=demo_refine ;;
+    *) echo "error: DEMO_RECIPE=$DEMO_RECIPE: demo, tune, motion or refine" >&2; exit 2 ;;
 esac
+DEMO_REFINE_EXPERIMENT=${DEMO_REFINE_EXPERIMENT:-} DEMO_NO_KD_REFINE_EXPERIMENT=${DEMO_NO_KD_REFINE_EXPERIMENT:-}
 DEMO_TEACHER_RUN=teacher${DEMO_TUNE_EXPERIMENT:+_tuned}
 
 best() {  # best <run dir>: the checkpoint a run is evaluated with: best validation PSNR, else the last

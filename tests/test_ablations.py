@@ -373,6 +373,9 @@ def test_ablations_sh_needs_make_demo(tree):
     assert proc.returncode == 2 and "student_distilled_s2/DONE" in proc.stderr and not calls
     proc, _ = _ablations_sh(tree, DENOISER_DATA=str(tree / "data"), ABLATION_SEEDS="0 1")
     assert proc.returncode == 0, proc.stderr
+    # DEMO_RECIPE=refine's students are fine-tuned from make demo's: no variant trains beside them
+    proc, calls = _ablations_sh(tree, DENOISER_DATA=str(tree / "data"), ABLATION_SEEDS="0 1", DEMO_RECIPE="refine")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DEMO_RECIPE=refine" in proc.stderr and not calls
 
 
 def test_ablations_sh_trains_the_variants_reuses_demo_and_resumes(tree):

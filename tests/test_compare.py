@@ -246,3 +246,9 @@ def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
         [("nppd_demo", "1"), ("ws_demo", "1")]
     assert calls[0][0] == "denoiser-render"
     assert {_arg(c, "baselines") for c in calls if c[0] in ("denoiser-eval", "denoiser-bench")} == {"default"}
+
+    # DEMO_RECIPE=refine's students are fine-tuned from make demo's: no network trains beside them
+    import os
+    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "compare.sh")], capture_output=True, text=True, check=False,
+                          env={**os.environ, "VENV": "venv", "STUB_LOG": str(tmp_path / "refine.log"), "DEMO_RECIPE": "refine"})
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DEMO_RECIPE=refine" in proc.stderr

@@ -205,7 +205,33 @@ def test_demo_sh_fast_motion_recipes_train_their_experiments_into_their_own_repo
     assert not (tmp_path / "reports" / "demo").exists()
     bad = subprocess.run(["bash", str(tmp_path / "scripts" / "demo.sh")], capture_output=True, text=True,
                          check=False, env={"PATH": "/usr/bin:/bin", "VENV": "venv", "DEMO_RECIPE": "fast"})
-    assert bad.returncode == 2 and bad.stderr == "error: DEMO_RECIPE=fast: demo, tune or motion\n"
+    assert bad.returncode == 2 and bad.stderr == "error: DEMO_RECIPE=fast: demo, tune, motion or refine\n"
+
+
+def test_demo_sh_refine_fine_tunes_make_demos_own_runs(tmp_path):
+    """DEMO_RECIPE=refine: the default recipe's teacher and students in reports/demo/runs (make demo's
+    own), the teacher fine-tuned into reports/demo_refine, then each student fine-tuned there from its
+    namesake in reports/demo, the distilled ones under the fine-tuned teacher."""
+    stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
+    calls = _demo_sh(tmp_path, DEMO_RECIPE="refine")
+    trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
+    base, runs = "reports/demo/runs/", "reports/demo_refine/runs/"
+    assert {run: _arg(c, "experiment") for run, c in trained.items()} == {
+        base + "teacher": "demo_teacher", base + "student_distilled_s0": "demo_distill", base + "student_no_kd_s0": "demo",
+        runs + "teacher_tuned": "demo_motion_tune", runs + "student_distilled_s0": "demo_motion_distill_tune",
+        runs + "student_no_kd_s0": "demo_motion_nokd_tune"}
+    assert _arg(trained[base + "student_distilled_s0"], "model.teacher_ckpt") == base + "teacher/checkpoints/last.ckpt"
+    assert _arg(trained[runs + "teacher_tuned"], "model.init_ckpt") == base + "teacher/checkpoints/last.ckpt"
+    refined = trained[runs + "student_distilled_s0"]
+    assert _arg(refined, "model.init_ckpt") == base + "student_distilled_s0/checkpoints/last.ckpt"
+    assert _arg(refined, "model.teacher_ckpt") == runs + "teacher_tuned/checkpoints/last.ckpt"
+    no_kd = trained[runs + "student_no_kd_s0"]
+    assert _arg(no_kd, "model.init_ckpt") == base + "student_no_kd_s0/checkpoints/last.ckpt"
+    assert not any(a.startswith("model.teacher_ckpt=") for a in no_kd)
+    assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo", "fast", "fast_more", "vivid"]
+    evaluated = next(c for c in calls if c[0] == "denoiser-eval")
+    assert runs + "student_distilled_s0/checkpoints/last.ckpt" in _arg(evaluated, "ckpt")
+    assert "| refine |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
 
 
 def _arg(call: list[str], key: str) -> str:

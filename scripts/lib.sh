@@ -21,8 +21,9 @@
 #     make demo's own, trained there first when missing), the teacher fine-tuned as in tune
 #     (runs/teacher_tuned), then each student fine-tuned under it on the same data, 400 steps at lr
 #     5e-4 (experiment=demo_motion_distill_tune; the no-KD students on references,
-#     demo_motion_nokd_tune), into reports/demo_refine. docs/results_log.md, "Fast object motion",
-#     has the figures.
+#     demo_motion_nokd_tune), into reports/demo_refine. Level with OIDN-fast on the Cycles val,
+#     0.25 dB behind make demo's students on a fresh test split of the demo's kind.
+#     docs/results_log.md, "Fast object motion", has the figures.
 # DEMO_REFINE_EXPERIMENT and DEMO_NO_KD_REFINE_EXPERIMENT are empty but for refine.
 case "${DEMO_RECIPE:-demo}" in
     demo) DEMO_TEACHER_EXPERIMENT=demo_teacher DEMO_TUNE_EXPERIMENT="" DEMO_DISTILL_EXPERIMENT=demo_distill

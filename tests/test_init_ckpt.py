@@ -77,3 +77,7 @@ def test_demo_motion_distill_tune_composes_the_student_recipe_with_a_start():
     assert cfg.model.param_transfer is None and recipe.model.param_transfer is not None
     assert cfg.trainer.max_steps == 400 and cfg.model.optimizer.lr == 5e-4
     assert cfg.net == recipe.net and cfg.data == recipe.data and cfg.model.loss == recipe.model.loss
+    assert cfg.callbacks.best is None and recipe.callbacks.best is not None  # evaluated at last.ckpt
+    no_kd = compose_command("train", ["experiment=demo_motion_nokd_tune", "model.init_ckpt=s.ckpt"])
+    assert no_kd.model.init_ckpt == "s.ckpt" and no_kd.trainer.max_steps == 400 and no_kd.callbacks.best is None
+    assert no_kd.data == compose_command("train", ["experiment=demo_motion"]).data

@@ -263,6 +263,49 @@ def save_checkpoint(path: str | os.PathLike, net: torch.nn.Module, net_cfg: Mapp
     return path
 
 
+def interpolate_checkpoints(start: str | os.PathLike, end: str | os.PathLike, alpha: float,
+                            out: str | os.PathLike, *, trust: bool = False) -> Path:
+    """Write to ``out`` the network whose weights are ``(1 - alpha) * start + alpha * end``.
+
+    Weight-space interpolation between a network and its own fine-tune (WiSE-FT, Wortsman et al.,
+    CVPR 2022): ``alpha`` 0 is ``start``, 1 is ``end``, and a value between keeps part of what the
+    fine-tune gained and part of what it cost. Every floating tensor of the state dict (weights,
+    biases, running statistics) is interpolated; any other (an integer counter) is ``end``'s. ``start`` and ``end`` are checkpoint files or run
+    directories (:func:`resolve_checkpoint`) of the same network: the same net config and the same
+    weight names and shapes. ``out`` is a checkpoint of ``end``'s net config (:func:`save_checkpoint`,
+    atomic) whose top-level ``interpolation`` records ``{start, end, alpha}``.
+
+    Errors: ``alpha`` outside [0, 1] (ConfigError); ``start`` or ``end`` unreadable, or two
+    networks (UserError naming ``end`` and the first difference).
+    """
+    alpha = float(alpha)
+    if not 0.0 <= alpha <= 1.0:
+        raise ConfigError(f"alpha={alpha}: must lie in [0, 1] (0 is start, 1 is end)")
+    start, end = resolve_checkpoint(start), resolve_checkpoint(end)
+    nets = []
+    for path in (start, end):
+        ckpt = read_checkpoint(path, "cpu", trust=trust)
+        nets.append((net_config(ckpt, path), net_state_dict(ckpt, path)))
+    (cfg_a, state_a), (cfg_b, state_b) = nets
+    if cfg_a != cfg_b:
+        key = next(k for k in sorted(set(cfg_a) | set(cfg_b), key=str) if cfg_a.get(k) != cfg_b.get(k))
+        raise UserError(f"{end}: another network than {start} (net config key '{key}' differs)")
+    net = build_net(cfg_b, str(end))
+    for path, state in ((start, state_a), (end, state_b)):
+        problem = describe_mismatch(net, state)
+        if problem:
+            raise UserError(f"{path}: checkpoint weights do not fit the architecture of its net config ({problem})")
+    mixed = {}
+    for key, b in state_b.items():
+        a = state_a[key]
+        if b.is_floating_point():
+            mixed[key] = torch.lerp(a.to(torch.float32), b.to(torch.float32), alpha).to(b.dtype)
+        else:
+            mixed[key] = b
+    net.load_state_dict(mixed, strict=True)
+    return save_checkpoint(out, net, cfg_b, interpolation={"start": str(start), "end": str(end), "alpha": alpha})
+
+
 def _lightning_version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 

@@ -171,6 +171,28 @@ def test_fast_preset_is_the_demo_settings_with_the_fast_motion_families():
     assert seeds(_compose(["dataset=demo"]), by_hand) == seeds(fast, [j for j in jobs if j.split == "train"])
 
 
+def test_testfamilies_val_draws_the_test_families_with_seeds_no_test_split_holds():
+    """dataset=testfamilies_val: the demo's test families into a val split, at the test job's
+    settings, with sequence seeds disjoint from data/demo's test split and data/demo_fresh's."""
+    from denoiser.commands.render import plan
+    from denoiser.render.seeds import sequence_seed
+
+    demo, fresh, val = (_compose([f"dataset={d}"]) for d in ("demo", "demo_fresh", "testfamilies_val"))
+    jobs = plan(val)
+    test = [j for j in plan(demo) if j.split == "test"]
+    assert {j.split for j in jobs} == {"val"} and val.root.endswith("data/testfamilies_val")
+    assert sorted({j.scene_name for j in jobs}) == sorted({j.scene_name for j in test}) and len(jobs) == 14
+    assert {(j.settings.frames, j.settings.spp, j.settings.ref_spp, j.settings.aux) for j in jobs} == \
+        {(j.settings.frames, j.settings.spp, j.settings.ref_spp, j.settings.aux) for j in test}
+
+    def seeds(cfg, js):
+        return {sequence_seed(cfg.seed, j.scene_name, "test", j.index) for j in js}
+
+    taken = seeds(demo, test) | seeds(fresh, plan(fresh))
+    assert not seeds(val, jobs) & taken  # even were the split's name not in the seed
+    assert val.seed == demo.seed
+
+
 def test_test_only_scene_refused_for_training():
     from denoiser.commands.render import plan
 

@@ -30,7 +30,9 @@
 # motion or refine: issue 33's recipes for fast-moving objects, with the demo teacher fine-tuned on
 # them, a teacher trained on them from scratch, or make demo's teacher and students both fine-tuned
 # on them; scripts/lib.sh), DEMO_REPORT (default reports/demo, reports/demo_tune, reports/demo_motion
-# or reports/demo_refine), DEMO_BASE_RUNS (refine: the runs it fine-tunes, default reports/demo/runs).
+# or reports/demo_refine), DEMO_BASE_RUNS (refine: the runs it fine-tunes, default reports/demo/runs),
+# DEMO_REFINE_ALPHA (refine: the students evaluated are (1 - alpha) * make demo's + alpha * their
+# fine-tune, weight-space interpolation; default 1, the fine-tunes as they are).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -47,6 +49,11 @@ JOBS=${DEMO_JOBS:-2}
 BLENDER=${DEMO_BLENDER-data/blender}
 CORES=$(nproc)
 JOB_THREADS=$(( CORES / JOBS > 0 ? CORES / JOBS : 1 ))
+ALPHA=${DEMO_REFINE_ALPHA:-1}
+if [ "$ALPHA" != 1 ] && { [ -z "$DEMO_REFINE_EXPERIMENT" ] || ! [[ $ALPHA =~ ^0?\.[0-9]+$|^0$ ]]; }; then
+    echo "error: DEMO_REFINE_ALPHA=$ALPHA: a number in [0, 1], with DEMO_RECIPE=refine (it interpolates refine's students)" >&2
+    exit 2
+fi
 mkdir -p "$RUNS"
 TIMINGS=$REPORT/timings.md
 [ "${DEMO_FRESH:-0}" = 1 ] && rm -rf "$RUNS"/* "$REPORT"/eval "$REPORT"/bench
@@ -117,10 +124,24 @@ stage --reuse "$BASE_RUNS" DONE students run_jobs "$JOBS" student_run "${STUDENT
 if [ -n "$DEMO_REFINE_EXPERIMENT" ]; then
     stage --reuse "$RUNS" DONE refine run_jobs "$JOBS" refine_run "${STUDENTS[@]}" || exit 3
 fi
+# refine with DEMO_REFINE_ALPHA below 1: each student evaluated is its fine-tune interpolated with its
+# start, (1 - alpha) * make demo's + alpha * the fine-tune (python -m denoiser.commands.interpolate)
+INTERPOLATE=""
+if [ -n "$DEMO_REFINE_EXPERIMENT" ] && [ "$ALPHA" != 1 ]; then INTERPOLATE=interpolated_a$ALPHA.ckpt; fi
+student_ckpt() {  # student_ckpt <run name>: the checkpoint a student is evaluated and timed with
+    if [ -n "$INTERPOLATE" ]; then echo "$RUNS/$1/checkpoints/$INTERPOLATE"; else best "$RUNS/$1"; fi
+}
+interpolate_run() {  # interpolate_run <run name>: its interpolated checkpoint (student_ckpt)
+    "$PY" -m denoiser.commands.interpolate "start=$(best "$BASE_RUNS/$1")" "end=$(best "$RUNS/$1")" \
+        "alpha=$ALPHA" "out=$(student_ckpt "$1")"
+}
+if [ -n "$INTERPOLATE" ]; then
+    stage interpolate run_jobs 1 interpolate_run "${STUDENTS[@]}" || exit 3
+fi
 
 # 5. evaluation on the held-out test split, then the accuracy-vs-time benchmark
 CKPTS="teacher: $TEACHER"
-for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(best "$RUNS/$name")"; done
+for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(student_ckpt "$name")"; done
 FIRST=${SEEDS%% *}
 stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
 if [ -n "$BLENDER" ] && [ -d "$BLENDER/test" ]; then  # a real renderer's sequences (make blender)
@@ -131,7 +152,7 @@ else
 fi
 # the benchmark times one seed per student (the seeds are the same network size); the teacher
 # at 256x256 only (seconds per 1080p frame on 2 cores)
-BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(best "$RUNS/student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(best "$RUNS/student_no_kd_s$FIRST")}"
+BENCH_CKPTS="{teacher: $TEACHER, student_distilled_s$FIRST: $(student_ckpt "student_distilled_s$FIRST"), student_no_kd_s$FIRST: $(student_ckpt "student_no_kd_s$FIRST")}"
 stage bench "$BIN/denoiser-bench" data=demo "ckpt=$BENCH_CKPTS" "eval_csv=$REPORT/eval/metrics.csv" \
     "out_dir=$REPORT/bench" "sizes=[[256,256],[1080,1920]]" "use_backends=[eager,onnxruntime,openvino_f32,openvino_bf16]" \
     "skip={teacher: [[1080,1920]]}" repeats=7

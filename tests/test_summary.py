@@ -234,6 +234,32 @@ def test_demo_sh_refine_fine_tunes_make_demos_own_runs(tmp_path):
     assert "| refine |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
 
 
+def test_demo_sh_refine_alpha_evaluates_each_student_interpolated_with_its_start(tmp_path):
+    """DEMO_REFINE_ALPHA=0.5 with DEMO_RECIPE=refine: each student's fine-tune interpolated with make
+    demo's namesake (python -m denoiser.commands.interpolate), and that checkpoint evaluated and timed;
+    with another recipe, or outside [0, 1], one error line before anything runs."""
+    stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
+    calls = _demo_sh(tmp_path, DEMO_RECIPE="refine", DEMO_REFINE_ALPHA="0.5")
+    base, runs = "reports/demo/runs/", "reports/demo_refine/runs/"
+    mixed = {_arg(c, "out"): c for c in calls if c[:3] == ["python", "-m", "denoiser.commands.interpolate"]}
+    out = runs + "student_distilled_s0/checkpoints/interpolated_a0.5.ckpt"
+    assert sorted(mixed) == [out, runs + "student_no_kd_s0/checkpoints/interpolated_a0.5.ckpt"]
+    assert _arg(mixed[out], "start") == base + "student_distilled_s0/checkpoints/last.ckpt"
+    assert _arg(mixed[out], "end") == runs + "student_distilled_s0/checkpoints/last.ckpt"
+    assert _arg(mixed[out], "alpha") == "0.5"
+    first_eval = next(i for i, c in enumerate(calls) if c[0] == "denoiser-eval")
+    assert max(i for i, c in enumerate(calls) if c in mixed.values()) < first_eval
+    assert f"student_distilled_s0: {out}" in _arg(calls[first_eval], "ckpt")
+    assert out in _arg(next(c for c in calls if c[0] == "denoiser-bench"), "ckpt")
+    assert "| interpolate |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
+    for env in ({"DEMO_REFINE_ALPHA": "0.5"}, {"DEMO_RECIPE": "refine", "DEMO_REFINE_ALPHA": "1.5"}):
+        bad = subprocess.run(["bash", str(tmp_path / "scripts" / "demo.sh")], capture_output=True, text=True,
+                             check=False, env={"PATH": "/usr/bin:/bin", "VENV": "venv", **env})
+        assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+        assert bad.stderr.startswith(f"error: DEMO_REFINE_ALPHA={env['DEMO_REFINE_ALPHA']}: a number in [0, 1]")
+    assert not (tmp_path / "reports" / "demo" / "timings.md.tmp").exists()
+
+
 def _arg(call: list[str], key: str) -> str:
     return next(a.split("=", 1)[1] for a in call if a.startswith(f"{key}="))
 

@@ -21,10 +21,13 @@
 #     make demo's own, trained there first when missing), the teacher fine-tuned as in tune
 #     (runs/teacher_tuned), then each student fine-tuned under it on the same data, 400 steps at lr
 #     5e-4 (experiment=demo_motion_distill_tune; the no-KD students on references,
-#     demo_motion_nokd_tune), into reports/demo_refine. Level with OIDN-fast on the Cycles val,
-#     0.25 dB behind make demo's students on a fresh test split of the demo's kind.
-#     docs/results_log.md, "Fast object motion", has the figures.
-# DEMO_REFINE_EXPERIMENT and DEMO_NO_KD_REFINE_EXPERIMENT are empty but for refine.
+#     demo_motion_nokd_tune), into reports/demo_refine; each evaluated as its weights interpolated with
+#     its start, (1 - a) * make demo's + a * the fine-tune, a = DEMO_REFINE_ALPHA (0.75, chosen on val:
+#     ahead of OIDN-fast on the Cycles val, tied with make demo's students on the test families' val;
+#     the fine-tunes alone, a = 1, fell 0.47 dB there). docs/results_log.md, "Fast object motion", has
+#     the figures.
+# DEMO_REFINE_EXPERIMENT and DEMO_NO_KD_REFINE_EXPERIMENT are empty but for refine, which also sets
+# DEMO_REFINE_ALPHA when unset (scripts/demo.sh refuses it for another recipe).
 case "${DEMO_RECIPE:-demo}" in
     demo) DEMO_TEACHER_EXPERIMENT=demo_teacher DEMO_TUNE_EXPERIMENT="" DEMO_DISTILL_EXPERIMENT=demo_distill
           DEMO_NO_KD_EXPERIMENT=demo DEMO_EXTRA_DATASETS="" DEMO_RECIPE_NAME=demo ;;
@@ -36,6 +39,7 @@ case "${DEMO_RECIPE:-demo}" in
     refine) DEMO_TEACHER_EXPERIMENT=demo_teacher DEMO_TUNE_EXPERIMENT=demo_motion_tune
             DEMO_DISTILL_EXPERIMENT=demo_distill DEMO_NO_KD_EXPERIMENT=demo
             DEMO_REFINE_EXPERIMENT=demo_motion_distill_tune DEMO_NO_KD_REFINE_EXPERIMENT=demo_motion_nokd_tune
+            DEMO_REFINE_ALPHA=${DEMO_REFINE_ALPHA:-0.75}
             DEMO_EXTRA_DATASETS="fast fast_more vivid" DEMO_RECIPE_NAME=demo_refine ;;
     *) echo "error: DEMO_RECIPE=$DEMO_RECIPE: demo, tune, motion or refine" >&2; exit 2 ;;
 esac

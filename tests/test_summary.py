@@ -211,7 +211,8 @@ def test_demo_sh_fast_motion_recipes_train_their_experiments_into_their_own_repo
 def test_demo_sh_refine_fine_tunes_make_demos_own_runs(tmp_path):
     """DEMO_RECIPE=refine: the default recipe's teacher and students in reports/demo/runs (make demo's
     own), the teacher fine-tuned into reports/demo_refine, then each student fine-tuned there from its
-    namesake in reports/demo, the distilled ones under the fine-tuned teacher."""
+    namesake in reports/demo, the distilled ones under the fine-tuned teacher, and evaluated interpolated
+    with it at DEMO_REFINE_ALPHA (0.75 unless set; 1: the fine-tunes as they are)."""
     stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
     calls = _demo_sh(tmp_path, DEMO_RECIPE="refine")
     trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
@@ -229,9 +230,13 @@ def test_demo_sh_refine_fine_tunes_make_demos_own_runs(tmp_path):
     assert _arg(no_kd, "model.init_ckpt") == base + "student_no_kd_s0/checkpoints/last.ckpt"
     assert not any(a.startswith("model.teacher_ckpt=") for a in no_kd)
     assert [_arg(c, "dataset") for c in calls if c[0] == "denoiser-render"] == ["demo", "fast", "fast_more", "vivid"]
+    evaluated = next(c for c in calls if c[0] == "denoiser-eval")  # at the recipe's alpha, chosen on val
+    assert runs + "student_distilled_s0/checkpoints/interpolated_a0.75.ckpt" in _arg(evaluated, "ckpt")
+    assert "| refine |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
+    calls = _demo_sh(tmp_path, DEMO_RECIPE="refine", DEMO_REFINE_ALPHA="1")  # the fine-tunes as they are
     evaluated = next(c for c in calls if c[0] == "denoiser-eval")
     assert runs + "student_distilled_s0/checkpoints/last.ckpt" in _arg(evaluated, "ckpt")
-    assert "| refine |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
+    assert not [c for c in calls if c[:3] == ["python", "-m", "denoiser.commands.interpolate"]]
 
 
 def test_demo_sh_refine_alpha_evaluates_each_student_interpolated_with_its_start(tmp_path):

@@ -35,7 +35,7 @@ ovext: setup
 # the recipe for fast-moving objects (conf/base/motion_recipe.yaml) with the demo teacher fine-tuned
 # on it, into reports/demo_tune/; DEMO_RECIPE=motion: a teacher trained on it from scratch, into
 # reports/demo_motion/; DEMO_RECIPE=refine: make demo's teacher and students fine-tuned on it, into
-# reports/demo_refine/ (scripts/lib.sh).
+# reports/demo_refine/, each student evaluated interpolated with make demo's (DEMO_REFINE_ALPHA, 0.75) (scripts/lib.sh).
 demo: setup
 	VENV=$(VENV) bash scripts/demo.sh
 

@@ -90,6 +90,41 @@ def test_summary_and_readme_copy(tmp_path):
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "metrics.csv" in bad.stderr
 
 
+def test_summary_of_a_recipe_of_fine_tunes_names_their_starts_and_the_interpolation(tmp_path):
+    """base_runs (make demo's refine: the runs its networks start from) are listed by path beside the
+    report's own runs, and interpolation_alpha says how the students were evaluated; an alpha outside
+    [0, 1] is one error line and no summary."""
+    report, base = tmp_path / "reports" / "demo_refine", tmp_path / "reports" / "demo" / "runs"
+    (report / "eval").mkdir(parents=True)
+    with open(report / "eval" / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, FIELDS)
+        writer.writeheader()
+        writer.writerows(eval_rows())
+    for runs in (base, report / "runs"):
+        for name in ("teacher" if runs == base else "teacher_tuned", "student_s0"):
+            (runs / name / "checkpoints").mkdir(parents=True)
+    cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", "report=reports/demo_refine",
+           f"data_root={tmp_path}", "base_runs=reports/demo/runs"]
+    proc = subprocess.run([*cmd, "interpolation_alpha=0.75"], capture_output=True, text=True, cwd=tmp_path, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = (report / "summary.md").read_text()
+    runs = [line.split("|")[1].strip() for line in summary.split("## Training runs")[1].splitlines()[4:] if line.startswith("| ")]
+    assert runs == ["reports/demo/runs/student_s0", "reports/demo/runs/teacher",
+                    "reports/demo_refine/runs/student_s0", "reports/demo_refine/runs/teacher_tuned"]
+    header = summary.split("Metrics:")[0]
+    assert "- fine-tunes (`reports/demo_refine/runs`) of the runs in `reports/demo/runs`" in header
+    assert "(1 - 0.75) x its start in `reports/demo/runs` + 0.75 x its fine-tune" in header
+    (report / "summary.md").unlink()
+    bad = subprocess.run([*cmd, "interpolation_alpha=1.5"], capture_output=True, text=True, cwd=tmp_path, check=False)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "interpolation_alpha" in bad.stderr
+    assert not (report / "summary.md").exists()
+    # the default recipe's summary: its own runs by name, no recipe lines
+    proc = subprocess.run(cmd[:-1], capture_output=True, text=True, cwd=tmp_path, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = (report / "summary.md").read_text()
+    assert "fine-tunes" not in summary and "| teacher_tuned |" in summary
+
+
 def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tmp_path):
     report = tmp_path / "report"
     for sub, rows in (("eval", eval_rows()), ("blender", eval_rows()[:2] + eval_rows()[4:])):
@@ -148,20 +183,25 @@ esac; done
 DEMO_COMMANDS = ("python", "denoiser-render", "denoiser-train", "denoiser-eval", "denoiser-bench")
 
 
-def _demo_sh(root: Path, status: int = 0, **env: str) -> list[list[str]]:
+def _demo_env() -> dict[str, str]:
+    """The environment demo.sh runs in here: this one's, less the DEMO_ knobs a developer may have set."""
     import os
 
+    return {k: v for k, v in os.environ.items() if not k.startswith("DEMO_")}
+
+
+def _demo_sh(root: Path, status: int = 0, **env: str) -> list[list[str]]:
     log = root / "calls.log"
     log.unlink(missing_ok=True)
     proc = subprocess.run(["bash", str(root / "scripts" / "demo.sh")], capture_output=True, text=True, check=False,
-                          env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), "DEMO_SEEDS": "0", **env})
+                          env={**_demo_env(), "VENV": "venv", "STUB_LOG": str(log), "DEMO_SEEDS": "0", **env})
     assert proc.returncode == status, proc.stderr
     return stub_calls(log)
 
 
 def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_collapse(tmp_path):
     stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
-    calls = _demo_sh(tmp_path, DEMO_SEEDS="0 1")
+    calls = _demo_sh(tmp_path, DEMO_SEEDS="0 1", DEMO_RECIPE="demo")
     trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
     runs = "reports/demo/runs/"
     assert sorted(trained) == [runs + r for r in ("student_distilled_s0", "student_distilled_s1", "student_no_kd_s0",
@@ -178,7 +218,7 @@ def test_demo_sh_leaves_skipping_and_resuming_to_the_trainer_and_stops_on_a_coll
     assert "| teacher |" in timings and "| students |" in timings and "| total |" in timings
     # a run the CollapseDetector stopped ends the demo (exit 3), before any evaluation
     (tmp_path / "reports" / "demo" / "runs" / "student_no_kd_s0" / "COLLAPSED").write_text("collapse at step 90\n")
-    calls = _demo_sh(tmp_path, 3, DEMO_SEEDS="0 1")
+    calls = _demo_sh(tmp_path, 3, DEMO_SEEDS="0 1", DEMO_RECIPE="demo")
     assert not [c for c in calls if c[0] == "denoiser-eval"]
 
 
@@ -209,12 +249,14 @@ def test_demo_sh_fast_motion_recipes_train_their_experiments_into_their_own_repo
 
 
 def test_demo_sh_refine_fine_tunes_make_demos_own_runs(tmp_path):
-    """DEMO_RECIPE=refine: the default recipe's teacher and students in reports/demo/runs (make demo's
-    own), the teacher fine-tuned into reports/demo_refine, then each student fine-tuned there from its
-    namesake in reports/demo, the distilled ones under the fine-tuned teacher, and evaluated interpolated
-    with it at DEMO_REFINE_ALPHA (0.75 unless set; 1: the fine-tunes as they are)."""
+    """DEMO_RECIPE=refine, make demo's recipe when DEMO_RECIPE is unset: the paper recipe's teacher and
+    students in reports/demo/runs, the teacher fine-tuned into reports/demo_refine, then each student
+    fine-tuned there from its namesake in reports/demo, the distilled ones under the fine-tuned teacher,
+    and evaluated interpolated with it at DEMO_REFINE_ALPHA (0.75 unless set; 1: the fine-tunes as they
+    are); the summary lists both runs and names the interpolation."""
     stub_pipeline(tmp_path, "demo.sh", DEMO_COMMANDS, DEMO_STUB)
-    calls = _demo_sh(tmp_path, DEMO_RECIPE="refine")
+    assert "DEMO_RECIPE" not in _demo_env()
+    calls = _demo_sh(tmp_path)   # the default
     trained = {_arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
     base, runs = "reports/demo/runs/", "reports/demo_refine/runs/"
     assert {run: _arg(c, "experiment") for run, c in trained.items()} == {
@@ -233,6 +275,9 @@ def test_demo_sh_refine_fine_tunes_make_demos_own_runs(tmp_path):
     evaluated = next(c for c in calls if c[0] == "denoiser-eval")  # at the recipe's alpha, chosen on val
     assert runs + "student_distilled_s0/checkpoints/interpolated_a0.75.ckpt" in _arg(evaluated, "ckpt")
     assert "| refine |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
+    summary = next(c for c in calls if c[:3] == ["python", "-m", "denoiser.commands.demo_summary"])
+    assert _arg(summary, "report") == "reports/demo_refine" and _arg(summary, "base_runs") == "reports/demo/runs"
+    assert _arg(summary, "interpolation_alpha") == "0.75"
     calls = _demo_sh(tmp_path, DEMO_RECIPE="refine", DEMO_REFINE_ALPHA="1")  # the fine-tunes as they are
     evaluated = next(c for c in calls if c[0] == "denoiser-eval")
     assert runs + "student_distilled_s0/checkpoints/last.ckpt" in _arg(evaluated, "ckpt")
@@ -257,7 +302,7 @@ def test_demo_sh_refine_alpha_evaluates_each_student_interpolated_with_its_start
     assert f"student_distilled_s0: {out}" in _arg(calls[first_eval], "ckpt")
     assert out in _arg(next(c for c in calls if c[0] == "denoiser-bench"), "ckpt")
     assert "| interpolate |" in (tmp_path / "reports" / "demo_refine" / "timings.md").read_text()
-    for env in ({"DEMO_REFINE_ALPHA": "0.5"}, {"DEMO_RECIPE": "refine", "DEMO_REFINE_ALPHA": "1.5"}):
+    for env in ({"DEMO_RECIPE": "demo", "DEMO_REFINE_ALPHA": "0.5"}, {"DEMO_REFINE_ALPHA": "1.5"}):
         bad = subprocess.run(["bash", str(tmp_path / "scripts" / "demo.sh")], capture_output=True, text=True,
                              check=False, env={"PATH": "/usr/bin:/bin", "VENV": "venv", **env})
         assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
@@ -275,15 +320,15 @@ def test_demo_sh_evaluates_its_networks_on_the_blender_sequences_when_they_exist
     def evals(calls):
         return {next(a for a in c if a.startswith("out_dir=")): c for c in calls if c[0] == "denoiser-eval"}
 
-    assert list(evals(_demo_sh(tmp_path))) == ["out_dir=reports/demo/eval"]  # no sequences: no stage
+    assert list(evals(_demo_sh(tmp_path, DEMO_RECIPE="demo"))) == ["out_dir=reports/demo/eval"]  # no sequences: no stage
     (tmp_path / "data" / "blender" / "test").mkdir(parents=True)
     (tmp_path / "reports" / "demo" / "blender").mkdir(parents=True)
-    calls = evals(_demo_sh(tmp_path))
+    calls = evals(_demo_sh(tmp_path, DEMO_RECIPE="demo"))
     test, blender = calls["out_dir=reports/demo/eval"], calls["out_dir=reports/demo/blender"]
     assert "layout=blender" in blender and "data.root=data/blender" in blender
     ckpt = [a for a in blender if a.startswith("ckpt=")]
     assert ckpt == [a for a in test if a.startswith("ckpt=")] and "student_distilled_s0" in ckpt[0]
-    assert list(evals(_demo_sh(tmp_path, DEMO_BLENDER=""))) == ["out_dir=reports/demo/eval"]
+    assert list(evals(_demo_sh(tmp_path, DEMO_BLENDER="", DEMO_RECIPE="demo"))) == ["out_dir=reports/demo/eval"]
     assert not (tmp_path / "reports" / "demo" / "blender").exists()  # no stale table once it is off
 
 

@@ -37,6 +37,7 @@ their ranking lines; :mod:`denoiser.report.figure_tables`) above the table of ev
 from __future__ import annotations
 
 import datetime
+import re
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -201,7 +202,7 @@ def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric:
         if csv_path.exists():
             groups, per_sequence = evaluation(csv_path)
             groups = merge_identical(groups, per_sequence)
-            by_family = (family_lines(claims, per_sequence, families(csv_path), family_metric) + [""]
+            by_family = (["", *family_lines(claims, per_sequence, families(csv_path), family_metric), ""]
                          if claims and family_metric else [])
             lines += [f"## {title}", "", f"From `{csv_path}`; students: mean ± std over seeds.", "",
                       f"<!-- {name}:begin -->", gain_table(groups).rstrip(), *merged_note(groups), "",
@@ -210,8 +211,11 @@ def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric:
 
 
 def families(path: Path) -> dict[str, str]:
-    """``{sequence: family}`` (the ``scene`` column) of a metrics.csv's per-sequence rows."""
-    return {str(r["sequence"]): str(r["scene"]) for r in read_csv(path) if str(r["sequence"]) != "mean"}
+    """``{sequence: family}`` of a metrics.csv's per-sequence rows: the ``scene`` column less a trailing
+    ``_<number>``, so that scenes numbered within one kind are one family (the Blender layout's
+    ``fast_201``, ``fast_202``, ... are ``fast``; the demo's scenes carry no number)."""
+    return {str(r["sequence"]): re.sub(r"_\d+$", "", str(r["scene"])) for r in read_csv(path)
+            if str(r["sequence"]) != "mean"}
 
 
 def run(cfg: DictConfig) -> Path:

@@ -211,7 +211,8 @@ def family_lines(claims: Sequence[Mapping], per_sequence: SequenceValues, famili
                  column: str) -> list[str]:
     """Markdown lines of the per-family table: one row per family (``families``: ``{sequence:
     family}``, e.g. the ``scene`` column of metrics.csv), one column per claim with the paired
-    difference in ``column`` over that family's sequences, its interval and verdict."""
+    difference in ``column`` over that family's sequences, its interval and verdict (a family of one
+    sequence: the difference alone, since one value has no interval)."""
     spec = COLUMNS[column]
     pairs = [(c["network"], c["baseline"]) for c in claims]
     by_family: dict[str, list[str]] = {}
@@ -222,11 +223,14 @@ def family_lines(claims: Sequence[Mapping], per_sequence: SequenceValues, famili
         row: dict = {"family": family, "n": len(seqs)}
         for net, base in pairs:
             iv = paired_difference(per_sequence, net, base, column, seqs)
-            if iv is not None:
+            if iv is not None and iv.n < 2:  # one sequence has no spread to resample: its difference alone
+                row[f"{net} - {base}"] = f"{_signed(iv.mean, spec.digits)} (one sequence)"
+            elif iv is not None:
                 row[f"{net} - {base}"] = f"{format_interval(iv, column)} {iv.verdict(spec.lower_is_better)}"
         rows.append(row)
     return [(f"Per family: {spec.header}, the same paired differences over each family's sequences "
-             f"(mean [{CONFIDENCE:.0%} interval] verdict)."), "",
+             f"(mean [{CONFIDENCE:.0%} interval] verdict; a family of one sequence: its difference, no "
+             "interval and no verdict)."), "",
             markdown_table(rows, ["family", "n", *(f"{n} - {b}" for n, b in pairs)],
                            headers={"n": "sequences"}).rstrip()]
 

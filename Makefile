@@ -34,7 +34,8 @@ ovext: setup
 # recipe first (reports/demo/runs), then its teacher and students fine-tuned on the fast-moving
 # families (conf/base/motion_recipe.yaml) into reports/demo_refine/, each student evaluated as its
 # weights interpolated with its start (DEMO_REFINE_ALPHA, 0.75, chosen on val), the summary in
-# reports/demo_refine/summary.md. Step budgets; about 70 minutes on 2 idle CPU cores from a fresh clone.
+# reports/demo_refine/summary.md. Step budgets; about 85 minutes on 2 idle CPU cores from a fresh clone
+# (estimated from the stage timings of its runs on a 2-core AMD EPYC: reports/demo_refine/timings.md).
 # DEMO_RECIPE=demo make demo: the paper's recipe alone, reports/demo/; DEMO_RECIPE=tune: the demo
 # teacher fine-tuned on the fast-moving families and students distilled from it, reports/demo_tune/;
 # DEMO_RECIPE=motion: a teacher trained on them from scratch, reports/demo_motion/ (scripts/lib.sh).

@@ -11,14 +11,14 @@
 #   3. distill the demo student, once per seed of DEMO_SEEDS (experiment=demo_distill seed=k,
 #      teacher from step 2)
 #   4. train the same student without KD, on references alone (experiment=demo seed=k), same
-#      seeds and the same number of steps (DEMO_RECIPE=refine: steps 2-4 are make demo's own runs in
+#      seeds and the same number of steps (refine, the default: steps 2-4 are the paper recipe's runs in
 #      reports/demo/runs, then the teacher's fine-tune and each student fine-tuned from its namesake
-#      there, runs/teacher_tuned and runs/student_*)
+#      there, reports/demo_refine/runs/teacher_tuned and runs/student_*, then interpolated with it)
 #   5. evaluate noisy input, OIDN, teacher and every student on the held-out test sequences
 #      (denoiser-eval) and time them (denoiser-bench); the same networks on the Blender Cycles
 #      sequences when they exist (DEMO_BLENDER, default data/blender: `make blender` renders
-#      them; bpy is an optional extra) into reports/demo/blender/
-#   6. write reports/demo/: summary.md (run id, commit, seeds, steps, test-split hash, results
+#      them; bpy is an optional extra) into <report>/blender/
+#   6. write <report> (reports/demo_refine; DEMO_RECIPE=demo: reports/demo): summary.md (run id, commit, seeds, steps, test-split hash, results
 #      with mean +- std over seeds), metrics table, accuracy-vs-time plot, PNG crops, TensorBoard logs
 #
 # Budgets are steps (the experiment configs' trainer.max_steps) and seeds; max_time in the

@@ -9,7 +9,7 @@
 # Every stage reuses make demo's data and teacher (this script stops with one line when the
 # teacher is missing: make pareto alone would train a shorter one) and is resumable on its own,
 # so a second make paper redoes only what is missing or changed. Each stage's wall time goes to
-# reports/paper/timings.md (as reports/demo/timings.md), and each stage keeps its own table of
+# reports/paper/timings.md (as make demo's reports/demo_refine/timings.md), and each stage keeps its own table of
 # steps (reports/<stage>/timings.md, the seconds of reused steps kept); scripts/paper_summary.py
 # adds up their work against the budget -> reports/paper/summary.md. The Makefile then copies the
 # reports' blocks into the README (make readme-ablations, readme-compare, readme-pareto, readme-paper).

@@ -5,6 +5,10 @@ VENV    ?= .venv
 PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
+# The suite runs in one pytest-xdist worker process: a test that kills its process (a native
+# runtime's segfault) is reported as that test's failure, by name, the worker is replaced and the
+# summary still prints (issue 44; tests/test_signal_stack.py::test_make_test_survives_a_crashing_test).
+PYTEST_ISOLATION ?= -p xdist -n 1 --max-worker-restart=100
 
 .PHONY: gpu-check readme-gpu setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper readme-paper fast-motion lint clean-cache blender blender-val
 
@@ -19,7 +23,7 @@ setup: $(VENV)/.installed
 	@bash scripts/setup_llvm.sh
 
 test: setup
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(PYTEST_ISOLATION) $(PYTEST_ARGS)
 	$(PY) scripts/readme_check.py
 
 # Build the OpenVINO extension (denoiser/inference/ovext: one C++ header per operation) ahead of

@@ -318,10 +318,16 @@ class OpenVinoBackend(_ExportedGraphBackend):
             import openvino as ov
         except ImportError as exc:
             return f"{exc.name} is not installed"
-        core = ov.Core()
-        if self.ov_device not in core.available_devices:
+        from denoiser.inference import sigstack
+
+        with sigstack.kept():  # the CPU plugin made and freed here sets the thread's signal stack
+            core = ov.Core()
+            devices = core.available_devices
+            bf16 = self.ov_device in devices and "BF16" in core.get_property(self.ov_device, "OPTIMIZATION_CAPABILITIES")
+            del core
+        if self.ov_device not in devices:
             return f"OpenVINO device {self.ov_device} not available"
-        if self.precision == "bf16" and "BF16" not in core.get_property(self.ov_device, "OPTIMIZATION_CAPABILITIES"):
+        if self.precision == "bf16" and not bf16:
             return f"{self.ov_device} has no bf16 support (OpenVINO would run f32)"
         if self.fused:
             from denoiser.inference import ovext

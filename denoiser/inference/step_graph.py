@@ -47,6 +47,7 @@ from denoiser.atomic import atomic_path
 from denoiser.buffers import CHANNELS, FRAME_INPUTS
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
+from denoiser.inference import sigstack
 from denoiser.nn.graph_ops import heads_as_matmul, kernels_as_op
 from denoiser.runner import Network, RecurrentRunner
 
@@ -203,10 +204,16 @@ class OpenVinoStep:
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None, precision: str = "f32",
                  device: str = "CPU", profile: bool = False):
-        import openvino as ov
-
         if precision not in OPENVINO_PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
+        self._compiled: dict[tuple[int, ...], tuple] = {}
+        self._last = None
+        with sigstack.kept():  # OpenVINO's plugin sets the thread's signal stack (denoiser.inference.sigstack)
+            self._open(path, threads, precision, device, profile)
+
+    def _open(self, path, threads, precision, device, profile) -> None:
+        import openvino as ov
+
         self.core = ov.Core()
         if uses_extension(path):  # export_onnx(fused_kernels=True)
             from denoiser.inference import ovext
@@ -219,13 +226,11 @@ class OpenVinoStep:
             self.config["INFERENCE_NUM_THREADS"] = int(threads)
         if profile:
             self.config["PERF_COUNT"] = True
-        self._last = None
         self.inputs = [i.get_any_name() for i in self.model.inputs]
         self.outputs = [o.get_any_name() for o in self.model.outputs]
         self.keys = [n[len("state_"):] for n in self.inputs if n.startswith("state_")]
         self.channels = {i.get_any_name()[len("state_"):]: i.get_partial_shape()[1].get_length()
                          for i in self.model.inputs if i.get_any_name().startswith("state_")}
-        self._compiled: dict[tuple[int, ...], tuple] = {}
 
     def compiled(self, batch: int, height: int, width: int):
         """``(compiled model, infer request)`` for frames of ``[batch, *, height, width]`` (cached)."""
@@ -238,8 +243,10 @@ class OpenVinoStep:
                 if len(shape) == 4:
                     shapes[i.get_any_name()] = [batch, shape[1].get_length(), height, width]
             model.reshape(shapes)
-            compiled = self.core.compile_model(model, self.device, self.config)
-            self._compiled[key] = (compiled, compiled.create_infer_request())
+            with sigstack.kept():
+                compiled = self.core.compile_model(model, self.device, self.config)
+                self._compiled[key] = (compiled, compiled.create_infer_request())
+                del compiled, model
         return self._compiled[key]
 
     def precision(self, batch: int = 1, height: int = 16, width: int = 16) -> str:
@@ -255,10 +262,24 @@ class OpenVinoStep:
         _, request = self.compiled(b, h, w)
         # the inputs are read in place (no copy into OpenVINO's buffers: about 20 ms of a 1080p
         # step); the infer call is synchronous and never writes them
-        request.infer(feed, share_inputs=True)
+        with sigstack.kept():
+            request.infer(feed, share_inputs=True)
         self._last = request
         named = {name: np.array(request.get_tensor(name).data, copy=True) for name in self.outputs}
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
+
+    def close(self) -> None:
+        """Free the compiled models, the model and the core (OpenVINO's destructors run here, with the
+        thread's signal stack kept: :mod:`denoiser.inference.sigstack`); also run when collected."""
+        with sigstack.kept():
+            self._last = None
+            self._compiled.clear()
+            self.__dict__.pop("model", None)
+            self.__dict__.pop("core", None)
+
+    def __del__(self):
+        if "_compiled" in self.__dict__:
+            self.close()
 
     def threads_in_use(self) -> int:
         """``INFERENCE_NUM_THREADS`` as the last compiled model resolved it (needs a step run first)."""

@@ -76,19 +76,6 @@ def install(stack: SignalStack) -> None:
         raise OSError(err, f"sigaltstack: cannot set {stack}")
 
 
-def mapped(address: int, size: int = 1) -> bool:
-    """Whether ``[address, address + size)`` lies in this process's mappings (``/proc/self/maps``)."""
-    try:
-        with open("/proc/self/maps") as maps:
-            for line in maps:
-                lo, _, hi = line.split(" ", 1)[0].partition("-")
-                if int(lo, 16) <= address and address + size <= int(hi, 16):
-                    return True
-    except OSError:
-        return True  # cannot tell: assume it is
-    return False
-
-
 @contextmanager
 def kept() -> Iterator[None]:
     """Run the block, then give the calling thread back the signal stack it had before, if the block

@@ -29,12 +29,15 @@ from denoiser.runner import RecurrentRunner
 F32_RTOL = 1e-4
 BF16_RTOL = 0.03
 RESETS = (True, False, True, False)  # first frame and a cut in the middle
+TEMPORAL = ["+net.temporal.history_clamp=1.0", "+net.temporal.reject_threshold=0.1"]
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     torch.manual_seed(0)
-    net = build_net(compose_net_config("tiny", "student")).eval()
+    # with the shipped student's temporal options: the history clamp and the disocclusion gate
+    # (denoiser::ClampBlend and denoiser::GuideGate in the fused graphs)
+    net = build_net(compose_net_config("tiny", "student", overrides=TEMPORAL)).eval()
     root = tmp_path_factory.mktemp("ov")
     path = export_onnx(net, root / "tiny.onnx")
     export_onnx(net, root / "tiny-mm.onnx", matmul_heads=True)

@@ -296,6 +296,170 @@ def test_add_upsampled_matches_interpolate(tmp_path, mode, hw, half):
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-4)
 
 
+def clamp_blend_loop(base, previous, weight, k: float) -> np.ndarray:
+    """The history clamp and blend, a plain loop over pixels (float64): ``base + weight * (clamp(
+    previous, mu - k sigma, mu + k sigma) - base)`` with the 3x3 mean and population deviation of
+    ``base``, edges replicated."""
+    x, p, a = (t.double().numpy() for t in (base, previous, weight))
+    b_, c_, h, w = x.shape
+    out = np.zeros_like(x)
+    for b in range(b_):
+        for c in range(c_):
+            for y in range(h):
+                for px in range(w):
+                    box = [x[b, c, min(max(y + i, 0), h - 1), min(max(px + j, 0), w - 1)]
+                           for i in (-1, 0, 1) for j in (-1, 0, 1)]
+                    mu, sd = np.mean(box), np.sqrt(np.var(box) + 1e-12)
+                    clamped = min(max(p[b, c, y, px], mu - k * sd), mu + k * sd)
+                    out[b, c, y, px] = x[b, c, y, px] + a[b, 0, y, px] * (clamped - x[b, c, y, px])
+    return out
+
+
+def run_clamp_blend(path, base, previous, weight, threads: int = 2) -> np.ndarray:
+    import openvino as ov
+
+    core = ov.Core()
+    ovext.load_into(core, path)
+    compiled = core.compile_model(core.read_model(str(path)), "CPU", {"INFERENCE_NUM_THREADS": threads})
+    return compiled({"base": base.numpy(), "previous": previous.numpy(), "weight": weight.numpy()})[compiled.output(0)]
+
+
+def export_clamp_blend(path, k: float, *inputs):
+    from denoiser.nn.graph_ops import ClampBlendOp
+
+    class Blend(torch.nn.Module):
+        def forward(self, base, previous, weight):
+            return ClampBlendOp.apply(base, previous, weight, k)
+
+    with torch.no_grad():
+        torch.onnx.export(Blend(), inputs, str(path), input_names=["base", "previous", "weight"], output_names=["y"],
+                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    return path
+
+
+@needs_extension
+@pytest.mark.parametrize(("hw", "k"), [((7, 11), 1.0), ((1, 5), 0.5), ((4, 1), 2.0), ((33, 47), 1.0)])
+def test_clamp_blend_matches_the_loop_over_pixels(tmp_path, hw, k):
+    """``denoiser::ClampBlend`` (the history clamp and blend of
+    :class:`~denoiser.nn.temporal.TemporalRecurrence`) against a loop over pixels and against
+    :func:`denoiser.nn.temporal.clamp_blend`, at odd sizes (a single row, a single column: every
+    neighbourhood replicated), two images, three channels; the same bits with 1 and 2 threads."""
+    from denoiser.nn.temporal import clamp_blend
+
+    g = torch.Generator().manual_seed(hw[0])
+    base = torch.rand(2, 3, *hw, generator=g) * 4
+    previous = base + torch.randn(2, 3, *hw, generator=g)
+    weight = torch.rand(2, 1, *hw, generator=g)
+    path = export_clamp_blend(tmp_path / "c.onnx", k, base, previous, weight)
+    got = run_clamp_blend(path, base, previous, weight)
+    np.testing.assert_allclose(got, clamp_blend_loop(base, previous, weight, k), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(got, clamp_blend(base, previous, weight, k).numpy(), rtol=1e-6, atol=1e-6)
+    assert np.array_equal(run_clamp_blend(path, base, previous, weight, threads=1), got)
+
+
+@needs_extension
+def test_clamp_blend_hard_values(tmp_path):
+    """Fireflies (6e4) beside black pixels, a flat neighbourhood (sigma 0: the history snaps to the
+    mean), weights 0 and 1, history far outside: finite and equal to eager within float32 rounding."""
+    from denoiser.nn.temporal import clamp_blend
+
+    g = torch.Generator().manual_seed(11)
+    h, w = 19, 23
+    base = torch.rand(1, 3, h, w, generator=g)
+    base[:, :, ::4, ::5] = 6e4
+    base[:, :, 10:14] = 0.0
+    previous = torch.rand(1, 3, h, w, generator=g) * 1e5
+    weight = torch.rand(1, 1, h, w, generator=g)
+    weight[..., :, :3] = 0.0
+    weight[..., :, -3:] = 1.0
+    path = export_clamp_blend(tmp_path / "h.onnx", 1.0, base, previous, weight)
+    got = run_clamp_blend(path, base, previous, weight)
+    want = clamp_blend(base, previous, weight, 1.0).numpy()
+    assert np.isfinite(got).all()
+    np.testing.assert_array_equal(got[..., :3], base.numpy()[..., :3])  # weight 0: the current frame
+    # black and flat: the history snaps to 0, within k * sqrt(1e-12) (the epsilon under the root)
+    assert np.abs(got[:, :, 11:13, 4:-4]).max() <= 1e-6
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+
+
+def guide_gate_loop(previous, current, t: float) -> np.ndarray:
+    """The disocclusion gate, a plain loop over pixels (float64): ``clamp(2 - D / t, 0, 1)``, D the
+    max of the albedo's excess over the current 3x3 [min, max] (edges replicated, max over
+    channels), the normals' ``1 - cos`` (1 where one is missing, 0 where both are) and the depth
+    features' absolute log ratio (clamped to [1e-6, 1 - 1e-6])."""
+    p, x = previous.double().numpy(), current.double().numpy()
+    b_, _, h, w = x.shape
+    out = np.zeros((b_, 1, h, w))
+    for b in range(b_):
+        for y in range(h):
+            for px in range(w):
+                box = [(min(max(y + i, 0), h - 1), min(max(px + j, 0), w - 1)) for i in (-1, 0, 1) for j in (-1, 0, 1)]
+                albedo = max(max(p[b, c, y, px] - max(x[b, c, yy, xx] for yy, xx in box),
+                                 min(x[b, c, yy, xx] for yy, xx in box) - p[b, c, y, px], 0.0) for c in range(3))
+                pn, cn = p[b, 3:6, y, px], x[b, 3:6, y, px]
+                lp, lc = np.linalg.norm(pn), np.linalg.norm(cn)
+                if lp > 0.5 and lc > 0.5:
+                    normal = 1.0 - pn @ cn / max(lp * lc, 1e-6)
+                else:
+                    normal = 0.0 if (lp > 0.5) == (lc > 0.5) else 1.0
+                pd, cd = (min(max(v, 1e-6), 1 - 1e-6) for v in (p[b, 6, y, px], x[b, 6, y, px]))
+                depth = abs(np.log(pd * (1 - cd) / (cd * (1 - pd))))
+                out[b, 0, y, px] = min(max(2.0 - max(albedo, normal, depth) / t, 0.0), 1.0)
+    return out
+
+
+def guide_pair(b: int, h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warped and current guides ``[B, 7, H, W]``: albedo, unit normals (some missing: zero), depth
+    features in [0, 1] (some 0 and 1: the clamp), the previous a perturbed copy of the current."""
+    g = torch.Generator().manual_seed(seed)
+    current = torch.rand(b, 7, h, w, generator=g)
+    current[:, 3:6] = torch.nn.functional.normalize(torch.randn(b, 3, h, w, generator=g), dim=1)
+    current[:, 3:6, ::3, ::4] = 0.0
+    current[:, 6, ::5] = 0.0
+    current[:, 6, 1::7] = 1.0
+    previous = current + 0.3 * torch.randn(b, 7, h, w, generator=g)
+    previous[:, 3:6, ::2, ::3] = 0.0
+    previous[:, 6] = previous[:, 6].clamp(0, 1)
+    return previous, current
+
+
+@needs_extension
+@pytest.mark.parametrize(("hw", "t"), [((7, 11), 0.1), ((1, 6), 0.6), ((5, 1), 0.6), ((29, 41), 0.6)])
+def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t):
+    """``denoiser::GuideGate`` (the disocclusion gate of
+    :class:`~denoiser.nn.temporal.TemporalRecurrence`) against a loop over pixels and against
+    eager, at odd sizes (a single row or column), with missing normals and depth features at 0
+    and 1; the same bits with 1 and 2 threads."""
+    from denoiser.nn.graph_ops import GuideGateOp
+    from denoiser.nn.temporal import TemporalRecurrence
+
+    class Gate(torch.nn.Module):
+        def forward(self, previous, current):
+            return GuideGateOp.apply(previous, current, t)
+
+    previous, current = guide_pair(2, *hw, seed=hw[1])
+    with torch.no_grad():
+        torch.onnx.export(Gate(), (previous, current), str(tmp_path / "g.onnx"), input_names=["p", "c"],
+                          output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import openvino as ov
+
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "g.onnx")
+
+    def run(threads):
+        compiled = core.compile_model(core.read_model(str(tmp_path / "g.onnx")), "CPU", {"INFERENCE_NUM_THREADS": threads})
+        return compiled({"p": previous.numpy(), "c": current.numpy()})[compiled.output(0)]
+
+    got = run(2)
+    assert got.shape == (2, 1, *hw)
+    if t > 0.5 and got.size >= 100:  # not saturated everywhere: the comparison sees D, not only its clamp
+        assert ((got > 0.05) & (got < 0.95)).mean() > 0.1
+    np.testing.assert_allclose(got, guide_gate_loop(previous, current, t), atol=2e-5)
+    eager = TemporalRecurrence(state_features=4, reject_threshold=t).gate(previous, current)
+    np.testing.assert_allclose(got, eager.numpy(), atol=2e-5)
+    assert np.array_equal(run(1), got)
+
+
 def test_missing_extension_is_one_clear_line(tmp_path, monkeypatch):
     pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")
     pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")

@@ -59,14 +59,17 @@ def test_the_cpp_source_registers_the_schema():
 
 def exported_operations(tmp_path: Path) -> dict[str, list[tuple[int, dict[str, str]]]]:
     """Every ``denoiser`` node of graphs exported with the fused operations: the pyramid student,
-    the single-kernel ablation (KernelApply) and the matmul heads (AddUpsampled)."""
+    the single-kernel ablation (KernelApply), the matmul heads (AddUpsampled) and the history
+    clamp with the disocclusion gate (ClampBlend, GuideGate: demo_student's temporal options)."""
     onnx = pytest.importorskip("onnx")
     from denoiser.configs import build_net, compose_net_config
     from denoiser.inference.step_graph import export_onnx
 
     nodes: dict[str, list] = {}
-    for k, (ablation, matmul) in enumerate([("none", False), ("no_pyramid", False), ("none", True)]):
-        net = build_net(compose_net_config("tiny", ablation=ablation)).eval()
+    temporal = ["+net.temporal.history_clamp=1.0", "+net.temporal.reject_threshold=0.1"]
+    for k, (ablation, matmul, overrides) in enumerate([("none", False, []), ("no_pyramid", False, []),
+                                                       ("none", True, []), ("none", False, temporal)]):
+        net = build_net(compose_net_config("tiny", ablation=ablation, overrides=overrides)).eval()
         path = export_onnx(net, tmp_path / f"{k}.onnx", trace_size=(32, 32), fused_kernels=True, matmul_heads=matmul)
         for node in onnx.load(str(path)).graph.node:
             if node.domain == DOMAIN:

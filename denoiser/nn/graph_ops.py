@@ -21,7 +21,9 @@ that record them. Eager training and inference never take these paths.
   records the node only); :class:`KernelApplyOp` (:func:`denoiser.nn.kernels.apply_kernels_graph`),
   :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`Log1pOp`
   (:func:`denoiser.nn.inputs.log1p`), :class:`AddUpsampledOp`
-  (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`).
+  (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`), :class:`ClampBlendOp`
+  (:func:`denoiser.nn.temporal.clamp_blend`), :class:`GuideGateOp`
+  (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
 """
 
 from __future__ import annotations
@@ -55,6 +57,10 @@ OPERATIONS: dict[str, Operation] = {
     "Log1p": Operation(1, {}),
     # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
     "AddUpsampled": Operation(2, {"mode": "STRING"}),
+    # base [B, C, H, W], previous [B, C, H, W], weight [B, 1, H, W] -> [B, C, H, W]
+    "ClampBlend": Operation(3, {"k": "FLOAT"}),
+    # previous [B, 7, H, W], current [B, 7, H, W] -> [B, 1, H, W]
+    "GuideGate": Operation(2, {"threshold": "FLOAT"}),
 }
 #: the suffix torch.onnx's ``g.op`` takes for each attribute type
 _SUFFIX = {"FLOAT": "f", "INT": "i", "INTS": "i", "STRING": "s"}
@@ -192,5 +198,59 @@ class AddUpsampledOp(torch.autograd.Function):
         return graph_node(g, "AddUpsampled", a, z, like=a, mode=mode)
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterOp",
+class ClampBlendOp(torch.autograd.Function):
+    """:func:`denoiser.nn.temporal.clamp_blend` recorded as one ``denoiser::ClampBlend`` node
+    (attribute ``k``); the value is the plain computation.
+
+    forward(base ``[B, C, H, W]``, previous ``[B, C, H, W]``, weight ``[B, 1, H, W]``, k float)
+    -> ``[B, C, H, W]`` float32.
+    """
+
+    @staticmethod
+    def forward(ctx, base, previous, weight, k):
+        from denoiser.nn.temporal import clamp_blend
+
+        # computed untraced: the tracer's record of the 3x3 slices (sizes read from the traced
+        # shapes) inside this node's block is one the ONNX exporter's passes cannot take
+        state = torch._C._get_tracing_state()
+        torch._C._set_tracing_state(None)
+        try:
+            return unfused(clamp_blend, base, previous, weight, k)
+        finally:
+            torch._C._set_tracing_state(state)
+
+    @staticmethod
+    def symbolic(g, base, previous, weight, k):
+        return graph_node(g, "ClampBlend", base, previous, weight, like=base, k=float(k))
+
+
+class GuideGateOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.temporal.TemporalRecurrence.gate` recorded as one ``denoiser::GuideGate``
+    node (attribute ``threshold``); the value is the plain computation.
+
+    forward(previous ``[B, 7, H, W]``, current ``[B, 7, H, W]``, threshold float) -> ``[B, 1, H, W]``
+    float32 in [0, 1].
+    """
+
+    @staticmethod
+    def forward(ctx, previous, current, threshold):
+        from denoiser.nn.temporal import guide_disagreement
+
+        state = torch._C._get_tracing_state()  # untraced, as ClampBlendOp.forward
+        torch._C._set_tracing_state(None)
+        try:
+            return (2.0 - guide_disagreement(previous, current) / threshold).clamp(0.0, 1.0)
+        finally:
+            torch._C._set_tracing_state(state)
+
+    @staticmethod
+    def symbolic(g, previous, current, threshold):
+        out = graph_node(g, "GuideGate", previous, current, like=current, threshold=float(threshold))
+        sizes = current.type().varyingSizes()  # [B, 1, H, W] (None where not known)
+        if sizes is not None and len(sizes) == 4:
+            out.setType(current.type().with_sizes([sizes[0], 1, sizes[2], sizes[3]]))
+        return out
+
+
+__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused"]

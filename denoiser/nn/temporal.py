@@ -79,6 +79,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
+from denoiser.nn.graph_ops import ClampBlendOp, GuideGateOp, fused_kernels
 from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature
 from denoiser.nn.warp import warp_all
 
@@ -146,6 +147,17 @@ def neighbourhood_clamp(history: torch.Tensor, current: torch.Tensor, k: float) 
     # the epsilon keeps the square root's gradient finite where the neighbourhood is constant
     spread = k * torch.sqrt(var + 1e-12)
     return torch.minimum(torch.maximum(history.float(), mean - spread), mean + spread)
+
+
+def clamp_blend(base: torch.Tensor, previous: torch.Tensor, weight: torch.Tensor, k: float) -> torch.Tensor:
+    """The history clamp and blend: ``base + weight * (clamped - base)`` with ``clamped`` the
+    :func:`neighbourhood_clamp` of ``previous`` to ``base``'s 3x3 neighbourhood. base, previous:
+    ``[B, C, H, W]``; weight ``[B, 1, H, W]`` in [0, 1]; -> ``[B, C, H, W]`` float32. In a graph
+    recorded with the extension's operations (:func:`denoiser.nn.graph_ops.kernels_as_op`) it is
+    one ``denoiser::ClampBlend`` node."""
+    if fused_kernels():
+        return ClampBlendOp.apply(base.float(), previous.float(), weight.float(), float(k))
+    return base + weight * (neighbourhood_clamp(previous, base, k) - base)
 
 
 def history_disagreement(history: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
@@ -240,6 +252,8 @@ class TemporalRecurrence(nn.Module):
         in [0, 1] (all ones when ``reject_threshold`` is None)."""
         if self.reject_threshold is None:
             return torch.ones_like(current[:, :1], dtype=torch.float32)
+        if fused_kernels():  # one denoiser::GuideGate node (denoiser.nn.graph_ops)
+            return GuideGateOp.apply(previous.float(), current.float(), self.reject_threshold)
         d = guide_disagreement(previous, current)
         return (2.0 - d / self.reject_threshold).clamp(0.0, 1.0)
 
@@ -305,19 +319,17 @@ class TemporalRecurrence(nn.Module):
         Returns ``(filter input [B, 3, H, W], weight a [B, 1, H, W])``.
         """
         a = torch.sigmoid(head[:, self._head["history_in"]].float()) * history["valid"]
-        previous = history["color"]
         if self.history_clamp is not None:
-            previous = neighbourhood_clamp(previous, color, self.history_clamp)
-        return color + a * (previous - color), a
+            return clamp_blend(color, history["color"], a, self.history_clamp), a
+        return color + a * (history["color"] - color), a
 
     def blend_out(self, filtered: torch.Tensor, history: dict[str, torch.Tensor], head: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """Blend the history output into the filtered frame; returns ``(output, weight b)``."""
         b = torch.sigmoid(head[:, self._head["history_out"]].float()) * history["valid"]
-        previous = history["output"]
         if self.history_clamp is not None:
-            previous = neighbourhood_clamp(previous, filtered, self.history_clamp)
-        return filtered + b * (previous - filtered), b
+            return clamp_blend(filtered, history["output"], b, self.history_clamp), b
+        return filtered + b * (history["output"] - filtered), b
 
     def next_state(self, output: torch.Tensor, color: torch.Tensor, head: torch.Tensor,
                    guide: torch.Tensor) -> dict[str, torch.Tensor]:

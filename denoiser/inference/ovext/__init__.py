@@ -1,12 +1,15 @@
 """The project's OpenVINO CPU extension: the kernel filters as single operations, one C++
 header per operation (``kernel_apply.hpp``, ``pyramid_filter.hpp``, ``log1p.hpp``,
-``add_upsampled.hpp``, with ``common.hpp``), registered in ``extension.cpp``, the one file
+``add_upsampled.hpp``, ``clamp_blend.hpp``, ``guide_gate.hpp``, with ``common.hpp``), registered
+in ``extension.cpp``, the one file
 compiled; their names, inputs and attributes are :data:`denoiser.nn.graph_ops.OPERATIONS`. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
 :class:`~denoiser.nn.pyramid.PyramidFilter` (partition, pooled parts, the levels' kernels,
 upsampling, normalisation), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``
 is a reference implementation on the CPU), ``denoiser::AddUpsampled`` the level-0 head's sum
-with its upsampled half-resolution part (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`).
+with its upsampled half-resolution part (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`),
+``denoiser::ClampBlend`` the history clamp and blend (:func:`denoiser.nn.temporal.clamp_blend`) and
+``denoiser::GuideGate`` the disocclusion gate (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
 
 The extension is C++ against the headers and libraries the ``openvino`` wheel ships. It is
 compiled on first use, with the machine's C++ compiler (``$CXX``, else ``g++``/``c++``) and
@@ -59,8 +62,9 @@ from denoiser.errors import UserError
 SOURCE = Path(__file__).with_name("extension.cpp")
 #: every source file of the extension, in the build's cache key (a changed header is a new build)
 SOURCES = tuple(sorted([SOURCE, *Path(__file__).parent.glob("*.hpp")]))
-#: compiler flags (part of the cache key); :data:`NATIVE` is added where the CPU's flags are known
-FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-fvisibility=hidden")
+#: compiler flags (part of the cache key); :data:`NATIVE` is added where the CPU's flags are known.
+#: ``-fno-math-errno``: ``std::sqrt`` then vectorises (errno is never read; the values are the same)
+FLAGS = ("-O3", "-fno-math-errno", "-std=c++17", "-fPIC", "-shared", "-fvisibility=hidden")
 NATIVE = "-march=native"
 #: the CPU description whose ``flags`` line keys (and allows) a ``-march=native`` build
 CPUINFO = Path("/proc/cpuinfo")

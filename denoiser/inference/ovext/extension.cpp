@@ -4,6 +4,8 @@
 // tests/test_ovext_schema.py checks both against it). The one file compiled; the headers are
 // part of the build's cache key.
 #include "add_upsampled.hpp"
+#include "clamp_blend.hpp"
+#include "guide_gate.hpp"
 #include "kernel_apply.hpp"
 #include "log1p.hpp"
 #include "pyramid_filter.hpp"
@@ -13,11 +15,25 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::PyramidFilter>>(),
     std::make_shared<ov::OpExtension<denoiser::Log1p>>(),
     std::make_shared<ov::OpExtension<denoiser::AddUpsampled>>(),
+    std::make_shared<ov::OpExtension<denoiser::ClampBlend>>(),
+    std::make_shared<ov::OpExtension<denoiser::GuideGate>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "AddUpsampled", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
             return std::make_shared<denoiser::AddUpsampled>(ctx.get_input(0), ctx.get_input(1),
                                                             ctx.get_attribute<std::string>("mode"))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "ClampBlend", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::ClampBlend>(ctx.get_input(0), ctx.get_input(1), ctx.get_input(2),
+                                                          ctx.get_attribute<float>("k"))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "GuideGate", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::GuideGate>(ctx.get_input(0), ctx.get_input(1),
+                                                         ctx.get_attribute<float>("threshold"))->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "Log1p", "denoiser",

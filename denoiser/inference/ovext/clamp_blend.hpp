@@ -1,0 +1,109 @@
+// ClampBlend(base [B, C, H, W], previous [B, C, H, W], weight [B, 1, H, W]; attribute k) -> [B, C, H, W] f32:
+//   base + weight * (clamp(previous, mu - k sigma, mu + k sigma) - base), the mean mu and population
+//   standard deviation sigma of base over each pixel's 3x3 neighbourhood, the edges replicated:
+//   denoiser.nn.temporal.clamp_blend, the history clamp and blend of TemporalRecurrence (its module
+//   docstring is the definition), in the same operation order as denoiser.nn.temporal.box_moments
+//   (moments of the differences to the centre pixel, sigma = sqrt(var + 1e-12)).
+//
+// In the plain graph the 3x3 moments were eight full-resolution slices of a padded copy and five
+// fused elementwise passes per blend; here each output row reads three rows of base once.
+#pragma once
+
+#include "common.hpp"
+
+namespace denoiser {
+
+// One row of one channel: out[px] for px in [0, W). r0, r1, r2: base rows y - 1, y, y + 1 (edges
+// replicated), each padded by one replicated value at both ends (W + 2 floats, index px + 1 is px).
+static inline void clamp_blend_row(const float* __restrict r0, const float* __restrict r1,
+                                   const float* __restrict r2, const float* __restrict prev,
+                                   const float* __restrict weight, float k, int64_t W, float* __restrict out) {
+    for (int64_t px = 0; px < W; ++px) {
+        const float x = r1[px + 1];
+        float total = 0.0f, squares = 0.0f;
+        // the neighbours in box_moments' order (rows, then columns; the centre left out)
+        const float n[8] = {r0[px], r0[px + 1], r0[px + 2], r1[px], r1[px + 2], r2[px], r2[px + 1], r2[px + 2]};
+        for (int t = 0; t < 8; ++t) {
+            const float d = n[t] - x;
+            total = total + d;
+            squares = squares + d * d;
+        }
+        const float mean_d = total / 9.0f;
+        const float var = std::max(squares / 9.0f - mean_d * mean_d, 0.0f);
+        const float mean = x + mean_d;
+        const float spread = k * std::sqrt(var + 1e-12f);
+        const float clamped = std::min(std::max(prev[px], mean - spread), mean + spread);
+        out[px] = x + weight[px] * (clamped - x);
+    }
+}
+
+class ClampBlend : public ov::op::Op {
+public:
+    OPENVINO_OP("ClampBlend", "denoiser");
+
+    ClampBlend() = default;
+    ClampBlend(const ov::Output<ov::Node>& base, const ov::Output<ov::Node>& previous,
+               const ov::Output<ov::Node>& weight, float k)
+        : Op({base, previous, weight}), m_k(k) {
+        constructor_validate_and_infer_types();
+    }
+
+    void validate_and_infer_types() override {
+        for (size_t i = 0; i < 3; ++i)
+            NODE_VALIDATION_CHECK(this, get_input_element_type(i) == ov::element::f32 &&
+                                            get_input_partial_shape(i).rank().compatible(4),
+                                  "ClampBlend: 4-D f32 inputs only");
+        NODE_VALIDATION_CHECK(this, m_k > 0.0f, "ClampBlend: k must be > 0, got ", m_k);
+        set_output_type(0, ov::element::f32, get_input_partial_shape(0));
+    }
+
+    std::shared_ptr<ov::Node> clone_with_new_inputs(const ov::OutputVector& args) const override {
+        return std::make_shared<ClampBlend>(args.at(0), args.at(1), args.at(2), m_k);
+    }
+
+    bool visit_attributes(ov::AttributeVisitor& visitor) override {
+        visitor.on_attribute("k", m_k);
+        return true;
+    }
+
+    bool has_evaluate() const override { return true; }
+
+    bool evaluate(ov::TensorVector& outputs, const ov::TensorVector& inputs) const override {
+        const auto& xs = inputs[0].get_shape();
+        const auto& ps = inputs[1].get_shape();
+        const auto& ws = inputs[2].get_shape();
+        OPENVINO_ASSERT(xs.size() == 4 && ps == xs && ws.size() == 4 && ws[0] == xs[0] && ws[1] == 1 &&
+                            ws[2] == xs[2] && ws[3] == xs[3],
+                        "ClampBlend: base ", xs, ", previous ", ps, " and weight ", ws, " do not match");
+        const int64_t B = xs[0], C = xs[1], H = xs[2], W = xs[3], HW = H * W;
+        outputs[0].set_shape(xs);
+        const float* X = inputs[0].data<const float>();
+        const float* P = inputs[1].data<const float>();
+        const float* A = inputs[2].data<const float>();
+        float* O = outputs[0].data<float>();
+        parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
+            std::vector<float> pad(static_cast<size_t>(3 * (W + 2)));
+            for (int64_t row = rows.begin(); row != rows.end(); ++row) {
+                const int64_t b = row / H, y = row % H;
+                for (int64_t c = 0; c < C; ++c) {
+                    const float* plane = X + (b * C + c) * HW;
+                    for (int64_t i = 0; i < 3; ++i) {  // rows y - 1, y, y + 1, replicated at the edges
+                        const int64_t yy = std::min(std::max(y + i - 1, int64_t(0)), H - 1);
+                        float* p = pad.data() + i * (W + 2);
+                        std::memcpy(p + 1, plane + yy * W, W * sizeof(float));
+                        p[0] = p[1], p[W + 1] = p[W];
+                    }
+                    clamp_blend_row(pad.data(), pad.data() + (W + 2), pad.data() + 2 * (W + 2),
+                                    P + (b * C + c) * HW + y * W, A + b * HW + y * W, m_k, W,
+                                    O + (b * C + c) * HW + y * W);
+                }
+            }
+        });
+        return true;
+    }
+
+private:
+    float m_k = 1.0f;
+};
+
+}  // namespace denoiser

@@ -199,6 +199,14 @@ def test_bench_openvino_rows(setup, tmp_path):
     assert by["openvino f32"]["status"] == "ok" and by["openvino f32"]["ms_median"] > 0
     assert by["openvino f32"]["dtype"] == "fp32" and by["openvino bf16"]["dtype"] == "bf16"
     assert by["openvino bf16"]["status"] == "ok" or by["openvino bf16"]["status"].startswith("skipped: ")
+    # the report says whether bf16 pays here, by the same run's medians (what precision=auto measures)
+    report = (tmp_path / "report.md").read_text()
+    if by["openvino bf16"]["status"] == "ok":
+        f32, bf16 = by["openvino f32"]["ms_median"], by["openvino bf16"]["ms_median"]
+        assert f"OpenVINO bf16 {bf16:.1f} ms, f32 {f32:.1f} ms" in report
+        assert ("bf16 pays on this CPU" if bf16 < f32 else "bf16 does not pay on this CPU") in report
+    else:
+        assert "## bf16 or f32" not in report
 
 
 def test_bench_profile_says_where_the_time_goes(setup, tmp_path):

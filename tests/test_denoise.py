@@ -32,8 +32,12 @@ def compose_denoise(overrides):
 
 
 def denoise(overrides):
+    """denoiser-denoise in-process; f32 unless the test names a backend or precision (the default,
+    precision=auto, may run bf16 where it is faster: these tests compare with eager's frames)."""
     from denoiser.commands.denoise import run
 
+    if not any(o.startswith(("backend=", "precision=")) for o in overrides):
+        overrides = [*overrides, "precision=f32"]
     return run(compose_denoise(overrides))
 
 
@@ -60,8 +64,8 @@ def test_console_script_denoises_with_state_carried(setup, tmp_path):
     _root, seq, ckpt = setup
     out = tmp_path / "out"
     proc = subprocess.run([str(VENV_BIN / "denoiser-denoise"), f"ckpt={ckpt}", f"input={seq}", f"output={out}",
-                           "threads=1", f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True,
-                          timeout=300, check=False)
+                           "threads=1", "precision=f32", f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True,
+                          text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "denoised 5 frame(s)" in proc.stdout
     expected = expected_outputs(ckpt, seq)
@@ -188,3 +192,35 @@ def test_graph_backends_match_eager(setup, tmp_path, backend, precision, rtol):
         a = np.stack([read_channels(tmp_path / "eager" / f"frame_{t:04d}.exr")[c] for c in "RGB"])
         b = np.stack([read_channels(tmp_path / "graph" / f"frame_{t:04d}.exr")[c] for c in "RGB"])
         assert np.all(np.abs(a - b) <= rtol * np.maximum(1.0, np.abs(a))), (t, float(np.abs(a - b).max()))
+
+
+def test_default_precision_is_the_faster_one_measured(setup, tmp_path, capsys):
+    """OpenVINO's default precision (auto) times f32 and bf16 on the first frame and runs the faster,
+    saying which with both figures; without bf16 on the CPU it runs f32 and says why."""
+    pytest.importorskip("openvino")
+    from denoiser.checkpoint import load_denoiser
+    from denoiser.frames import random_frame
+    from denoiser.inference.backends import faster_precision
+    from denoiser.measure import has_bf16
+
+    _, seq, ckpt = setup
+    denoise([f"ckpt={ckpt}", f"input={seq}", f"output={tmp_path / 'out'}", "backend=openvino", "threads=1"])
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("precision auto: "))
+    chosen = line.split()[2].rstrip(":")
+    assert f"precision {'bf16' if chosen == 'bf16' else 'fp32'})" in out  # what ran is what was chosen
+    if not has_bf16():
+        assert chosen == "f32" and "bf16 not timed" in line
+    net = load_denoiser(ckpt, torch.device("cpu"))
+    frame = random_frame(1, 24, 32, seed=0)
+    choice = faster_precision(net, frame, threads=1, warmup=1, repeats=2)
+    assert choice.precision == min(choice.ms, key=lambda p: (choice.ms[p], p != "f32"))
+    assert f"{choice.ms['f32']:.0f}" in choice.reason and "at 32x24 on 1 thread(s)" in choice.reason or \
+        "bf16 not timed" in choice.reason
+
+
+def test_auto_precision_is_openvino_only():
+    from denoiser.commands.denoise import make_backend
+
+    with pytest.raises(UserError, match="precision=auto: measures backend=openvino's f32 and bf16 only, not backend=eager"):
+        make_backend("eager", "auto", torch.device("cpu"))

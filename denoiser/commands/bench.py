@@ -623,6 +623,7 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
                                            r.get("speedup_hi", float("nan")))
     columns = [c for c in COLUMNS if c not in ("kind", "speedup", "speedup_lo", "speedup_hi")]
     columns.insert(columns.index("repeats") + 1, "speedup_text")
+    parts += precision_lines(rows)
     parts += ["## All measurements\n", f"speed-up vs {cfg.compare.baseline}: {interval}.\n",
               markdown_table(rows, columns, FORMATS, {**HEADERS, "speedup_text": f"vs {cfg.compare.baseline} (interval)"})]
     profiled = profile_section(rows)
@@ -638,6 +639,26 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
     text = "\n".join(parts)
     atomic_write_text(out_dir / "report.md", text)
     return text
+
+
+def precision_lines(rows: list[dict]) -> list[str]:
+    """report.md lines: per method and size timed in OpenVINO f32 and bf16, whether bf16 pays on
+    this CPU (median against median, same run), which is what ``denoiser-denoise``'s default
+    (``precision=auto``, :func:`denoiser.inference.backends.faster_precision`) measures and runs."""
+    lines = []
+    timed: dict[tuple, dict[str, float]] = {}
+    for r in rows:
+        if str(r.get("backend", "")).startswith("openvino") and r.get("status", "ok") == "ok":
+            timed.setdefault((r["method"], r["height"], r["width"]), {})[r.get("dtype", "")] = r["ms_median"]
+    for (method, h, w), ms in timed.items():
+        if "fp32" not in ms or "bf16" not in ms:
+            continue
+        f32, bf16 = ms["fp32"], ms["bf16"]
+        verdict = ("bf16 pays on this CPU: `denoiser-denoise`'s default (precision=auto) runs it" if bf16 < f32 else
+                   "bf16 does not pay on this CPU: `denoiser-denoise`'s default (precision=auto) keeps f32")
+        lines.append(f"- {method} at {w}x{h}: OpenVINO bf16 {bf16:.1f} ms, f32 {f32:.1f} ms "
+                     f"({f32 / bf16:.2f}x); {verdict}.")
+    return ["## bf16 or f32 (OpenVINO, same run)\n", *lines, ""] if lines else []
 
 
 def profile_rows(rows: list[dict]) -> list[dict]:

@@ -30,9 +30,11 @@ names as ``denoiser-bench``'s ``use_backends``; :func:`~denoiser.inference.backe
 (the exported step graph, :mod:`denoiser.inference.step_graph`; exported once at start, OpenVINO compiles
 it once for the frame size); null (default) picks ``openvino`` when it is installed (with
 ``onnx`` for the export) and the device is the CPU, else ``eager``. ``precision``: ``f32``
-(default: the outputs match eager PyTorch within float32 rounding, see ``tests/test_openvino.py``)
-or ``bf16`` (OpenVINO's bf16 inference precision, eager's bfloat16 autocast; faster on CPUs with
-AVX512-BF16/AMX, errors of a few 1e-3 relative). With ``device=cuda``: ``cuda`` and
+(the outputs match eager PyTorch within float32 rounding, see ``tests/test_openvino.py``), ``bf16``
+(OpenVINO's bf16 inference precision, eager's bfloat16 autocast; errors of a few 1e-3 relative;
+faster on CPUs with AMX, not always with AVX512-BF16 alone) or ``auto``, OpenVINO's default: both are
+timed on the first frame (:func:`denoiser.inference.backends.faster_precision`, a few steps each)
+and the faster runs, with one line saying which and why. Other backends default to f32. With ``device=cuda``: ``cuda`` and
 ``cuda_compiled`` (:mod:`denoiser.inference.cuda_backend`: weights cast once to ``precision`` f32, bf16 or
 fp16, the Triton filter; ``cuda_compiled`` replays a CUDA graph per frame size; docs/gpu.md).
 Every backend steps through the one recurrent runner (:class:`~denoiser.runner.RecurrentRunner`).
@@ -88,10 +90,14 @@ def make_backend(name: str | None, precision: str | None, device: torch.device):
         resolve_backend,
     )
 
-    if precision is not None and precision not in PRECISIONS:
-        raise ConfigError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
     if name is None:
         name = "openvino" if device.type == "cpu" and openvino_installed() else "eager"
+    if precision == AUTO:
+        if name != "openvino":
+            raise ConfigError(f"precision=auto: measures backend=openvino's f32 and bf16 only, not backend={name}")
+        precision = "f32"  # checked as f32 here; run() times both on the first frame (auto_precision)
+    if precision is not None and precision not in PRECISIONS:
+        raise ConfigError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}, {AUTO}")
     if precision is None and (name in PRECISION_OPTIONS or name in PRECISION_ARGUMENT):
         precision = "f32"
     option, overrides = resolve_backend(name, precision)
@@ -107,6 +113,19 @@ def make_backend(name: str | None, precision: str | None, device: torch.device):
     if reason:
         raise ConfigError(f"backend={name} precision={precision}: {reason}")
     return name, backend
+
+
+#: ``precision=`` that times OpenVINO's f32 and bf16 on the first frame and runs the faster
+AUTO = "auto"
+
+
+def auto_precision(name: str | None, precision: str | None, device: torch.device) -> bool:
+    """Whether ``backend=name precision=precision`` leaves the precision to a measurement:
+    ``precision=auto``, or the default (null) when the backend is OpenVINO (given or chosen)."""
+    if precision == AUTO:
+        return True
+    return precision is None and (name == "openvino" or (name is None and device.type == "cpu"
+                                                         and openvino_installed()))
 
 
 def _torch_backend(target: str) -> bool:
@@ -209,6 +228,7 @@ def run(cfg: DictConfig) -> dict:
     for stale in remove_stale_temporaries(out_dir):  # frames whose write was killed
         log.warning("removed %s (a frame write that was killed)", stale)
     backend_name, backend = make_backend(cfg.get("backend"), cfg.get("precision"), device)
+    measure_precision = auto_precision(cfg.get("backend"), cfg.get("precision"), device)
 
     net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
     layout = instantiate_config(cfg.layout, "layout")
@@ -231,6 +251,12 @@ def run(cfg: DictConfig) -> dict:
     counts = {"written": 0, "skipped": sum(p.exists() for p in outputs[start:]) + start, "replayed": 0}
     cuts = set(source.cuts)
     threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
+    if measure_precision:  # the faster of f32 and bf16 on this machine, at this size
+        from denoiser.inference.backends import faster_precision
+
+        choice = faster_precision(net, frame_tensors(layout.read_frame(source, start, needed)[0], device), threads)
+        print(f"precision auto: {choice.reason}")
+        backend_name, backend = make_backend(backend_name, choice.precision, device)
     runner = RecurrentRunner(backend.prepare(net, None, threads).step)
     started = time.perf_counter()
     with torch.inference_mode(), tqdm(todo, desc=f"denoise ({backend.label})", unit="frame") as progress:

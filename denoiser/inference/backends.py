@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import statistics
 import sys
 import tempfile
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -344,3 +346,46 @@ class OpenVinoBackend(_ExportedGraphBackend):
                               profile=self.profile)
         return Stepper(runner.step, profile=runner.last_profile if self.profile else None,
                        threads=runner.threads_in_use, engine="openvino")
+
+
+@dataclass(frozen=True)
+class PrecisionChoice:
+    """What :func:`faster_precision` measured: ``precision`` (``f32`` or ``bf16``), the median
+    ``ms`` per step of each precision timed, and ``reason``, one line saying why."""
+
+    precision: str
+    ms: dict[str, float]
+    reason: str
+
+
+def faster_precision(net: torch.nn.Module, frame: Mapping[str, torch.Tensor], threads: int, name: str = "openvino",
+                     warmup: int = 2, repeats: int = 3) -> PrecisionChoice:
+    """The faster of ``name``'s f32 and bf16 (:data:`PRECISION_OPTIONS`) on this machine, for
+    ``net`` on frames like ``frame`` (``{buffer: [B, C, H, W]}``, the size that will run):
+    ``warmup`` then ``repeats`` recurrent steps of each, compared by their median. bf16 is not
+    timed where it is not available (no bf16 on the CPU, OpenVINO missing it; the reason says
+    so); f32 wins a tie. bf16's outputs differ from f32 by a few 1e-3 relative
+    (``tests/test_openvino.py``), so it is taken only when it is faster."""
+    from denoiser.measure import time_steps
+
+    ms: dict[str, float] = {}
+    unavailable: dict[str, str] = {}
+    for precision in ("f32", "bf16"):
+        backend = load_backend(PRECISION_OPTIONS[name][precision])
+        reason = backend.available()
+        if reason:
+            unavailable[precision] = reason
+            continue
+        stepper = backend.prepare(net, frame, threads)
+        ms[precision] = 1000 * statistics.median(time_steps(stepper, [dict(frame)], warmup, repeats))
+        del stepper
+    if "f32" not in ms:
+        raise ConfigError(f"backend={name} precision=auto: {unavailable['f32']}")
+    h, w = next(iter(frame.values())).shape[-2:]
+    where = f"at {w}x{h} on {threads} thread(s)"
+    if "bf16" not in ms:
+        return PrecisionChoice("f32", ms, f"f32: bf16 not timed ({unavailable['bf16']})")
+    if ms["bf16"] < ms["f32"]:
+        return PrecisionChoice("bf16", ms, f"bf16: {ms['bf16']:.0f} ms a frame against f32's {ms['f32']:.0f} {where}")
+    return PrecisionChoice("f32", ms, f"f32: bf16 is not faster here ({ms['bf16']:.0f} ms a frame against "
+                                      f"f32's {ms['f32']:.0f} {where})")

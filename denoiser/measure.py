@@ -340,6 +340,23 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def cpu_signature(cpuinfo: str | None = None) -> str:
+    """``<vendor> family <f> model <m>`` from ``/proc/cpuinfo`` (``unknown`` when unreadable): tells
+    apart CPUs that a virtual machine names alike (``Intel(R) Xeon(R) Processor``)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return "unknown"
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    if "vendor_id" not in fields:
+        return "unknown"
+    return f"{fields['vendor_id']} family {fields.get('cpu family', '?')} model {fields.get('model', '?')}"
+
+
 def cpu_isa(cpuinfo: str | None = None) -> dict[str, bool]:
     """``{flag: present}`` for :data:`ISA_FLAGS` from ``/proc/cpuinfo`` (all False when unreadable)."""
     if cpuinfo is None:

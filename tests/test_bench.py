@@ -111,6 +111,23 @@ def test_bench_end_to_end(setup, tmp_path):
     assert (out / "accuracy_vs_time.png").read_bytes()[:4] == b"\x89PNG"
     front = pareto_front_of_rows(table, (24, 40))
     assert front and set(front) <= {"student", "OIDN-fast"}
+    # the per-CPU record: the run's ratios into a CSV (once, however often added) and its table
+    from denoiser.measure import cpu_signature
+    from denoiser.report.cpu_speed import main as cpu_speed
+
+    csv, md = tmp_path / "cpu_speed.csv", tmp_path / "cpu_speed.md"
+    assert doc["machine"]["cpu_id"] == cpu_signature() and doc["machine"]["commit"]
+    for _ in range(2):
+        assert cpu_speed(["add", str(out / "bench.json"), "--csv", str(csv), "--out", str(md)]) == 0
+    record = read_csv(csv)
+    assert [(r["size"], r["dtype"]) for r in record] == [(s["size"], s["dtype"]) for s in doc["speedups"]]
+    assert all(r["cpu_id"] == cpu_signature() and r["baseline"] == "OIDN-fast" for r in record)
+    first = doc["speedups"][0]
+    assert f"{first['ratio']:.2f} ({first['ratio_lo']:.2f}-{first['ratio_hi']:.2f})" in md.read_text()
+    bad = tmp_path / "bad.json"
+    bad.write_text("{}")
+    assert cpu_speed(["add", str(bad), "--csv", str(csv), "--out", str(md)]) == 2
+    assert len(read_csv(csv)) == len(record)
 
 
 def test_pareto_front():
@@ -181,6 +198,20 @@ def test_cpu_isa_flags():
     assert flags["avx512_bf16"] and flags["amx_tile"] and flags["avx2"] and not flags["amx_bf16"]
     assert not any(cpu_isa("").values())
     assert has_bf16(flags) and not has_bf16(cpu_isa("flags : avx2 avx512f\n"))
+
+
+def test_cpu_signature_and_class():
+    """A virtual machine's CPUs read alike by name; the signature and the vector class tell them apart."""
+    from denoiser.measure import cpu_isa, cpu_signature
+    from denoiser.report.cpu_speed import cpu_class
+
+    info = ("processor\t: 0\nvendor_id\t: GenuineIntel\ncpu family\t: 6\nmodel\t\t: 167\n"
+            "model name\t: Intel(R) Xeon(R) Processor\nprocessor\t: 1\nmodel\t\t: 1\n")
+    assert cpu_signature(info) == "GenuineIntel family 6 model 167" and cpu_signature("") == "unknown"
+    assert cpu_class(cpu_isa("flags : avx2 avx512f avx512_bf16 amx_tile amx_bf16\n")) == "AMX"
+    assert cpu_class(cpu_isa("flags : avx2 avx512f avx512_bf16\n")) == "AVX-512 + BF16"
+    assert cpu_class(cpu_isa("flags : avx2 avx512f\n")) == "AVX-512"
+    assert cpu_class(cpu_isa("flags : avx2 fma\n")) == "AVX2" and cpu_class(cpu_isa("")) == "other"
 
 
 @pytest.mark.slow

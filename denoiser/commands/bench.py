@@ -80,6 +80,7 @@ import contextlib
 import json
 import math
 import os
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -100,6 +101,7 @@ from denoiser.measure import (
     count_flops,
     cpu_isa,
     cpu_model,
+    cpu_signature,
     markdown_table,
     matmul_peak,
     median_interval,
@@ -565,12 +567,16 @@ def ratio_rows(rows: list[dict], student: str, baseline: str, sizes) -> list[dic
 #: CPU flags that decide the fast paths of the backends (bf16 convolutions: AVX512-BF16 or AMX;
 #: OIDN >= 2.4 computes in fp16 with AMX-FP16)
 def machine_info(threads: int, peak_gflops: float, versions: dict[str, str], isa: dict[str, bool]) -> dict:
-    """The machine and software of a run: ``cpu`` (model name), ``logical_cores``, ``isa``
-    (:func:`cpu_isa`), ``versions`` (:func:`engine_versions`), ``threads_requested``,
-    ``matmul_peak_gflops``, ``gpu``."""
-    return {"cpu": cpu_model(), "logical_cores": os.cpu_count(), "isa": dict(isa), "versions": dict(versions),
-            "threads_requested": threads, "matmul_peak_gflops": peak_gflops,
-            "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"}
+    """The machine and software of a run: ``cpu`` (model name), ``cpu_id`` (:func:`cpu_signature`),
+    ``logical_cores``, ``isa`` (:func:`cpu_isa`), ``versions`` (:func:`engine_versions`),
+    ``threads_requested``, ``matmul_peak_gflops``, ``gpu``, and the run's UTC ``date`` and code
+    ``commit`` (:func:`denoiser.report.summary.git_commit`)."""
+    from denoiser.report.summary import git_commit
+
+    return {"cpu": cpu_model(), "cpu_id": cpu_signature(), "logical_cores": os.cpu_count(), "isa": dict(isa),
+            "versions": dict(versions), "threads_requested": threads, "matmul_peak_gflops": peak_gflops,
+            "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none",
+            "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": git_commit()}
 
 
 def machine_description(info: dict) -> str:

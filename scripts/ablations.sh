@@ -105,6 +105,7 @@ if fresh "$REPORT/eval" "$CKPTS"; then
     timings_row eval 0 reused
 else
     stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval" '~baselines.oidn_fast' \
+        "purpose='make ablations: the ablation report'" \
         '~baselines.oidn_balanced' '~baselines.oidn_high' "images.methods=[$SHOWN]"
     echo "$CKPTS" > "$REPORT/eval/inputs.txt"
 fi

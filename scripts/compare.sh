@@ -56,7 +56,8 @@ for seed in $SEEDS; do
         [ "$seed" = "$FIRST" ] && BENCH_CKPTS="$BENCH_CKPTS, ${net%_demo}_s$seed: $(best "$dir")"
     done
 done
-stage eval "$BIN/denoiser-eval" data=demo_compare "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
+stage eval "$BIN/denoiser-eval" data=demo_compare "baselines=$BASELINES" "ckpt={$CKPTS}" "out_dir=$REPORT/eval" \
+    "purpose='make compare: the comparison report'"
 stage bench "$BIN/denoiser-bench" data=demo_compare "baselines=$BASELINES" "ckpt={$BENCH_CKPTS}" \
     "eval_csv=$REPORT/eval/metrics.csv" "out_dir=$REPORT/bench" "sizes=[[1080,1920]]" \
     "use_backends=[eager,openvino_f32,openvino_bf16]" "skip={teacher: [[1080,1920]]}" repeats=3 quality=false

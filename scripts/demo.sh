@@ -150,9 +150,11 @@ fi
 CKPTS="teacher: $TEACHER"
 for name in "${STUDENTS[@]}"; do CKPTS="$CKPTS, $name: $(student_ckpt "$name")"; done
 FIRST=${SEEDS%% *}
-stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval"
+stage eval "$BIN/denoiser-eval" data=demo "ckpt={$CKPTS}" "out_dir=$REPORT/eval" \
+    "purpose='make demo: the report of recipe $DEMO_RECIPE'"
 if [ -n "$BLENDER" ] && [ -d "$BLENDER/test" ]; then  # a real renderer's sequences (make blender)
     stage blender "$BIN/denoiser-eval" layout=blender "data.root=$BLENDER" "ckpt={$CKPTS}" \
+        "purpose='make demo: the Cycles test sequences, report of recipe $DEMO_RECIPE'" \
         "out_dir=$REPORT/blender" '~baselines.oidn_balanced'
 else
     rm -rf "$REPORT/blender"  # no stale table in the summary

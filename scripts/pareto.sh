@@ -99,7 +99,8 @@ if [ "$EVAL" = 1 ]; then  # test PSNR of every finished run on the demo's test s
         [ -f "$dir/DONE" ] && [ -f "$dir/checkpoints/last.ckpt" ] && ckpts+="job$(basename "$dir"): ${dir}checkpoints/last.ckpt, "
     done
     if [ -n "$ckpts" ] && { [ ! -f "$EVAL_CSV" ] || [ -n "$(find "$SWEEP" "$SEEDS_DIR" -name last.ckpt -newer "$EVAL_CSV" 2>/dev/null)" ]; }; then
-        stage eval "$BIN/denoiser-eval" data=demo "ckpt={${ckpts%, }}" "out_dir=$REPORT/eval" '~baselines.oidn_balanced'
+        stage eval "$BIN/denoiser-eval" data=demo "ckpt={${ckpts%, }}" "out_dir=$REPORT/eval" '~baselines.oidn_balanced' \
+            "purpose='make pareto: the test column (reported, never chosen on)'"
     fi
 fi
 if [ -d "$SEEDS_DIR" ]; then report report_seeds "$SWEEP" "$SEEDS_DIR"; else report report_seeds "$SWEEP"; fi

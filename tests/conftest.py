@@ -109,11 +109,21 @@ def tiny_checkpoint(path, seed: int = 0, **extra):
     return save_checkpoint(path, build_net(cfg), cfg, **extra)
 
 
+#: the test ledger of this test session (denoiser/report/ledger.py): never the checkout's committed one
+TEST_LEDGER = Path(tempfile.mkdtemp(prefix="denoiser-test-ledger-")) / "test_ledger.csv"
+
+
 def compose_command(name: str, overrides, threads: int | None = None):
-    """The entry config ``conf/<name>.yaml`` composed with ``overrides`` (plus ``threads=N`` when given)."""
+    """The entry config ``conf/<name>.yaml`` composed with ``overrides`` (plus ``threads=N`` when given).
+    ``eval`` gets ``purpose=test-suite`` and the session's :data:`TEST_LEDGER` unless the test gives them."""
     from denoiser.configs import compose_config
 
-    return compose_config([*overrides, *([f"threads={threads}"] if threads else [])], name)
+    extra = [f"threads={threads}"] if threads else []
+    if name == "eval":
+        given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+        extra += [o for key, o in (("purpose", "purpose=test-suite"), ("ledger", f"ledger={TEST_LEDGER}"))
+                  if key not in given]
+    return compose_config([*overrides, *extra], name)
 
 
 # The first lines of every stub executable: it appends its name and arguments as one record

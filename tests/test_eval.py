@@ -118,9 +118,50 @@ def test_eval_user_errors(setup, tmp_path):
 
 
 def test_eval_console_script_reports_one_line(tmp_path):
-    proc = subprocess.run([str(VENV_BIN / "denoiser-eval"), "data=tiny", f"data.root={tmp_path / 'nothing'}",
-                           f"hydra.run.dir={tmp_path / 'h'}"], capture_output=True, text=True, timeout=120,
-                          check=False)
+    command = [str(VENV_BIN / "denoiser-eval"), "data=tiny", f"data.root={tmp_path / 'nothing'}",
+               f"hydra.run.dir={tmp_path / 'h'}", f"ledger={tmp_path / 'ledger.csv'}"]
+    proc = subprocess.run([*command, "purpose=debug"], capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: ") and "nothing/test" in proc.stderr
     assert "Traceback" not in proc.stderr
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)  # a test split, no purpose
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
+    assert proc.stderr.startswith("error: split=test: purpose= is required") and "Traceback" not in proc.stderr
+    assert not (tmp_path / "ledger.csv").exists()
+
+
+def test_a_look_at_the_test_split_needs_a_purpose_and_is_recorded(setup, tmp_path):
+    """``split=test`` without ``purpose=`` is one error line and evaluates nothing; with it, each
+    complete evaluation appends one ledger row (UTC date, dataset, the split's content hash, run
+    ids, commit, purpose, look number) and the report says which look it is. The val split is
+    not recorded; a copy of the split keeps its count (the hash, not the folder, is the split)."""
+    import shutil
+
+    from denoiser.commands.evaluate import run
+    from denoiser.report import ledger
+    from denoiser.report.summary import tree_hash
+
+    root, a, _ = setup
+    book = tmp_path / "ledger.csv"
+    base = ["data=tiny", f"data.root={root / 'data'}", f"ckpt=[{a}]", "~baselines.oidn_balanced",
+            "~baselines.oidn_high", "metrics=[psnr]", "images.frame=null", f"ledger={book}"]
+    with pytest.raises(UserError, match=r"split=test: purpose= is required\. Every look at a test split is a row"):
+        run(compose_eval([*base, "purpose=", f"out_dir={tmp_path / 'none'}"]))
+    assert not book.exists() and not (tmp_path / "none" / "metrics.csv").exists()
+    for k in range(2):
+        run(compose_eval([*base, "purpose='final judgement of recipe X'", f"out_dir={tmp_path / str(k)}"]))
+    digest = tree_hash(root / "data" / "test")
+    rows = ledger.read(book)
+    assert [r["look"] for r in rows] == ["1", "2"] and {r["split_sha256"] for r in rows} == {digest}
+    assert rows[0]["purpose"] == "final judgement of recipe X" and rows[0]["split"] == "test"
+    assert rows[0]["checkpoints"] == "a.ckpt" and rows[0]["baselines"] == "noisy input;OIDN-fast"
+    assert rows[0]["sequences"] == "2" and rows[0]["date"].endswith("Z") and rows[0]["commit"]
+    assert "this evaluation is look 2 of 2 recorded" in (tmp_path / "1" / "metrics.md").read_text()
+    copy = tmp_path / "copy"
+    shutil.copytree(root / "data", copy)
+    shutil.copytree(copy / "test", copy / "val")
+    run(compose_eval([*base, f"data.root={copy}", "split=val", "purpose=", f"out_dir={tmp_path / 'val'}"]))
+    assert len(ledger.read(book)) == 2  # val: no purpose needed, no row
+    run(compose_eval([*base, f"data.root={copy}", "purpose=debug", f"out_dir={tmp_path / 'copy_out'}"]))
+    assert ledger.read(book)[-1]["look"] == "3" and ledger.looks(digest, book) == 3
+    assert ledger.run_id(Path("runs/student_s0/checkpoints/best.ckpt")) == "student_s0"

@@ -45,6 +45,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import TEST_LEDGER
 
 from denoiser.conf import CONF_DIR
 
@@ -202,7 +203,7 @@ TRAIN = ["data=tiny", "net=tiny", "threads=1", "trainer.enable_progress_bar=fals
          "trainer.limit_val_batches=1"]
 #: evaluation with the noisy-input baseline and one checkpoint (no OIDN: faster)
 EVAL = ["data=tiny", "~baselines.oidn_fast", "~baselines.oidn_balanced", "~baselines.oidn_high",
-        "metrics=[psnr]", "images.size=16"]
+        "metrics=[psnr]", "images.size=16", "purpose=test-suite", f"ledger={TEST_LEDGER}"]
 
 
 def cases(work: Path, command: str) -> dict[str, dict]:

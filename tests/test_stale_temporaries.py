@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import TEST_LEDGER
 from hydra import compose, initialize_config_dir
 
 from denoiser.atomic import atomic_path, is_temporary, remove_stale_temporaries
@@ -95,7 +96,8 @@ def test_eval_removes_stale_temporaries_and_dead_staging(tiny_ckpt, tmp_path):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("eval", overrides=["data=tiny", f"data.root={data}", f"ckpt=[{tiny_ckpt}]", f"out_dir={out}",
                                          "threads=1", "~baselines.oidn_fast", "~baselines.oidn_balanced",
-                                         "~baselines.oidn_high", "metrics=[psnr]", "images.size=16"])
+                                         "~baselines.oidn_high", "metrics=[psnr]", "images.size=16",
+                                         "purpose=test-suite", f"ledger={TEST_LEDGER}"])
     run(cfg)
     assert not stale[0].exists() and not dead.exists()
     assert (out / "metrics.md").is_file()

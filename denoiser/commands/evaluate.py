@@ -51,6 +51,7 @@ from denoiser.errors import ConfigError
 from denoiser.measure import markdown_table, write_csv
 from denoiser.methods.baselines import NetworkMethod, build_baselines
 from denoiser.metrics import METRICS
+from denoiser.report import ledger
 from denoiser.report.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
 from denoiser.report.plot_crops import save_crops
 
@@ -93,6 +94,11 @@ def run(cfg: DictConfig) -> dict:
     unknown = [m for m in metrics if m not in METRICS]
     if unknown:
         raise ConfigError(f"metrics: unknown {unknown}; known: {list(METRICS)}")
+    looked = ledger.is_test_split(cfg.split)
+    if looked and not str(cfg.get("purpose") or "").strip():
+        raise ConfigError(f"split={cfg.split}: purpose= is required. Every look at a test split is a row of the test "
+                          f"ledger ({ledger.LEDGER.relative_to(ledger.ROOT)}); say why, e.g. "
+                          "purpose='final judgement of recipe X', 'report' or 'debug'")
     threads = set_threads(cfg.get("threads"))
     out_dir = Path(cfg.out_dir)
     for stale in remove_stale_temporaries(out_dir, partial_dirs=".eval-*.partial"):  # left by a killed run
@@ -122,6 +128,18 @@ def run(cfg: DictConfig) -> dict:
         _move_tree(staging, out_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+    look_line = ""
+    if looked:  # after a complete evaluation: the look happened
+        from denoiser.report.summary import git_commit, tree_hash
+
+        where = cfg.get("ledger") or ledger.LEDGER
+        digest = tree_hash(Path(cfg.data.root) / cfg.split)
+        checkpoints = [ledger.run_id(p) for p in checkpoint_paths(cfg.get("ckpt")).values()]
+        baselines = [name for name in methods if name not in checkpoint_paths(cfg.get("ckpt"))]
+        look = ledger.record(str(cfg.data.root), str(cfg.split), digest, len(sources), checkpoints, baselines,
+                             git_commit(), str(cfg.purpose).strip(), where)
+        look_line = ledger.look_sentence(look, digest, where)
+        print(look_line)
     rows = ev.sequence_rows()
     write_csv(out_dir / "metrics.csv", rows, ["method", "scene", "sequence", "frames", *ev.columns, "ms_per_frame"])
     write_csv(out_dir / "frames.csv", ev.frame_rows(), ["method", "sequence", "frame", "warmup", *metrics])
@@ -129,7 +147,8 @@ def run(cfg: DictConfig) -> dict:
               f"warm-up {cfg.warmup} frame(s) excluded after each reset, {threads} thread(s). Metrics: "
               "PSNR/SSIM/tPSNR on ACES+sRGB tonemapped frames, HDR-FLIP with a per-sequence exposure range, "
               "relMSE and SMAPE on linear HDR (see denoiser/metrics.py). \"all frames\": warm-up included; "
-              "\"frames 2+\": every frame of a sequence but its first (frames counted from 1), warm-up or not.\n\n")
+              "\"frames 2+\": every frame of a sequence but its first (frames counted from 1), warm-up or not.\n\n"
+              + (look_line + "\n\n" if look_line else ""))
     atomic_write_text(out_dir / "metrics.md", markdown_report(ev, rows, header))
     overall = {r["method"]: {m: r[m] for m in ev.columns} for r in rows if r["sequence"] == "mean"}
     print(markdown_table([r for r in rows if r["sequence"] == "mean"], ["method", *ev.columns, "ms_per_frame"],

@@ -281,7 +281,8 @@ def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
     Report(tmp_path / "gpu.md").set("Device", "- gpu: NVIDIA H200")
     root = write_dataset(tmp_path / "demo", split="test", sequences=1, frames=3, size=32)
     ckpt = tiny_checkpoint(tmp_path / "gpu.ckpt")
-    overrides = [f"out={tmp_path}", "sections=[cpu_eval]", "keep_report=true", f"data_root={root}"]
+    overrides = [f"out={tmp_path}", "sections=[cpu_eval]", "keep_report=true", f"data_root={root}",
+                 f"eval.ledger={tmp_path / 'ledger.csv'}"]
     with pytest.raises(ConfigError, match="eval_ckpt"):
         run(compose_command("gpu_check", overrides))
     run(compose_command("gpu_check", [*overrides, f"eval_ckpt={ckpt}"]))
@@ -290,3 +291,7 @@ def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
     body = report["CPU evaluation of the GPU-trained checkpoint"]
     assert "`gpu.ckpt` on" in body and "split test" in body and "exit 0" in body
     assert "| gpu_student |" in body and "| noisy input |" in body and "##" not in body
+    from denoiser.report import ledger
+
+    (row,) = ledger.read(tmp_path / "ledger.csv")  # the look at the test split, with its purpose
+    assert row["purpose"].startswith("make gpu-check") and row["checkpoints"] == "gpu.ckpt"

@@ -224,3 +224,31 @@ def test_auto_precision_is_openvino_only():
 
     with pytest.raises(UserError, match="precision=auto: measures backend=openvino's f32 and bf16 only, not backend=eager"):
         make_backend("eager", "auto", torch.device("cpu"))
+
+
+def test_a_resumed_auto_run_keeps_the_precision_it_chose(setup, tmp_path, capsys):
+    """precision=auto writes its choice beside the frames; a resumed run reads it instead of timing
+    again (a new measurement could choose the other precision, and the resumed frames would then
+    not be those of an uninterrupted run)."""
+    pytest.importorskip("openvino")
+    import json
+
+    _, seq, ckpt = setup
+    out = tmp_path / "out"
+    argv = [f"ckpt={ckpt}", f"input={seq}", f"output={out}", "backend=openvino", "threads=1"]
+    denoise(argv)
+    record = json.loads((out / "denoise_precision.json").read_text())
+    assert record["precision"] in ("f32", "bf16") and set(record["ms"]) <= {"f32", "bf16"}
+    record["precision"] = other = "bf16" if record["precision"] == "f32" else "f32"  # what a new timing might pick
+    (out / "denoise_precision.json").write_text(json.dumps(record))
+    for name in ("frame_0003.exr", "frame_0004.exr"):
+        (out / name).unlink()
+    capsys.readouterr()
+    try:
+        denoise(argv)
+    except UserError as exc:  # bf16 recorded on a CPU without it: the backend says so
+        assert other == "bf16" and "bf16" in str(exc)
+        return
+    printed = capsys.readouterr().out
+    assert f"precision auto: {other}, as the run that wrote the frames" in printed
+    assert f"precision {'bf16' if other == 'bf16' else 'fp32'})" in printed

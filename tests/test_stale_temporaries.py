@@ -119,4 +119,5 @@ def test_denoise_removes_stale_frame_temporaries(tiny_ckpt, tmp_path):
     finally:
         torch.set_num_threads(threads)
     assert not stale[0].exists()
-    assert sorted(p.name for p in out.iterdir()) == ["frame_0000.exr", "frame_0001.exr", "frame_0002.exr"]
+    written = ["frame_0000.exr", "frame_0001.exr", "frame_0002.exr"]
+    assert sorted(p.name for p in out.iterdir() if p.name != "denoise_precision.json") == written  # auto's record

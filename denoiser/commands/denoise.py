@@ -34,7 +34,9 @@ it once for the frame size); null (default) picks ``openvino`` when it is instal
 (OpenVINO's bf16 inference precision, eager's bfloat16 autocast; errors of a few 1e-3 relative;
 faster on CPUs with AMX, not always with AVX512-BF16 alone) or ``auto``, OpenVINO's default: both are
 timed on the first frame (:func:`denoiser.inference.backends.faster_precision`, a few steps each)
-and the faster runs, with one line saying which and why. Other backends default to f32. With ``device=cuda``: ``cuda`` and
+and the faster runs, with one line saying which and why; the choice is kept in the output
+directory (``denoise_precision.json``) and a resumed run keeps it, so that resuming stays exact.
+Other backends default to f32. With ``device=cuda``: ``cuda`` and
 ``cuda_compiled`` (:mod:`denoiser.inference.cuda_backend`: weights cast once to ``precision`` f32, bf16 or
 fp16, the Triton filter; ``cuda_compiled`` replays a CUDA graph per frame size; docs/gpu.md).
 Every backend steps through the one recurrent runner (:class:`~denoiser.runner.RecurrentRunner`).
@@ -58,7 +60,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from denoiser.atomic import remove_stale_temporaries
+from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, ExrError
 from denoiser.runner import RecurrentRunner
@@ -126,6 +128,36 @@ def auto_precision(name: str | None, precision: str | None, device: torch.device
         return True
     return precision is None and (name == "openvino" or (name is None and device.type == "cpu"
                                                          and openvino_installed()))
+
+
+#: in the output directory: the precision ``precision=auto`` chose, so that a resumed run keeps it
+PRECISION_RECORD = "denoise_precision.json"
+
+
+def auto_choice(out_dir: Path, net, frame: dict, threads: int, resuming: bool) -> str:
+    """``precision=auto``'s precision for ``out_dir``: on a fresh run, the faster of f32 and bf16
+    measured on ``frame`` (:func:`~denoiser.inference.backends.faster_precision`), written to
+    ``out_dir/denoise_precision.json``; on a resumed run (``resuming``: some frames are there), the
+    precision recorded there, so that the resumed frames are those of an uninterrupted run (a
+    precision measured afresh could differ). Prints one line saying which and why."""
+    import json
+
+    from denoiser.inference.backends import faster_precision
+
+    record = out_dir / PRECISION_RECORD
+    if resuming and record.is_file():
+        try:
+            precision = json.loads(record.read_text())["precision"]
+        except (OSError, ValueError, KeyError, TypeError):
+            precision = None
+        if precision in ("f32", "bf16"):
+            print(f"precision auto: {precision}, as the run that wrote the frames in {out_dir} chose ({record.name})")
+            return precision
+    choice = faster_precision(net, frame, threads)
+    print(f"precision auto: {choice.reason}")
+    atomic_write_text(record, json.dumps({"precision": choice.precision, "ms": choice.ms, "reason": choice.reason},
+                                         indent=1) + "\n")
+    return choice.precision
 
 
 def _torch_backend(target: str) -> bool:
@@ -252,11 +284,9 @@ def run(cfg: DictConfig) -> dict:
     cuts = set(source.cuts)
     threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
     if measure_precision:  # the faster of f32 and bf16 on this machine, at this size
-        from denoiser.inference.backends import faster_precision
-
-        choice = faster_precision(net, frame_tensors(layout.read_frame(source, start, needed)[0], device), threads)
-        print(f"precision auto: {choice.reason}")
-        backend_name, backend = make_backend(backend_name, choice.precision, device)
+        precision = auto_choice(out_dir, net, frame_tensors(layout.read_frame(source, start, needed)[0], device),
+                                threads, resuming=any(p.exists() for p in outputs))
+        backend_name, backend = make_backend(backend_name, precision, device)
     runner = RecurrentRunner(backend.prepare(net, None, threads).step)
     started = time.perf_counter()
     with torch.inference_mode(), tqdm(todo, desc=f"denoise ({backend.label})", unit="frame") as progress:

@@ -328,7 +328,8 @@ def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report)
 
     split = next((s for s in ("test", "val", "train") if (root / s).is_dir()), "train")
     overrides = ["data=demo", f"data.root={root}", f"split={split}", f"ckpt={{gpu_student: {ckpt}}}",
-                 "device=cpu", f"out_dir={out / 'eval'}", *cfg.eval.overrides]
+                 "device=cpu", f"out_dir={out / 'eval'}", f"purpose='{cfg.eval.purpose}'",
+                 *([f"ledger={cfg.eval.ledger}"] if cfg.eval.get("ledger") else []), *cfg.eval.overrides]
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}  # the CPU: the checkpoint loads with map_location=cpu
     try:
         proc = subprocess.run([sys.executable, "-m", "denoiser.commands.evaluate", *overrides], check=False,

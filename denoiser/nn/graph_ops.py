@@ -104,6 +104,18 @@ def unfused(fn, *args):
         _KERNEL_OP.reset(token)
 
 
+def untraced(fn, *args):
+    """``fn(*args)`` with the tracer off: a stub's plain value whose ops (3x3 slices with sizes read
+    from traced shapes) the tracer would record inside the node's block, a record the ONNX
+    exporter's passes cannot take."""
+    state = torch._C._get_tracing_state()
+    torch._C._set_tracing_state(None)
+    try:
+        return fn(*args)
+    finally:
+        torch._C._set_tracing_state(state)
+
+
 @contextlib.contextmanager
 def heads_as_matmul(enabled: bool = True) -> Iterator[None]:
     """Within the block, traced U-Net heads are matrix products (:func:`denoiser.nn.parts.pointwise_of_parts`)
@@ -210,14 +222,7 @@ class ClampBlendOp(torch.autograd.Function):
     def forward(ctx, base, previous, weight, k):
         from denoiser.nn.temporal import clamp_blend
 
-        # computed untraced: the tracer's record of the 3x3 slices (sizes read from the traced
-        # shapes) inside this node's block is one the ONNX exporter's passes cannot take
-        state = torch._C._get_tracing_state()
-        torch._C._set_tracing_state(None)
-        try:
-            return unfused(clamp_blend, base, previous, weight, k)
-        finally:
-            torch._C._set_tracing_state(state)
+        return untraced(unfused, clamp_blend, base, previous, weight, k)
 
     @staticmethod
     def symbolic(g, base, previous, weight, k):
@@ -236,12 +241,7 @@ class GuideGateOp(torch.autograd.Function):
     def forward(ctx, previous, current, threshold):
         from denoiser.nn.temporal import guide_disagreement
 
-        state = torch._C._get_tracing_state()  # untraced, as ClampBlendOp.forward
-        torch._C._set_tracing_state(None)
-        try:
-            return (2.0 - guide_disagreement(previous, current) / threshold).clamp(0.0, 1.0)
-        finally:
-            torch._C._set_tracing_state(state)
+        return untraced(lambda: (2.0 - guide_disagreement(previous, current) / threshold).clamp(0.0, 1.0))
 
     @staticmethod
     def symbolic(g, previous, current, threshold):
@@ -253,4 +253,5 @@ class GuideGateOp(torch.autograd.Function):
 
 
 __all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterOp",
-           "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused"]
+           "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
+           "untraced"]

@@ -134,12 +134,13 @@ def auto_precision(name: str | None, precision: str | None, device: torch.device
 PRECISION_RECORD = "denoise_precision.json"
 
 
-def auto_choice(out_dir: Path, net, frame: dict, threads: int, resuming: bool) -> str:
+def auto_choice(out_dir: Path, net, frame: dict, threads: int, resuming: bool) -> tuple[str, object | None]:
     """``precision=auto``'s precision for ``out_dir``: on a fresh run, the faster of f32 and bf16
     measured on ``frame`` (:func:`~denoiser.inference.backends.faster_precision`), written to
     ``out_dir/denoise_precision.json``; on a resumed run (``resuming``: some frames are there), the
     precision recorded there, so that the resumed frames are those of an uninterrupted run (a
-    precision measured afresh could differ). Prints one line saying which and why."""
+    precision measured afresh could differ). Prints one line saying which and why. Returns the
+    precision and, when it was measured, its backend (graph exported), else None."""
     import json
 
     from denoiser.inference.backends import faster_precision
@@ -152,12 +153,12 @@ def auto_choice(out_dir: Path, net, frame: dict, threads: int, resuming: bool) -
             precision = None
         if precision in ("f32", "bf16"):
             print(f"precision auto: {precision}, as the run that wrote the frames in {out_dir} chose ({record.name})")
-            return precision
+            return precision, None
     choice = faster_precision(net, frame, threads)
     print(f"precision auto: {choice.reason}")
     atomic_write_text(record, json.dumps({"precision": choice.precision, "ms": choice.ms, "reason": choice.reason},
                                          indent=1) + "\n")
-    return choice.precision
+    return choice.precision, choice.backend
 
 
 def _torch_backend(target: str) -> bool:
@@ -284,9 +285,11 @@ def run(cfg: DictConfig) -> dict:
     cuts = set(source.cuts)
     threads = int(cfg.threads) if cfg.get("threads") else torch.get_num_threads()
     if measure_precision:  # the faster of f32 and bf16 on this machine, at this size
-        precision = auto_choice(out_dir, net, frame_tensors(layout.read_frame(source, start, needed)[0], device),
-                                threads, resuming=any(p.exists() for p in outputs))
-        backend_name, backend = make_backend(backend_name, precision, device)
+        precision, backend = auto_choice(out_dir, net, frame_tensors(layout.read_frame(source, start, needed)[0],
+                                                                      device),
+                                         threads, resuming=any(p.exists() for p in outputs))
+        if backend is None:  # the recorded precision of a resumed run
+            backend_name, backend = make_backend(backend_name, precision, device)
     runner = RecurrentRunner(backend.prepare(net, None, threads).step)
     started = time.perf_counter()
     with torch.inference_mode(), tqdm(todo, desc=f"denoise ({backend.label})", unit="frame") as progress:

@@ -134,8 +134,9 @@ def run(cfg: DictConfig) -> dict:
 
         where = cfg.get("ledger") or ledger.LEDGER
         digest = tree_hash(Path(cfg.data.root) / cfg.split)
-        checkpoints = [ledger.run_id(p) for p in checkpoint_paths(cfg.get("ckpt")).values()]
-        baselines = [name for name in methods if name not in checkpoint_paths(cfg.get("ckpt"))]
+        named = checkpoint_paths(cfg.get("ckpt"))
+        checkpoints = [ledger.run_id(p) for p in named.values()]
+        baselines = [name for name in methods if name not in named]
         look = ledger.record(str(cfg.data.root), str(cfg.split), digest, len(sources), checkpoints, baselines,
                              git_commit(), str(cfg.purpose).strip(), where)
         look_line = ledger.look_sentence(look, digest, where)

@@ -27,7 +27,7 @@ import statistics
 import sys
 import tempfile
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -351,11 +351,13 @@ class OpenVinoBackend(_ExportedGraphBackend):
 @dataclass(frozen=True)
 class PrecisionChoice:
     """What :func:`faster_precision` measured: ``precision`` (``f32`` or ``bf16``), the median
-    ``ms`` per step of each precision timed, and ``reason``, one line saying why."""
+    ``ms`` per step of each precision timed, ``reason``, one line saying why, and ``backend``, the
+    chosen precision's backend (its graph already exported: run it rather than build it again)."""
 
     precision: str
     ms: dict[str, float]
     reason: str
+    backend: object = field(default=None, compare=False, repr=False)
 
 
 def faster_precision(net: torch.nn.Module, frame: Mapping[str, torch.Tensor], threads: int, name: str = "openvino",
@@ -370,8 +372,9 @@ def faster_precision(net: torch.nn.Module, frame: Mapping[str, torch.Tensor], th
 
     ms: dict[str, float] = {}
     unavailable: dict[str, str] = {}
+    backends = {}
     for precision in ("f32", "bf16"):
-        backend = load_backend(PRECISION_OPTIONS[name][precision])
+        backend = backends[precision] = load_backend(PRECISION_OPTIONS[name][precision])
         reason = backend.available()
         if reason:
             unavailable[precision] = reason
@@ -384,8 +387,9 @@ def faster_precision(net: torch.nn.Module, frame: Mapping[str, torch.Tensor], th
     h, w = next(iter(frame.values())).shape[-2:]
     where = f"at {w}x{h} on {threads} thread(s)"
     if "bf16" not in ms:
-        return PrecisionChoice("f32", ms, f"f32: bf16 not timed ({unavailable['bf16']})")
+        return PrecisionChoice("f32", ms, f"f32: bf16 not timed ({unavailable['bf16']})", backends["f32"])
     if ms["bf16"] < ms["f32"]:
-        return PrecisionChoice("bf16", ms, f"bf16: {ms['bf16']:.0f} ms a frame against f32's {ms['f32']:.0f} {where}")
+        return PrecisionChoice("bf16", ms, f"bf16: {ms['bf16']:.0f} ms a frame against f32's {ms['f32']:.0f} {where}",
+                               backends["bf16"])
     return PrecisionChoice("f32", ms, f"f32: bf16 is not faster here ({ms['bf16']:.0f} ms a frame against "
-                                      f"f32's {ms['f32']:.0f} {where})")
+                                      f"f32's {ms['f32']:.0f} {where})", backends["f32"])

@@ -70,8 +70,8 @@ def rows_of_bench(path: Path) -> list[dict]:
             "cpu": machine["cpu"], "cpu_id": machine.get("cpu_id", "unknown"), "cpu_class": cpu_class(machine["isa"]),
             "threads": machine["threads_requested"], "size": s["size"], "student": s["student"], "dtype": s["dtype"],
             "student_ms": round(float(s["student_ms"]), 1), "baseline": s["baseline"],
-            "baseline_ms": round(float(s["baseline_ms"]), 1), "ratio": round(float(s["ratio"]), 3),
-            "ratio_lo": round(float(s["ratio_lo"]), 3), "ratio_hi": round(float(s["ratio_hi"]), 3),
+            "baseline_ms": round(float(s["baseline_ms"]), 1), "ratio": float(s["ratio"]),  # unrounded: the
+            "ratio_lo": float(s["ratio_lo"]), "ratio_hi": float(s["ratio_hi"]),  # table rounds once, as the bench
             "peak_fraction": peak.get((s["student"], s["size"])),
             "versions": "; ".join(f"{k} {v}" for k, v in machine.get("versions", {}).items()),
         })

@@ -10,7 +10,7 @@ PYTEST_ARGS ?=
 # summary still prints (issue 44; tests/test_signal_stack.py::test_make_test_survives_a_crashing_test).
 PYTEST_ISOLATION ?= -p xdist -n 1 --max-worker-restart=100
 
-.PHONY: gpu-check readme-gpu setup test demo readme-results readme-pareto readme-ablations readme-compare readme-check ovext pareto compare ablations paper readme-paper fast-motion lint clean-cache blender blender-val
+.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -33,89 +33,42 @@ test: setup
 ovext: setup
 	$(PY) -m denoiser.inference.ovext
 
-# The whole pipeline on the simulated demo dataset (render, teacher, distilled and no-KD
-# students with 3 seeds each, evaluation, benchmark). Its recipe is refine (issue 33): the paper's
-# recipe first (reports/demo/runs), then its teacher and students fine-tuned on the fast-moving
-# families (conf/base/motion_recipe.yaml) into reports/demo_refine/, each student evaluated as its
-# weights interpolated with its start (DEMO_REFINE_ALPHA, 0.75, chosen on val), the summary in
-# reports/demo_refine/summary.md. Step budgets; about 85 minutes on 2 idle CPU cores from a fresh clone
-# (estimated from the stage timings of its runs on a 2-core AMD EPYC: reports/demo_refine/timings.md).
-# DEMO_RECIPE=demo make demo: the paper's recipe alone, reports/demo/; DEMO_RECIPE=tune: the demo
-# teacher fine-tuned on the fast-moving families and students distilled from it, reports/demo_tune/;
-# DEMO_RECIPE=motion: a teacher trained on them from scratch, reports/demo_motion/ (scripts/lib.sh).
-demo: setup
-	VENV=$(VENV) bash scripts/demo.sh
+# The pipelines (denoiser-pipeline over conf/pipeline/<name>.yaml: the stages, their skipping and
+# resuming, the stage times in reports/<name>/timings.md). Keys go on the command line of
+# denoiser-pipeline (denoiser-pipeline pipeline=demo 'seeds=[0,1,2,3,4]' jobs=2; --help lists them), or
+# through ARGS here: make demo ARGS="'seeds=[0,1,2,3,4]'".
+#   demo       render, teacher, distilled and no-KD students (3 seeds), evaluation, benchmark -> reports/demo_refine
+#   ablations  Fig. A.1 and the distillation ablations, after make demo -> reports/ablations
+#   compare    Fig. A.2 / A.3 (NPPD, WS, ONND, OIDN), after make demo -> reports/compare
+#   pareto     the accuracy-vs-time Pareto front -> reports/pareto
+#   paper      ablations, compare and pareto in order, their work against the budget -> reports/paper; then make readme
+ARGS ?=
+demo ablations compare pareto: setup
+	$(VENV)/bin/denoiser-pipeline pipeline=$@ $(ARGS)
+paper: setup
+	$(VENV)/bin/denoiser-pipeline pipeline=paper $(ARGS)
+	$(MAKE) readme
 
-# Copy the results table of make demo's summary (DEMO_SUMMARY) into README.md (never typed by hand).
-DEMO_SUMMARY ?= reports/demo_refine/summary.md
-readme-results:
-	python3 scripts/readme_results.py --summary $(DEMO_SUMMARY) --readme README.md
-	if grep -q '<!-- blender:begin -->' $(DEMO_SUMMARY); then \
-		python3 scripts/readme_results.py --summary $(DEMO_SUMMARY) --readme README.md --marker blender; \
-	else echo "$(DEMO_SUMMARY): no Blender table (make blender, then make demo): README's left as it is"; fi
+# Copy every results block of the reports into docs/results.md (never typed by hand): make demo's
+# table (and its Blender table), the ablations, the comparison, the Pareto front, make paper's budget
+# and make gpu-check's block; a report not made yet is said and skipped. SUMMARY: another summary.
+SUMMARY ?= reports/demo_refine/summary.md
+RESULTS ?= docs/results.md
+readme:
+	@copy() { if [ -f "$$1" ]; then python3 scripts/readme_results.py --summary "$$1" --readme $(RESULTS) --marker "$$2" $${3:+--image "$$3"}; \
+		else echo "$$1: not made yet, its block ($$2) left as it is"; fi; }; \
+	copy $(SUMMARY) results; \
+	if [ -f $(SUMMARY) ] && grep -q '<!-- blender:begin -->' $(SUMMARY); then copy $(SUMMARY) blender; fi; \
+	copy reports/ablations/summary.md ablations reports/ablations/crops_a1.png:docs/images/ablations_a1.png; \
+	copy reports/compare/summary.md compare; \
+	copy reports/pareto/pareto.md pareto reports/pareto/accuracy_vs_time.png:docs/images/pareto.png; \
+	copy reports/paper/summary.md paper; \
+	copy docs/results/gpu.md gpu
 
-# Fail (one line per block) when what a README results block measures (denoiser/nn, conf/net, conf/kernel,
-# conf/experiment, conf/dataset) changed since its commit (a pure move does not count): rerun, then copy.
+# Fail (one line per block) when what a results block measures changed since its commit (a pure move
+# does not count): rerun, then copy (make readme).
 readme-check: setup
 	$(PY) scripts/readme_check.py --readme README.md
-
-# Copy the Pareto table of reports/pareto/pareto.md and its plot (docs/images/pareto.png) into README.md.
-readme-pareto:
-	python3 scripts/readme_results.py --summary reports/pareto/pareto.md --marker pareto \
-		--image reports/pareto/accuracy_vs_time.png:docs/images/pareto.png
-
-# The accuracy-vs-time Pareto front of the demo student (docs/pareto.md): reuses make demo's data
-# and teacher (or makes them), trains 8 distilled variants (experiment=pareto, short runs), times
-# them one at a time and writes reports/pareto/. Resumable. Knobs: PARETO_* in scripts/pareto.sh.
-pareto: setup
-	VENV=$(VENV) bash scripts/pareto.sh
-
-# The paper's comparison on the demo's held-out scenes (docs/baselines.md): renders data/demo_compare
-# (demo's test split with per-sample radiance, for ONND), trains NPPD and WS by the demo student's
-# recipe (seeds COMPARE_SEEDS, default "0 1 2"), evaluates and times them with ONND (COMPARE_ONND=0:
-# off), OIDN, the teacher and the students of make demo -> reports/compare/summary.md with the
-# Fig. A.2 / A.3 tables and ranking lines (conf/compare_summary.yaml). Resumable.
-compare: setup
-	VENV=$(VENV) bash scripts/compare.sh
-
-# Copy the comparison's block of reports/compare/summary.md (<!-- compare:begin --> ... end) into README.md.
-readme-compare:
-	python3 scripts/readme_results.py --summary reports/compare/summary.md --marker compare
-
-# The paper's Fig. A.1 (the pyramid against no_pyramid and direct) and its distillation ablations
-# (no_kd, no_unlabeled, no_adversarial, no_param_transfer, kernels k3 and k7) on the demo's held-out
-# scenes: reuses make demo's data, teacher and students (none = its distilled students, no_kd = its
-# students on references alone; run make demo first), trains the other variants with 3 seeds each
-# (same steps and teacher), evaluates and times them -> reports/ablations/summary.md (paired intervals
-# against the full recipe, one sentence per claim of the paper). Resumable. Knobs: ABLATION_* in
-# scripts/ablations.sh.
-ablations: setup
-	VENV=$(VENV) bash scripts/ablations.sh
-
-# Copy the ablations' block of reports/ablations/summary.md and its crop figure (docs/images/ablations_a1.png)
-# into README.md.
-readme-ablations:
-	python3 scripts/readme_results.py --summary reports/ablations/summary.md --marker ablations \
-		--image reports/ablations/crops_a1.png:docs/images/ablations_a1.png
-
-# Every figure of the paper after make demo, in order: make ablations, make compare, make pareto
-# (scripts/paper.sh; each stage resumable, its wall time in reports/paper/timings.md), then the
-# README copies. Its work against the budget: reports/paper/summary.md (README, "Every figure: make paper").
-paper: setup
-	VENV=$(VENV) bash scripts/paper.sh
-	$(MAKE) readme-ablations readme-compare readme-pareto readme-paper
-
-# Copy make paper's budget block (reports/paper/summary.md: every stage's work against the budget) into README.md.
-readme-paper:
-	python3 scripts/readme_results.py --summary reports/paper/summary.md --marker paper
-
-# Issue 33's val study (moving objects), after make demo: renders the fast-motion families into
-# data/fast (dataset=fast), trains teacher candidates on data/demo + data/fast (FAST_TEACHERS, 3 seeds
-# each), evaluates them on the Mitsuba and Blender val splits and writes reports/fast/teachers/val_table.md;
-# FAST_STUDENT_TEACHER=<candidate> also distils students from it -> reports/fast/students/val_table.md.
-# Val only, never a test split. Resumable. Knobs: FAST_* in scripts/fast_motion.sh.
-fast-motion: setup
-	VENV=$(VENV) bash scripts/fast_motion.sh
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py
@@ -126,16 +79,12 @@ lint: setup
 gpu-check:
 	bash scripts/gpu_check.sh
 
-# Copy the README block of docs/results/gpu.md (make gpu-check's report: the card, inference, training) into README.md.
-readme-gpu:
-	python3 scripts/readme_results.py --summary docs/results/gpu.md --marker gpu
-
 # Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
 # rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/ (orbit,
 # slide and six fast-object-motion sequences fast_201..206), the val split (fast_101..103, other
 # seeds: `make blender-val` alone, BLENDER_VAL_ARGS) into data/blender/val/, then
 # denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/,
-# and the ceiling a demodulating network meets on their noisy albedo (scripts/albedo_bound.py).
+# and the ceiling a demodulating network meets on their noisy albedo (python -m denoiser.commands.albedo_bound).
 # Once they exist, `make demo` also evaluates its teacher and students on them (reports/demo/blender/,
 # a table in reports/demo/summary.md).
 #   make blender BLENDER_CKPT='{student: reports/demo/runs/.../last.ckpt}'
@@ -162,4 +111,4 @@ blender: setup $(BLENDER_VENV)/.installed blender-val
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split test $(BLENDER_ARGS)
 	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) out_dir=$(BLENDER_OUT) \
 		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)
-	$(VENV)/bin/python scripts/albedo_bound.py $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md
+	$(VENV)/bin/python -m denoiser.commands.albedo_bound $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md

@@ -26,7 +26,7 @@ every frame), fixed thread count. Everything is built from primitives and proced
   drawn from the seed) cross the view at 8-15 px/frame (at the image width rendered) and turn
   5-15 degrees per frame, uncovering the background behind them every frame. Their paths are
   laid out on screen and converted to metres at each object's depth, so the speed in pixels
-  holds for any ``--size``. Seeds ``FAST_SEEDS`` are disjoint between splits: ``--split val``
+  holds for any ``--size``. Seeds ``MOVING_SEEDS`` are disjoint between splits: ``--split val``
   renders ``fast_101``-``fast_103``, ``--split test`` ``fast_201``-``fast_206`` after ``orbit``
   and ``slide`` (``SPLIT_SEQUENCES``).
 
@@ -53,10 +53,10 @@ from pathlib import Path
 import bpy
 
 #: seeds of the fast-object-motion sequences ``fast_<seed>`` per split (disjoint)
-FAST_SEEDS = {"val": (101, 102, 103), "test": (201, 202, 203, 204, 205, 206)}
+MOVING_SEEDS = {"val": (101, 102, 103), "test": (201, 202, 203, 204, 205, 206)}
 #: what ``--split`` renders by default
-SPLIT_SEQUENCES = {"test": ("orbit", "slide", *(f"fast_{s}" for s in FAST_SEEDS["test"])),
-                   "val": tuple(f"fast_{s}" for s in FAST_SEEDS["val"])}
+SPLIT_SEQUENCES = {"test": ("orbit", "slide", *(f"fast_{s}" for s in MOVING_SEEDS["test"])),
+                   "val": tuple(f"fast_{s}" for s in MOVING_SEEDS["val"])}
 
 
 # ----------------------------------------------------------------------------- scene set-up
@@ -329,8 +329,8 @@ BUILDERS = {"orbit": build_orbit, "slide": build_slide, "probe": build_probe}
 
 #: camera of the fast-motion sequences: static, looking along +Y (the image plane is parallel to
 #: the XZ plane, so a motion in X/Z at a fixed depth is the same number of pixels everywhere)
-FAST_CAMERA = {"location": (0.0, -6.0, 1.4), "lens": 35.0, "sensor": 36.0}
-FAST_SPEED = (8.0, 15.0)      # px per frame, at the rendered width
+MOVING_CAMERA = {"location": (0.0, -6.0, 1.4), "lens": 35.0, "sensor": 36.0}
+MOVING_SPEED = (8.0, 15.0)      # px per frame, at the rendered width
 FAST_SPIN = (5.0, 15.0)       # degrees per frame
 FAST_SHAPES = ("cube", "uv_sphere", "ico_sphere", "cylinder", "cone", "torus")
 FAST_TEXTURES = ("checker", "noise", "brick")
@@ -385,17 +385,17 @@ def build_fast(frames: int, width: int, seed: int) -> dict:
         rotation=(math.radians(90), 0.0, 0.0), size=16.0)
     area_light((rng.uniform(-2.5, 2.5), -3.5, 4.5), (math.radians(45), 0.0, 0.0), size=3.0,
                energy=rng.uniform(500.0, 800.0))
-    cam = camera(lens=FAST_CAMERA["lens"])
-    cam.data.sensor_width = FAST_CAMERA["sensor"]
-    cam.location = FAST_CAMERA["location"]
+    cam = camera(lens=MOVING_CAMERA["lens"])
+    cam.data.sensor_width = MOVING_CAMERA["sensor"]
+    cam.location = MOVING_CAMERA["location"]
     cam.rotation_euler = (math.radians(90), 0.0, 0.0)
     mid = (frames + 1) / 2.0                  # keys run over frames 0..frames+1
     rightwards = rng.random() < 0.5           # the first object's way; a second one goes the other way
     drawn = []
     for k in range(rng.choice((1, 2))):
         depth = rng.uniform(4.5, 5.5) + 1.5 * k
-        px_per_m = width * FAST_CAMERA["lens"] / (FAST_CAMERA["sensor"] * depth)
-        speed = rng.uniform(*FAST_SPEED)
+        px_per_m = width * MOVING_CAMERA["lens"] / (MOVING_CAMERA["sensor"] * depth)
+        speed = rng.uniform(*MOVING_SPEED)
         heading = math.radians(rng.uniform(-15.0, 15.0)) + (0.0 if rightwards == (k == 0) else math.pi)
         centre = (rng.uniform(-0.12, 0.12) * width, rng.uniform(0.0, 0.15) * width + 0.1 * width * k)
         spin_axis = [rng.gauss(0.0, 1.0) for _ in range(3)]
@@ -409,8 +409,8 @@ def build_fast(frames: int, width: int, seed: int) -> dict:
                phase=phase, depth=depth):
             u = centre[0] + speed * (f - mid) * math.cos(heading)     # px right of the image centre
             v = centre[1] + speed * (f - mid) * math.sin(heading)     # px above it
-            obj.location = (u / px_per_m, FAST_CAMERA["location"][1] + depth,
-                            FAST_CAMERA["location"][2] + v / px_per_m)
+            obj.location = (u / px_per_m, MOVING_CAMERA["location"][1] + depth,
+                            MOVING_CAMERA["location"][2] + v / px_per_m)
             obj.rotation_euler = tuple(p + r * f for p, r in zip(phase, rates))
 
         keyframe(obj, frames, at)

@@ -16,8 +16,9 @@ know. A ``-dirty`` commit counts as its base commit. One line per stale block on
 exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
 Code of the networks (:data:`BEHAVIOUR`, ``denoiser/nn``) is judged by what it computes when
-nothing else measured changed: ``scripts/nn_fingerprint.py`` runs on both trees (``git
-archive`` of the block's commit and of ``HEAD``) and hashes, per network config, the training
+nothing else measured changed: :mod:`denoiser.commands.nn_fingerprint` (this checkout's file, by
+path, with ``denoiser`` imported from the tree) runs on both trees (``git archive`` of the block's
+commit and of ``HEAD``) and hashes, per network config, the training
 pass's outputs and gradients and the exported ONNX graphs, bit for bit. Equal fingerprints (a
 refactor: code moved between modules, renamed, restructured) leave the block current, with a
 line on stdout saying so; different ones, or a tree the fingerprint cannot run on, make it stale.
@@ -48,9 +49,16 @@ MOVED = (("denoiser/conf/", "conf/"),)
 #: an added file of these kinds is a new option of its config group (``conf/dataset/fast.yaml``): a
 #: config composes it only when selected by name, and a changed file that selects it is in the diff
 NEW_OPTION = (".yaml", ".yml")
-#: Python code judged by what the networks compute (scripts/nn_fingerprint.py), not by its text
+#: Python code judged by what the networks compute (denoiser.commands.nn_fingerprint), not by its text
 BEHAVIOUR = ("denoiser/nn/",)
-FINGERPRINT = Path(__file__).with_name("nn_fingerprint.py")
+#: the fingerprint module: the one of the package this script's Python imports (this checkout's, in
+#: its venv). Found, not imported (nothing of the package runs here), and run in a child by path,
+#: never by ``-m``: the child imports ``denoiser`` from the archived tree (an older commit's lacks the
+#: module), and both trees must be hashed by the same code.
+FINGERPRINT_MODULE = "denoiser.commands.nn_fingerprint"
+#: the child's program: run the file at argv[1] as ``__main__`` without putting its directory on
+#: sys.path (as ``python FILE`` would: a module of the package's folder would shadow a top-level one)
+RUN_FILE = "import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__')"
 
 BLOCK = re.compile(r"<!-- (?P<name>[\w.-]+):begin -->(?P<body>.*?)<!-- (?P=name):end -->", re.DOTALL)
 COPIED_COMMIT = re.compile(r"<!-- copied by scripts/readme_results\.py from [^\n]*?, commit (?P<commit>[0-9a-f]{7,40})"
@@ -124,15 +132,30 @@ def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASUR
 
 
 @functools.cache
+def fingerprint_file() -> Path:
+    """Where :data:`FINGERPRINT_MODULE` is (its spec's origin; the module itself is not run here)."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec(FINGERPRINT_MODULE)
+    except ImportError as exc:
+        raise SystemExit(f"error: {FINGERPRINT_MODULE}: {exc} (run with the project's venv: make readme-check)") from None
+    if spec is None or not spec.origin:
+        raise SystemExit(f"error: {FINGERPRINT_MODULE}: not found (run with the project's venv: make readme-check)")
+    return Path(spec.origin)
+
+
+@functools.cache
 def fingerprints(repo: Path, commit: str, nets: str | None = None) -> dict[str, str] | str:
-    """``scripts/nn_fingerprint.py`` over ``git archive <commit>`` of ``repo``: ``{net: sha256}``,
+    """:data:`FINGERPRINT_MODULE` over ``git archive <commit>`` of ``repo``: ``{net: sha256}``,
     or a one-line reason why it could not run. ``nets``: comma-separated conf/net names (all)."""
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(f"git -C '{repo}' archive '{commit}' | tar -x -C '{tmp}'", shell=True,
                                  capture_output=True, text=True, check=False)
         if archive.returncode != 0:
             return f"git archive {commit} failed: {archive.stderr.strip()[:200]}"
-        cmd = [sys.executable, str(FINGERPRINT), "--tree", tmp, *(["--nets", nets] if nets else [])]
+        cmd = [sys.executable, "-c", RUN_FILE, str(fingerprint_file()), "--tree", tmp,
+               *(["--nets", nets] if nets else [])]
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=tmp,
                               env={**os.environ, "PYTHONPATH": tmp, "OMP_NUM_THREADS": "1"})
     if proc.returncode != 0:
@@ -159,7 +182,7 @@ def same_behaviour(repo: Path, commit: str, changed: list[str]) -> tuple[bool, s
     differ = [n for n in common if before[n] != after[n]]
     if differ:
         return False, f"the networks compute differently ({', '.join(differ[:3])}{' ...' if len(differ) > 3 else ''})"
-    return True, f"{len(common)} network configs compute the same, bit for bit (scripts/nn_fingerprint.py)"
+    return True, f"{len(common)} network configs compute the same, bit for bit ({FINGERPRINT_MODULE})"
 
 
 def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED) -> list[str]:
@@ -171,7 +194,7 @@ def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED)
         name, found = block["name"], COPIED_COMMIT.search(block["body"])
         where = f"{readme}: block '{name}'"
         if not found:
-            lines.append(f"{where} names no commit (regenerate it: its make target, then make readme-results/-pareto)")
+            lines.append(f"{where} names no commit (regenerate it: its make target, then make readme)")
             continue
         commit = found["commit"]
         if git(repo, "rev-parse", "--verify", "--quiet", f"{commit}^{{commit}}").returncode != 0:

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Copy a generated table (and pictures) into ``README.md``: ``make readme-results`` (the demo's
-``reports/demo_refine/summary.md``) and ``make readme-pareto`` (``reports/pareto/pareto.md`` and its plot).
+"""Copy a generated table (and pictures) into ``README.md``: ``make readme`` (the demo's
+``reports/demo_refine/summary.md``) and ``make readme`` (``reports/pareto/pareto.md`` and its plot).
 
 The table is the block between ``<!-- <marker>:begin -->`` and ``<!-- <marker>:end -->`` in both
 files; the README's block is replaced, with a line naming the source file and the run id and

@@ -127,7 +127,7 @@ def compose_command(name: str, overrides, threads: int | None = None):
 
 
 # The first lines of every stub executable: it appends its name and arguments as one record
-# (NUL-separated, newline-ended) to $STUB_LOG. Pipeline scripts run stubs side by side, so the
+# (NUL-separated, newline-ended) to $STUB_LOG. Pipelines run stubs side by side, so the
 # record is written under an exclusive lock: two unlocked writers interleave and lose calls.
 STUB_HEADER = """#!/usr/bin/env bash
 { flock 9; printf '%s\\0' "$(basename "$0")" "$@" >&9; printf '\\n' >&9; } 9>> "$STUB_LOG"
@@ -137,19 +137,3 @@ STUB_HEADER = """#!/usr/bin/env bash
 def stub_calls(log: Path) -> list[list[str]]:
     """The calls :data:`STUB_HEADER` logged to ``log``, in order: ``[command, *args]`` each."""
     return [line.strip("\0").split("\0") for line in log.read_text().splitlines() if line]
-
-
-def stub_pipeline(tmp_path: Path, script: str, commands, stub: str) -> Path:
-    """``tmp_path`` as a checkout holding only ``scripts/<script>`` (with the ``scripts/lib.sh`` it
-    sources) and a ``venv/bin`` whose ``commands`` are all the executable ``stub`` (a shell script
-    that logs its calls): a pipeline script run there calls nothing real."""
-    import shutil
-
-    (tmp_path / "scripts").mkdir()
-    for name in (script, "lib.sh"):
-        shutil.copy(Path(__file__).resolve().parents[1] / "scripts" / name, tmp_path / "scripts")
-    (tmp_path / "venv" / "bin").mkdir(parents=True)
-    for name in commands:
-        (tmp_path / "venv" / "bin" / name).write_text(stub)
-        (tmp_path / "venv" / "bin" / name).chmod(0o755)
-    return tmp_path

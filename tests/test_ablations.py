@@ -1,4 +1,4 @@
-"""`make ablations` (scripts/ablations.sh) and its report (denoiser/commands/ablation_summary.py):
+"""`make ablations` (conf/pipeline/ablations.yaml) and its report (denoiser/commands/ablation_summary.py):
 the summary's means, paired intervals, verdicts and sentences on synthetic evaluations with known
 differences (the paper's direction holding and not holding), its one-line errors, the script's
 commands (with stub executables), the configs it composes, and the Makefile targets."""
@@ -9,14 +9,11 @@ import csv
 import json
 import os
 import re
-import shutil
 import statistics
 import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-from conftest import STUB_HEADER, stub_calls, stub_pipeline
 from hydra import compose, initialize_config_dir
 
 from denoiser.conf import CONF_DIR
@@ -274,12 +271,14 @@ def test_help_names_the_command(tmp_path):
     assert "\nfigure:" in proc.stdout and "\nablations:" in proc.stdout and "powered by hydra" not in proc.stdout.lower()
 
 
-# --- the configs the script composes -------------------------------------------------------------
+# --- the configs the pipeline composes -------------------------------------------------------------
 
 
 def script_variants() -> list[str]:
-    text = (ROOT / "scripts" / "ablations.sh").read_text()
-    return re.search(r"^VARIANTS=\$\{ABLATION_VARIANTS:-([^}]*)\}", text, re.MULTILINE)[1].split()
+    """The variants make ablations trains (conf/pipeline/ablations.yaml: its `variants` key)."""
+    from omegaconf import OmegaConf
+
+    return list(OmegaConf.load(ROOT / "conf" / "pipeline" / "ablations.yaml").variants)
 
 
 def compose_train(*overrides: str):
@@ -325,147 +324,9 @@ def test_the_bench_and_eval_overrides_of_the_script_compose():
     assert list(ev.baselines) == ["noisy"] and list(ev.images.methods) == ["noisy input", "none_s0", "direct_s0"]
 
 
-# --- scripts/ablations.sh with stub executables ----------------------------------------------------
-
-STUB = STUB_HEADER + """for arg in "$@"; do case "$arg" in
-  hydra.run.dir=*) d=${arg#hydra.run.dir=}; mkdir -p "$d/checkpoints"; [ -f "$d/checkpoints/last.ckpt" ] || touch "$d/checkpoints/last.ckpt"
-    [ -n "${STUB_FAIL:-}" ] && [ "$d" = "$STUB_FAIL" ] && exit 1;;
-  out_dir=*) mkdir -p "${arg#out_dir=}";;
-esac; done
-exit 0
-"""
-
-
-
-def _arg(call: list[str], key: str) -> str:
-    return next(a.split("=", 1)[1] for a in call if a.startswith(f"{key}="))
-
-
-def _ablations_sh(root: Path, **env: str) -> tuple[subprocess.CompletedProcess, list[list[str]]]:
-    log = root / "calls.log"
-    log.unlink(missing_ok=True)
-    log.touch()
-    proc = subprocess.run(["bash", str(root / "scripts" / "ablations.sh")], capture_output=True, text=True, check=False,
-                          env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), **env})
-    return proc, stub_calls(log)
-
-
-@pytest.fixture
-def tree(tmp_path):
-    return stub_pipeline(tmp_path, "ablations.sh", ("python", "denoiser-train", "denoiser-eval", "denoiser-bench"), STUB)
-
-
-def _demo(root: Path, seeds=SEEDS) -> None:
-    (root / "data" / "demo" / "test").mkdir(parents=True, exist_ok=True)
-    runs = root / "reports" / "demo" / "runs"
-    for run in ("teacher", *(f"student_{k}_s{s}" for s in seeds for k in ("distilled", "no_kd"))):
-        (runs / run / "checkpoints").mkdir(parents=True, exist_ok=True)
-        (runs / run / "checkpoints" / "best.ckpt").touch()
-        (runs / run / "DONE").touch()
-
-
-def test_ablations_sh_needs_make_demo(tree):
-    proc, calls = _ablations_sh(tree, DENOISER_DATA=str(tree / "data"))
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "run make demo first" in proc.stderr
-    assert "demo/test" in proc.stderr and not calls
-    _demo(tree, seeds=(0, 1))
-    proc, calls = _ablations_sh(tree, DENOISER_DATA=str(tree / "data"))
-    assert proc.returncode == 2 and "student_distilled_s2/DONE" in proc.stderr and not calls
-    proc, _ = _ablations_sh(tree, DENOISER_DATA=str(tree / "data"), ABLATION_SEEDS="0 1")
-    assert proc.returncode == 0, proc.stderr
-    # DEMO_RECIPE=refine's students are fine-tuned from make demo's: no variant trains beside them
-    proc, calls = _ablations_sh(tree, DENOISER_DATA=str(tree / "data"), ABLATION_SEEDS="0 1", DEMO_RECIPE="refine")
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DEMO_RECIPE=refine" in proc.stderr and not calls
-
-
-def test_ablations_sh_trains_the_variants_reuses_demo_and_resumes(tree):
-    _demo(tree)
-    env = {"DENOISER_DATA": str(tree / "data")}
-    proc, calls = _ablations_sh(tree, **env)
-    assert proc.returncode == 0, proc.stderr
-    teacher = "reports/demo/runs/teacher/checkpoints/best.ckpt"
-    trained = [c for c in calls if c[0] == "denoiser-train"]
-    assert sorted((_arg(c, "ablation"), int(_arg(c, "seed"))) for c in trained) == \
-        sorted((v, s) for v in script_variants() for s in SEEDS)   # never none or no_kd: make demo's
-    for c in trained:
-        assert _arg(c, "experiment") == "demo_distill" and _arg(c, "model.teacher_ckpt") == teacher
-        assert "skip_done=true" in c and "ckpt_path=auto" in c and not any(a.startswith("trainer.max_steps") for a in c)
-        assert _arg(c, "hydra.run.dir") == f"reports/ablations/runs/{_arg(c, 'ablation')}_s{_arg(c, 'seed')}"
-    (ev,) = [c for c in calls if c[0] == "denoiser-eval"]
-    ckpts = dict(kv.split(": ") for kv in _arg(ev, "ckpt").strip("{}").split(", "))
-    for s in SEEDS:
-        assert ckpts.pop(f"none_s{s}") == f"reports/demo/runs/student_distilled_s{s}/checkpoints/best.ckpt"
-        assert ckpts.pop(f"no_kd_s{s}") == f"reports/demo/runs/student_no_kd_s{s}/checkpoints/best.ckpt"
-        for v in script_variants():
-            assert ckpts.pop(f"{v}_s{s}") == f"reports/ablations/runs/{v}_s{s}/checkpoints/last.ckpt"
-    assert not ckpts
-    assert _arg(ev, "data") == "demo" and _arg(ev, "images.methods") == "['noisy input',none_s0,no_pyramid_s0,direct_s0]"
-    (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
-    assert sorted(kv.split(": ")[0] for kv in _arg(bench, "ckpt").strip("{}").split(", ")) == \
-        ["direct_s0", "no_pyramid_s0", "none_s0"]
-    assert _arg(bench, "sizes") == "[[1080,1920]]" and _arg(bench, "use_backends") == "[openvino_f32,openvino_bf16]"
-    (summ,) = [c for c in calls if "denoiser.commands.ablation_summary" in c]
-    assert _arg(summ, "seeds") == "[0,1,2]" and _arg(summ, "teacher") == teacher
-    assert _arg(summ, "variants") == "[" + ",".join(["none", "no_kd", *script_variants()]) + "]"
-    timings = (tree / "reports" / "ablations" / "timings.md").read_text()
-    assert "| train |" in timings and "| eval |" in timings and "| total |" in timings
-
-    # a second run: the same checkpoints, so no evaluation or benchmark again; training is
-    # denoiser-train's to skip (skip_done); fewer variants, steps and another backend on request
-    proc, calls = _ablations_sh(tree, **env)
-    assert proc.returncode == 0, proc.stderr
-    assert not [c for c in calls if c[0] in ("denoiser-eval", "denoiser-bench")]
-    proc, calls = _ablations_sh(tree, **env, ABLATION_VARIANTS="none direct", ABLATION_STEPS="50",
-                                ABLATION_BACKENDS="[eager]")
-    assert proc.returncode == 0, proc.stderr
-    (train,) = {_arg(c, "ablation") for c in calls if c[0] == "denoiser-train"}
-    assert train == "direct" and all(_arg(c, "trainer.max_steps") == "50" for c in calls if c[0] == "denoiser-train")
-    (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
-    assert _arg(bench, "use_backends") == "[eager]" and "no_pyramid_s0" not in _arg(bench, "ckpt")
-    # a failed run stops the script with the log named
-    proc, calls = _ablations_sh(tree, **env, STUB_FAIL="reports/ablations/runs/k3_s1")
-    assert proc.returncode == 3 and "[k3_s1] failed, see reports/ablations/runs/k3_s1.log" in proc.stderr
-
-
-def test_scripts_parse_and_the_makefile_has_the_targets():
-    for script in ("ablations.sh", "paper.sh", "lib.sh", "demo.sh", "compare.sh", "pareto.sh"):
-        subprocess.run(["bash", "-n", str(ROOT / "scripts" / script)], check=True)
-    make = (ROOT / "Makefile").read_text()
-    for target in ("ablations", "paper", "readme-ablations"):
-        assert re.search(rf"^{target}:", make, re.MULTILINE), target
-        assert re.search(rf"^\.PHONY:.*\s{target}(\s|$)", make, re.MULTILINE), target
-    paper = make.split("\npaper:", 1)[1].split("\n\n", 1)[0]
-    assert "scripts/paper.sh" in paper and "readme-ablations" in paper
-    assert "<!-- ablations:pending -->" in (ROOT / "README.md").read_text() \
-        or "<!-- ablations:begin -->" in (ROOT / "README.md").read_text()
-
-
-def test_paper_sh_times_every_stage_in_order(tmp_path):
-    (tmp_path / "scripts").mkdir()
-    for name in ("paper.sh", "lib.sh", "paper_summary.py"):
-        shutil.copy(ROOT / "scripts" / name, tmp_path / "scripts")
-    env = {**os.environ, "VENV": str(Path(sys.executable).parent.parent)}
-    log = tmp_path / "order.log"
-    for stage in ("ablations", "compare", "pareto"):
-        (tmp_path / "scripts" / f"{stage}.sh").write_text(f"echo {stage} >> {log}\n")
-    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "paper.sh")], capture_output=True, text=True, check=False,
-                          env=env)
-    assert proc.returncode == 2 and "run make demo first" in proc.stderr and not log.exists()
-    (tmp_path / "reports" / "demo" / "runs" / "teacher").mkdir(parents=True)
-    (tmp_path / "reports" / "demo" / "runs" / "teacher" / "DONE").touch()
-    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "paper.sh")], capture_output=True, text=True, check=False,
-                          env=env)
-    assert proc.returncode == 0, proc.stderr
-    assert log.read_text().split() == ["ablations", "compare", "pareto"]
-    timings = (tmp_path / "reports" / "paper" / "timings.md").read_text().splitlines()
-    assert [line.split("|")[1].strip() for line in timings[2:]] == ["ablations", "compare", "pareto", "total", "work"]
-    summary = (tmp_path / "reports" / "paper" / "summary.md").read_text()   # the stages keep no table here
-    assert "| compare | 0 | 0.00 h | 0 | `reports/paper/timings.md` (the stage keeps no table) |" in summary
-    assert "within the budget of 2.00 h" in summary
-
 def test_a_multirun_job_is_the_same_run_as_the_scripts_single_run():
     """skip_done compares overrides as Hydra parses them: the documented SLURM multirun's jobs
-    (docs/training.md) are the runs scripts/ablations.sh asks for, so it skips them."""
+    (docs/training.md) are the runs make ablations (conf/pipeline/ablations.yaml) asks for, so it skips them."""
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 

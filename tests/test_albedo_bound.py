@@ -1,24 +1,23 @@
-"""scripts/albedo_bound.py: the ceiling that remodulating with a noisy albedo sets (issue 12)."""
+"""denoiser/commands/albedo_bound.py (``python -m denoiser.commands.albedo_bound``): the ceiling that
+remodulating with a noisy albedo sets (issue 12)."""
 
-import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from denoiser.commands import albedo_bound
 from denoiser.data import exr
 from denoiser.metrics import psnr
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "albedo_bound.py"
 H = W = 16
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("albedo_bound", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return albedo_bound
 
 
 def write(path: Path, color: np.ndarray, albedo: np.ndarray, layer: str = "ViewLayer") -> None:
@@ -76,6 +75,29 @@ def test_missing_reference_is_one_line_and_exit_2(tmp_path, capsys):
     for t in range(3):
         write(seq / "noisy" / f"{t + 1:04d}.exr", albedo, albedo)
     (seq / "reference").mkdir()
-    assert load().main([str(tmp_path / "split")]) == 2
+    with pytest.raises(SystemExit) as exit_:
+        load().main([str(tmp_path / "split")])
+    assert exit_.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "0003.exr" in err[0] and "no reference frame" in err[0] and str(seq) in err[0]
+
+
+def test_the_command_takes_key_value_arguments_and_refuses_mistakes_in_one_line(tmp_path):
+    """``python -m denoiser.commands.albedo_bound``: ``out=``/``warmup=`` as well as ``--out``; no
+    sequences, a bad value and a missing argument are one line ``error: ...`` and exit 2."""
+    seq = tmp_path / "split" / "flat"
+    albedo = np.full((H, W, 3), 0.5, np.float32)
+    for t in range(3):
+        write(seq / "noisy" / f"{t + 1:04d}.exr", albedo * 1.1, albedo)
+        write(seq / "reference" / f"{t + 1:04d}.exr", albedo, albedo)
+    command = [sys.executable, "-m", "denoiser.commands.albedo_bound"]
+    out = tmp_path / "bound.md"
+    ok = subprocess.run([*command, str(tmp_path / "split"), f"out={out}", "warmup=1"], capture_output=True,
+                        text=True, check=False)
+    assert ok.returncode == 0, ok.stderr
+    assert "| flat | 2 |" in out.read_text() and "| flat | 2 |" in ok.stdout
+    for args, words in (([str(tmp_path / "nowhere")], "no sequences"), ([str(tmp_path / "split"), "warmup=x"], "warmup"),
+                        ([str(tmp_path / "split"), "warmup=-1"], "negative"), ([], "split_dir")):
+        bad = subprocess.run([*command, *args], capture_output=True, text=True, check=False)
+        assert bad.returncode == 2 and bad.stderr.startswith("error: ") and bad.stderr.count("\n") == 1, bad.stderr
+        assert words in bad.stderr and "Traceback" not in bad.stderr

@@ -287,7 +287,7 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
 @pytest.mark.slow
 def test_readme_check_judges_network_code_by_what_it_computes(tmp_path):
     """A refactor of denoiser/nn (another syntax tree, the same numbers) leaves a block current; a
-    change of what a network computes makes it stale (scripts/nn_fingerprint.py on both trees)."""
+    change of what a network computes makes it stale (denoiser/commands/nn_fingerprint.py on both trees)."""
     import shutil
 
     repo = tmp_path / "repo"

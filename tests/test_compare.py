@@ -11,7 +11,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import STUB_HEADER, stub_calls, stub_pipeline
 from hydra import compose, initialize_config_dir
 
 from denoiser.commands.render import plan
@@ -115,7 +114,7 @@ def test_figure_tables_rows_means_std_times_and_ranking(tmp_path):
     proc = _summary(tmp_path, PSNR)
     assert proc.returncode == 0, proc.stderr
     summary = (tmp_path / "report" / "summary.md").read_text()
-    # its own README block (make readme-compare), never make demo's `results` block
+    # its own README block (make readme), never make demo's `results` block
     assert summary.count("<!-- compare:begin -->") == summary.count("<!-- compare:end -->") == 1
     assert "<!-- results:begin -->" not in summary
     tables = _tables()
@@ -181,74 +180,3 @@ def test_ranking_by_a_lower_is_better_metric(tmp_path):
     notes = _section((tmp_path / "report" / "summary.md").read_text(), _tables()[0].title)[1]
     assert "baselines: NPPD > ONND > WS: yes (FLIP ↓)" in notes
     assert "student (ours) ranks above ONND, WS, NPPD; below none (FLIP ↓, mean over seeds)" in notes
-
-
-# --- scripts/compare.sh, with stub commands ------------------------------------------------------
-
-STUB = STUB_HEADER + """for arg in "$@"; do case "$arg" in hydra.run.dir=*)
-  mkdir -p "${arg#hydra.run.dir=}/checkpoints"; touch "${arg#hydra.run.dir=}/checkpoints/last.ckpt";; esac; done
-"""
-
-
-
-def _arg(call: list[str], key: str) -> str:
-    return next(a.split("=", 1)[1] for a in call if a.startswith(f"{key}="))
-
-
-def _compare_sh(root: Path, **env: str) -> list[list[str]]:
-    import os
-
-    log = root / "calls.log"
-    log.unlink(missing_ok=True)
-    subprocess.run(["bash", str(root / "scripts" / "compare.sh")], check=True, capture_output=True, text=True,
-                   env={**os.environ, "VENV": "venv", "STUB_LOG": str(log), **env})
-    return stub_calls(log)
-
-
-def test_compare_sh_renders_its_data_evaluates_with_onnd_and_resumes(tmp_path):
-    stub_pipeline(tmp_path, "compare.sh", ("python", "denoiser-render", "denoiser-train", "denoiser-eval",
-                                           "denoiser-bench"), STUB)
-    demo = tmp_path / "reports" / "demo" / "runs"
-    for run in ("teacher", "student_distilled_s0", "student_distilled_s1", "student_distilled_s2"):
-        (demo / run / "checkpoints").mkdir(parents=True)
-        (demo / run / "checkpoints" / "best.ckpt").touch()
-        (demo / run / "DONE").touch()
-
-    calls = _compare_sh(tmp_path)
-    names = [c[0] if c[0] != "python" else c[1] for c in calls]
-    assert names[0] == "denoiser-render" and calls[0][1:] == ["dataset=demo_compare", "reference_from=data/demo"]
-    trained = [c for c in calls if c[0] == "denoiser-train"]
-    assert [(_arg(c, "net"), _arg(c, "seed")) for c in trained] == [(net, s) for s in "012" for net in ("nppd_demo", "ws_demo")]
-    for c in trained:   # a finished run is denoiser-train's to skip, an interrupted one its to resume
-        assert "skip_done=true" in c and "ckpt_path=auto" in c
-        assert _arg(c, "hydra.run.dir") == f"reports/compare/runs/{_arg(c, 'net')}_s{_arg(c, 'seed')}"
-        assert _arg(c, "model.teacher_ckpt") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
-    (ev,) = [c for c in calls if c[0] == "denoiser-eval"]
-    (bench,) = [c for c in calls if c[0] == "denoiser-bench"]
-    assert _arg(ev, "data") == _arg(bench, "data") == "demo_compare"
-    assert _arg(ev, "baselines") == _arg(bench, "baselines") == "compare"
-    ckpts = dict(kv.split(": ") for kv in _arg(ev, "ckpt").strip("{}").split(", "))
-    assert ckpts.pop("teacher") == "reports/demo/runs/teacher/checkpoints/best.ckpt"
-    for s in "012":
-        assert ckpts.pop(f"student_s{s}") == f"reports/demo/runs/student_distilled_s{s}/checkpoints/best.ckpt"
-        for net in ("nppd", "ws"):
-            assert ckpts.pop(f"{net}_s{s}") == f"reports/compare/runs/{net}_demo_s{s}/checkpoints/last.ckpt"
-    assert not ckpts
-    assert sorted(kv.split(": ")[0] for kv in _arg(bench, "ckpt").strip("{}").split(", ")) == \
-        ["nppd_s0", "student_s0", "teacher", "ws_s0"]
-    (summary,) = [c for c in calls if "denoiser.commands.demo_summary" in c]
-    assert "--config-name" in summary and summary[summary.index("--config-name") + 1] == "compare_summary"
-    assert _arg(summary, "seeds") == "[0,1,2]"
-
-    # other seeds and ONND off on request
-    calls = _compare_sh(tmp_path, COMPARE_ONND="0", COMPARE_SEEDS="1")
-    assert [(_arg(c, "net"), _arg(c, "seed")) for c in calls if c[0] == "denoiser-train"] == \
-        [("nppd_demo", "1"), ("ws_demo", "1")]
-    assert calls[0][0] == "denoiser-render"
-    assert {_arg(c, "baselines") for c in calls if c[0] in ("denoiser-eval", "denoiser-bench")} == {"default"}
-
-    # DEMO_RECIPE=refine's students are fine-tuned from make demo's: no network trains beside them
-    import os
-    proc = subprocess.run(["bash", str(tmp_path / "scripts" / "compare.sh")], capture_output=True, text=True, check=False,
-                          env={**os.environ, "VENV": "venv", "STUB_LOG": str(tmp_path / "refine.log"), "DEMO_RECIPE": "refine"})
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "DEMO_RECIPE=refine" in proc.stderr

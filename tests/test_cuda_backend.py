@@ -249,7 +249,7 @@ def test_gpu_check_resumed_report_keeps_the_sections_it_does_not_set(tmp_path):
     text, block = (tmp_path / "gpu.md").read_text().split("\n<!-- gpu:begin -->\n")
     assert text == ("# GPU check\n\n## Device\n\n- gpu: A\n\n## Inference\n\n| a |\n|---|\n| 1 |\n\n"
                     "## Training step\n\n| ms |\n|---|\n| 30 |\n\n## Training run\n\nexit 0\n")
-    # the README block (make readme-gpu): the card, then the sections it repeats, kept across a resume
+    # the README block (make readme): the card, then the sections it repeats, kept across a resume
     assert block == ("gpu: A\n\n**Inference.**\n\n| a |\n|---|\n| 1 |\n\n**Training step.**\n\n| ms |\n|---|\n"
                      "| 30 |\n\n**Training run.** exit 0\n<!-- gpu:end -->\n")
     assert Report(tmp_path / "gpu.md", keep=True).sections == second.sections

@@ -127,3 +127,26 @@ def test_train_help_shows_the_current_choices(monkeypatch, capsys):
     text = run_help("denoiser-train", monkeypatch, capsys, "model=teacher", "layout=blender")
     assert "(now: teacher)" in text and "(now: blender)" in text and "BlenderLayout" in text
     assert OmegaConf.to_container(composed("train").hydra.help)["app_name"] == "denoiser-train"
+
+
+#: the argparse commands (``python -m denoiser.commands.<name>``, no config of their own)
+ARGPARSE_COMMANDS = ("noise_response", "diagnose_history", "albedo_bound", "paper_summary", "nn_fingerprint")
+
+
+@pytest.mark.parametrize("name", ARGPARSE_COMMANDS)
+def test_argparse_commands_help_and_usage_mistakes(name, capsys):
+    """``--help``: the ``python -m`` name, what the command does (its docstring) and every option;
+    a usage mistake: one line ``error: ...`` naming ``--help``, exit 2, no traceback."""
+    module = importlib.import_module(f"denoiser.commands.{name}")
+    with pytest.raises(SystemExit) as exit_:
+        module.main(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"usage: python -m denoiser.commands.{name} ")
+    assert module.__doc__.splitlines()[0] in text and "Usage::" in text and "--help" in text
+    with pytest.raises(SystemExit) as exit_:
+        module.main(["--no-such-option"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith("error: ") and f"denoiser.commands.{name} --help" in err
+    assert "--no-such-option" in err or "arguments are required" in err   # argparse names the first mistake

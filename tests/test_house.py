@@ -2,7 +2,7 @@
 
 * the package root holds at most ten modules, the shared vocabulary; everything else lives in
   a wing (``nn``, ``data``, ``render``, ``inference``, ``methods``, ``report``, ``lit``,
-  ``commands``), and each wing imports only the parts :data:`MAY_IMPORT` lists for it;
+  ``pipeline``, ``commands``), and each wing imports only the parts :data:`MAY_IMPORT` lists for it;
 * library code never imports a command (``denoiser/commands`` imports the library, not back);
 * the buffer vocabulary is written once (:mod:`denoiser.buffers`);
 * one recurrent runner (:mod:`denoiser.runner`): no module loops over a network's ``step`` by
@@ -63,6 +63,7 @@ MAY_IMPORT = {
     "methods": {"root", "nn", "inference"},
     "report": {"root", "nn", "inference", "methods", "data"},
     "lit": {"root", "nn", "data"},
+    "pipeline": {"root"},
 }
 
 

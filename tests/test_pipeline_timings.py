@@ -1,5 +1,4 @@
-"""Stage times of the pipeline scripts (scripts/lib.sh: timings_begin, stage, timings_row,
-timings_end) and make paper's budget (scripts/paper_summary.py): a resumed pipeline's table keeps
+"""Stage times of the pipelines (denoiser/pipeline/timings.py) and make paper's budget (denoiser/commands/paper_summary.py): a resumed pipeline's table keeps
 the seconds of the run that did a reused step, and the budget adds up the stages' work."""
 
 from __future__ import annotations
@@ -11,18 +10,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def pipeline(tmp_path: Path, body: str) -> str:
-    """Run ``body`` in bash after sourcing scripts/lib.sh, in ``tmp_path``; its table's text."""
-    script = f"""set -euo pipefail
-cd {tmp_path}
-TIMINGS={tmp_path}/timings.md
-. {ROOT}/scripts/lib.sh
-timings_begin
-{body}
-timings_end
-"""
-    subprocess.run(["bash", "-c", script], check=True, capture_output=True, text=True)
-    return (tmp_path / "timings.md").read_text()
+class Clock:
+    """A clock the test moves by hand (seconds)."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
 
 
 def rows(table: str) -> dict[str, list[str]]:
@@ -34,32 +29,47 @@ def rows(table: str) -> dict[str, list[str]]:
 
 
 def test_a_reused_step_keeps_the_seconds_of_the_run_that_did_it(tmp_path):
-    train = 'mkdir -p runs/a && { [ -f runs/a/DONE ] || { sleep 1; touch runs/a/DONE; }; }'
-    first = rows(pipeline(tmp_path, f"stage --reuse runs/a DONE a bash -c '{train}'\nstage b true"))
-    assert first["a"][0] == "1" and first["a"][1].startswith("run ") and first["b"][0] == "0"
-    assert first["work"][0] == "1" and first["total"][1].endswith("wall time")
-    # the second run finds a finished: it wrote no DONE, so the row is the first run's
-    second = rows(pipeline(tmp_path, f"stage --reuse runs/a DONE a bash -c '{train}'\nstage b true\ntimings_row e 0 reused"))
-    assert second["a"] == first["a"]  # the same seconds and the same run named
-    this_run = second["total"][1].removesuffix(": wall time")
-    assert this_run != first["a"][1] and second["b"][1] == this_run  # a step without --reuse: this run's
-    assert second["e"][1].startswith("reused") and second["work"][0] == "1"
+    from denoiser.pipeline.timings import TimingTable
+
+    path, clock = tmp_path / "timings.md", Clock()
+    first = TimingTable(path, run="run one", clock=clock)
+    assert (tmp_path / "timings.md.tmp").is_file() and not path.exists()  # the table of a finished run only
+    clock.now = 1
+    first.add("a", 1)
+    first.add("b", 0)
+    first.end()
+    one = rows(path.read_text())
+    assert one["a"] == ["1", "run one"] and one["b"] == ["0", "run one"]
+    assert one["work"][0] == "1" and one["total"] == ["1", "run one: wall time"]
+    # the second run reused a: the row is the first run's; b without reuse and e with no row before
+    second = TimingTable(path, run="run two", clock=Clock())
+    second.add("a", 0, reused=True)
+    second.add("b", 0)
+    second.add("e", 0, reused=True)
+    second.end()
+    two = rows(path.read_text())
+    assert two["a"] == one["a"] and two["b"] == ["0", "run two"]
+    assert two["e"][1].startswith("reused") and two["work"][0] == "1"
     # a redone step is this run's again
-    (tmp_path / "runs" / "a" / "DONE").unlink()
-    third = rows(pipeline(tmp_path, f"stage --reuse runs/a DONE a bash -c '{train}'"))
-    assert third["a"][0] == "1" and third["a"][1] == third["total"][1].removesuffix(": wall time")
+    third = TimingTable(path, run="run three", clock=Clock())
+    third.add("a", 2)
+    third.end()
+    assert rows(path.read_text())["a"] == ["2", "run three"]
 
 
 def test_a_table_from_before_the_run_column_is_carried_over(tmp_path):
-    (tmp_path / "runs" / "a").mkdir(parents=True)
-    (tmp_path / "runs" / "a" / "DONE").touch()
+    from denoiser.pipeline.timings import TimingTable
+
     (tmp_path / "timings.md").write_text("| stage | seconds |\n|---|---|\n| a | 731 |\n| total | 900 |\n")
-    table = rows(pipeline(tmp_path, "stage --reuse runs/a DONE a true"))
-    assert table["a"] == ["731", "an earlier run"] and table["work"][0] == "731"
+    table = TimingTable(tmp_path / "timings.md", clock=Clock())
+    table.add("a", 0, reused=True)
+    table.end()
+    assert rows((tmp_path / "timings.md").read_text())["a"] == ["731", "an earlier run"]
+    assert rows((tmp_path / "timings.md").read_text())["work"][0] == "731"
 
 
 def paper_summary(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "scripts" / "paper_summary.py"), "--paper",
+    return subprocess.run([sys.executable, "-m", "denoiser.commands.paper_summary", "--paper",
                            str(tmp_path / "paper.md"), "--reports", str(tmp_path / "reports"), "--out",
                            str(tmp_path / "summary.md"), *args], capture_output=True, text=True, check=False)
 
@@ -88,4 +98,7 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
     assert "over the budget of 1.00 h by 0.99 h (2.0x)" in (tmp_path / "summary.md").read_text()
     (tmp_path / "paper.md").write_text("| stage | seconds |\n|---|---|\n| ablations | 95 |\n")
     proc = paper_summary(tmp_path)
-    assert proc.returncode == 1 and "no row for stage(s) compare, pareto" in proc.stderr
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith("error: ") and "no row for stage(s) compare, pareto" in proc.stderr
+    proc = paper_summary(tmp_path, "budget_hours=lots")   # key=value, a bad value: one line too
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "budget-hours" in proc.stderr

@@ -1,5 +1,5 @@
 """The stub executables of the pipeline-script tests log every call, also when a script runs them
-side by side (``scripts/ablations.sh`` trains two variants at once)."""
+side by side (``denoiser-pipeline pipeline=ablations`` trains two variants at once)."""
 
 import subprocess
 

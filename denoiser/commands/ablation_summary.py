@@ -4,7 +4,7 @@ Usage::
 
     python -m denoiser.commands.ablation_summary report=reports/ablations seeds=[0,1,2]
 
-A Hydra app over ``conf/ablation_summary.yaml``, run by ``scripts/ablations.sh`` (``make
+A Hydra app over ``conf/ablation_summary.yaml``, run by ``conf/pipeline/ablations.yaml`` (``make
 ablations``) at its end. It reads
 
 * ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the demo's test split; every variant's runs
@@ -21,7 +21,7 @@ ablations``) at its end. It reads
   PSNR, collapse marker and the teacher it was taught by;
 
 and writes ``summary.md``: the run id, commit, seeds, teacher and test-split hash, then between
-``<!-- ablations:begin -->`` and ``<!-- ablations:end -->`` (``make readme-ablations`` copies it
+``<!-- ablations:begin -->`` and ``<!-- ablations:end -->`` (``make readme`` copies it
 into the README) the Fig. A.1 tables with one sentence per claim of the paper (holds or does not
 hold, with the interval) and the ablations table with one sentence per ablation (the paper's
 direction holds or not here); below it the crop figure (``crops_a1.png``: ``denoiser-eval``'s

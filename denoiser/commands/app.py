@@ -1,9 +1,12 @@
-"""Shared start-up for the console commands (each one is a Hydra app over ``conf/``).
+"""Shared start-up for the console commands (Hydra apps over ``conf/``, and a few argparse ones).
 
 ``hydra_command(task, config_name)`` returns a ``main()`` suitable for a console script:
 Hydra composes ``conf/<config_name>.yaml`` with the command line, then ``task(cfg)`` runs.
 A :class:`~denoiser.errors.UserError` becomes one line on stderr and exit code 2; the full
-traceback is shown only with ``DENOISER_DEBUG=1``.
+traceback is shown only with ``DENOISER_DEBUG=1``. The commands that take no config
+(``python -m denoiser.commands.noise_response``, ``diagnose_history``, ``albedo_bound``,
+``paper_summary``) parse with :class:`CommandParser` (argparse, ``key=value`` accepted) and end a
+UserError with :func:`report_user_error` the same way.
 
 The configs ship inside the package (:data:`denoiser.conf.CONF_DIR`), so a plain
 ``pip install`` of the project runs every command from any directory.
@@ -11,6 +14,7 @@ The configs ship inside the package (:data:`denoiser.conf.CONF_DIR`), so a plain
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from collections.abc import Callable
@@ -36,6 +40,25 @@ def key_value_argv(argv: list[str]) -> list[str]:
     arguments pass unchanged."""
     return [f"--{a.split('=', 1)[0].replace('_', '-')}={a.split('=', 1)[1]}"
             if "=" in a and not a.startswith("-") else a for a in argv]
+
+
+class CommandParser(argparse.ArgumentParser):
+    """``argparse`` for the commands that are not Hydra apps (``python -m denoiser.commands.<name>``):
+    ``--help`` prints the module docstring as written (``doc``: usage lines kept), ``key=value``
+    arguments are read as ``--key=value`` (:func:`key_value_argv`), and a usage mistake (a missing
+    or unknown argument, a bad value) is one line ``error: ...`` on stderr and exit 2, as a
+    :class:`~denoiser.errors.UserError` is (:func:`report_user_error`)."""
+
+    def __init__(self, module: str, doc: str, **kwargs):
+        super().__init__(prog=f"python -m {module}", description=doc,
+                         formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):
+        return super().parse_known_args(key_value_argv(sys.argv[1:] if args is None else list(args)), namespace)
+
+    def error(self, message: str):
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
 
 
 def guarded(task: Callable) -> Callable:

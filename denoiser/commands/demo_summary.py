@@ -4,9 +4,9 @@ Usage::
 
     python -m denoiser.commands.demo_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
     python -m denoiser.commands.demo_summary report=reports/demo_refine base_runs=reports/demo/runs \
-        interpolation_alpha=0.75        # make demo's own (its refine recipe: scripts/demo.sh)
+        interpolation_alpha=0.75        # make demo's own (its refine recipe: conf/pipeline/demo.yaml)
 
-A Hydra app over ``conf/demo_summary.yaml``, run by ``scripts/demo.sh`` at its end. It reads
+A Hydra app over ``conf/demo_summary.yaml``, run by ``conf/pipeline/demo.yaml`` at its end. It reads
 
 * ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the test split; students labelled
   ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.report.summary`), one row
@@ -26,7 +26,7 @@ and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of 
 files, and the tables. ``scripts/readme_results.py`` copies its results block (the table and the
 claims) into the README.
 
-``make compare`` (``scripts/compare.sh``) runs it over ``conf/compare_summary.yaml``::
+``make compare`` (``conf/pipeline/compare.yaml``) runs it over ``conf/compare_summary.yaml``::
 
     python -m denoiser.commands.demo_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
 
@@ -195,7 +195,7 @@ def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
 def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric: str | None = None) -> list[str]:
     """Markdown lines of one table (and the claims, and with ``family_metric`` their per-family
     table in that metric) per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists, between
-    ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme-results`` copies it)."""
+    ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme`` copies it)."""
     lines: list[str] = []
     for name, title in extra.items():
         csv_path = report / str(name) / "metrics.csv"

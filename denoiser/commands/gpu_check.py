@@ -45,7 +45,7 @@ from denoiser.errors import ConfigError
 ROOT = Path(__file__).resolve().parents[2]
 
 
-#: sections of gpu.md that its README block (``<!-- gpu:begin -->``, copied by ``make readme-gpu``) repeats
+#: sections of gpu.md that its README block (``<!-- gpu:begin -->``, copied by ``make readme``) repeats
 README_SECTIONS = ("Inference", "Training step", "Training run", "CPU evaluation of the GPU-trained checkpoint")
 #: the Device lines the README block names the card and the software with
 README_DEVICE = ("gpu", "driver", "torch", "cuda", "triton")

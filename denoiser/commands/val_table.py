@@ -6,7 +6,7 @@ Usage::
         "evals={blender: {title: 'Blender Cycles val (fast_101-103)', csv: reports/fast/blender_val/metrics.csv}, \
                 mitsuba: {title: 'Mitsuba val (data/demo_fast/val)', csv: reports/fast/mitsuba_val/metrics.csv}}"
 
-A Hydra app over ``conf/val_table.yaml`` (``scripts/fast_motion.sh``, ``make fast-motion``, runs it
+A Hydra app over ``conf/val_table.yaml`` (issue 33's val study, retired from the Makefile, ran it
 over issue 33's candidates; the command above is that study's first table). It reads every ``metrics.csv`` named under ``evals``
 (``denoiser-eval ... split=val``; every candidate's runs labelled ``<group>_s<seed>``, baselines
 such as ``noisy input`` and ``OIDN-fast`` without the suffix) and writes, per evaluation:

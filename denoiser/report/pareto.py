@@ -155,3 +155,32 @@ def cache_key(path: str | os.PathLike, **what) -> str:
     text = json.dumps({"path": str(Path(path).resolve()), "size": st.st_size, "mtime": st.st_mtime_ns, **what},
                       sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def front_seed_jobs(csv_path: str | os.PathLike, seeds: Sequence[int]) -> list[dict]:
+    """The jobs that retrain the front's variants with more ``seeds`` (``denoiser-pipeline
+    pipeline=pareto``, ``jobs_from``): one per network on the front of ``pareto.csv`` that was
+    trained with one seed, its overrides and ``seed=<a>,<b>`` for a multirun whose job folders are
+    ``<job>_s<seed>``. None when ``seeds`` is empty or the table does not exist yet."""
+    import csv
+
+    if not seeds or not Path(csv_path).is_file():
+        return []
+    with open(csv_path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return [{"name": f"front_seeds_{r['job']}",
+             "args": [*r["overrides"].split(), "seed=" + ",".join(str(s) for s in seeds),
+                      f"hydra.sweep.subdir={r['job']}_s${{seed}}"]}
+            for r in rows if r["front"] == "True" and r["kind"] == "network" and r["seeds"] in ("cfg", "0")]
+
+
+def finished_runs(sweep_dirs: Sequence[str | os.PathLike]) -> list[dict]:
+    """Every finished job of the multiruns ``sweep_dirs`` (``DONE`` and ``checkpoints/last.ckpt``),
+    as ``{name: job<folder>, run_dir, ckpt}`` for an evaluation of them all (``jobs_from``)."""
+    runs = []
+    for sweep in sweep_dirs:
+        for job in job_dirs(sweep) if Path(sweep).is_dir() else []:
+            last = job / "checkpoints" / "last.ckpt"
+            if (job / DONE_FILE).is_file() and last.is_file():
+                runs.append({"name": f"job{job.name}", "run_dir": str(job), "ckpt": str(last)})
+    return runs

@@ -1,28 +1,30 @@
-"""Diagnose a recurrent checkpoint's history on one frame of a sequence: a PNG grid and a table.
+"""Diagnose a recurrent checkpoint's history on one frame of a sequence, a PNG grid and a table:
+``python -m denoiser.commands.diagnose_history``.
 
-    python scripts/diagnose_history.py --ckpt S.ckpt --sequence data/blender/val/fast_101 --layout blender
-    python scripts/diagnose_history.py ckpt=S.ckpt sequence=data/demo/val/<seq> frame=5 out=reports/diagnose
+Usage::
+
+    python -m denoiser.commands.diagnose_history --ckpt S.ckpt --sequence data/blender/val/fast_101 --layout blender
+    python -m denoiser.commands.diagnose_history ckpt=S.ckpt sequence=data/demo/val/<seq> frame=5 out=reports/diagnose
 
 Writes ``<out>/<sequence>_f<frame>.png`` (noisy, output, reference, warped history; the history
 blend weights a and b, the disocclusion gate and the coverage; the squared tonemapped errors of
 the noisy input, the warped history and the output; the motion magnitude) and ``.md`` (region
 statistics: :mod:`denoiser.report.history_diagnosis`). Default frame: the one >= 2 with the largest
 mean motion. ``key=value`` arguments are accepted for every option as well as ``--key value``.
+A bad input (a missing file, a bad value) is one line ``error: ...`` on stderr and exit 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
+from denoiser.commands.app import CommandParser, report_user_error
+from denoiser.errors import UserError
+
 
 def parse_args(argv):
-    from denoiser.commands.app import key_value_argv
-
-    argv = key_value_argv(argv)  # key=value (the project's command style) is the same as --key value
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = CommandParser("denoiser.commands.diagnose_history", __doc__)
     p.add_argument("--ckpt", required=True, type=Path, help="checkpoint of a recurrent Denoiser")
     p.add_argument("--sequence", required=True, type=Path, help="a labeled sequence directory")
     p.add_argument("--layout", default="native", help="native (default) or blender")
@@ -33,15 +35,13 @@ def parse_args(argv):
 
 
 def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
-    from denoiser.errors import UserError
+    args = parse_args(argv)
     from denoiser.report.history_diagnosis import diagnose
 
     try:
         result = diagnose(args.ckpt, args.sequence, args.layout, args.out, args.frame, trust=args.trust_checkpoint)
     except UserError as e:  # ExrError and ConfigError included
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        report_user_error(e)
     print(result["markdown"].read_text(), end="")
     print(f"wrote {result['png']} and {result['markdown']} (frame {result['frame']})")
     return 0

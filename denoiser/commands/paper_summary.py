@@ -1,27 +1,34 @@
-#!/usr/bin/env python3
 """The budget of ``make paper``: what each stage's work costs, from the stage tables the pipelines
-wrote, against the budget -> ``reports/paper/summary.md`` (``make readme-paper`` copies its block).
+wrote, against the budget -> ``reports/paper/summary.md`` (``make readme`` copies its block):
+``python -m denoiser.commands.paper_summary``.
 
 A stage's work is the ``work`` row of its own table (``reports/<stage>/timings.md``: every step's
-seconds, the steps that an earlier run did included, with the seconds of that run; ``scripts/lib.sh``),
+seconds, the steps that an earlier run did included, with the seconds of that run; ``denoiser/pipeline/timings.py``),
 or its ``total`` row when the table has no ``work`` row (a table from before the row existed, whose
 run did the work: its rows, runs side by side, add up to more than its wall time);
 a stage without a table counts its wall time in ``make paper``'s own table
 (``reports/paper/timings.md``). So a ``make paper`` that resumed work done earlier still states
 what the whole work costs, and how long this run took beside it.
 
-    python scripts/paper_summary.py [--paper reports/paper/timings.md] [--stages ablations,compare,pareto] \\
-        [--budget-hours 2] [--out reports/paper/summary.md]
+Usage::
+
+    python -m denoiser.commands.paper_summary [--paper reports/paper/timings.md] [--reports reports] \\
+        [--stages ablations,compare,pareto] [--budget-hours 2] [--out reports/paper/summary.md]
+
+``key=value`` arguments (``budget_hours=2``) are accepted as well as ``--key value``. A missing
+table or a stage without a row in it is one line ``error: ...`` on stderr and exit 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import datetime
 import os
 import sys
 from pathlib import Path
 
+from denoiser.atomic import atomic_write_text
+from denoiser.commands.app import CommandParser, report_user_error
+from denoiser.errors import UserError
 from denoiser.measure import cpu_model
 from denoiser.report.summary import git_commit
 
@@ -55,11 +62,11 @@ def hours(seconds: int) -> str:
 def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) -> str:
     """The summary's text (module docstring)."""
     if not paper.is_file():
-        raise SystemExit(f"error: {paper}: not found (run make paper first)")
+        raise UserError(f"{paper}: not found (run make paper first)")
     walls = read_table(paper)
     missing = [s for s in stages if s not in walls]
     if missing:
-        raise SystemExit(f"error: {paper}: no row for stage(s) {', '.join(missing)}")
+        raise UserError(f"{paper}: no row for stage(s) {', '.join(missing)}")
     rows, total_work = [], 0
     for name in stages:
         own = reports / name / "timings.md"
@@ -77,7 +84,7 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) 
         "# make paper: the work of every stage, against the budget", "",
         f"- run id: {run_id}",
         f"- commit: {git_commit()}",
-        f"- stages: {', '.join(stages)} (scripts/paper.sh)", "",
+        f"- stages: {', '.join(stages)} (conf/pipeline/paper.yaml)", "",
         BEGIN,
         "| stage | work, s | work | wall time in the last make paper, s | from |",
         "|---|---:|---:|---:|---|",
@@ -85,24 +92,39 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) 
         f"| all | {total_work} | {hours(total_work)} | {walls.get('total', sum(walls[s] for s in stages))} | |",
         "",
         (f"Work: every step's wall time in the run that did it (a step a later run reused keeps that "
-         f"run's seconds; scripts/lib.sh). All of it takes {hours(total_work)} on this machine "
+         f"run's seconds; denoiser/pipeline/timings.py). All of it takes {hours(total_work)} on this machine "
          f"({cpu_model()}, {os.cpu_count()} cores), {verdict}."),
         END, ""])
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--paper", type=Path, default=Path("reports/paper/timings.md"))
-    parser.add_argument("--reports", type=Path, default=Path("reports"))
-    parser.add_argument("--stages", default="ablations,compare,pareto")
-    parser.add_argument("--budget-hours", type=float, default=2.0)
-    parser.add_argument("--out", type=Path, default=Path("reports/paper/summary.md"))
-    args = parser.parse_args()
-    text = summary(args.paper, [s for s in args.stages.split(",") if s], args.reports, args.budget_hours)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(text)
-    tmp.replace(args.out)
+def main(argv=None) -> int:
+    parser = CommandParser("denoiser.commands.paper_summary", __doc__)
+    parser.add_argument("--paper", type=Path, default=Path("reports/paper/timings.md"),
+                        help="make paper's own stage table (default reports/paper/timings.md)")
+    parser.add_argument("--reports", type=Path, default=Path("reports"),
+                        help="where the stages' own tables are, <reports>/<stage>/timings.md (default reports)")
+    parser.add_argument("--stages", default="ablations,compare,pareto",
+                        help="comma-separated stages (default ablations,compare,pareto)")
+    parser.add_argument("--budget-hours", type=float, default=2.0, help="the budget in hours (default 2)")
+    parser.add_argument("--out", type=Path, default=Path("reports/paper/summary.md"),
+                        help="the summary written (default reports/paper/summary.md)")
+    args = parser.parse_args(argv)
+    try:
+        stages = [s for s in args.stages.split(",") if s]
+        if not stages:
+            raise UserError("stages: empty (e.g. stages=ablations,compare,pareto)")
+        if not args.budget_hours > 0:
+            raise UserError(f"budget_hours: {args.budget_hours} is not a positive number of hours")
+        text = summary(args.paper, stages, args.reports, args.budget_hours)
+        try:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(args.out, text)
+        except OSError as e:
+            raise UserError(f"{args.out}: cannot write: {e.strerror or e}") from None
+    except UserError as e:
+        report_user_error(e)
     print(f"wrote {args.out}")
+    return 0
 
 
 if __name__ == "__main__":

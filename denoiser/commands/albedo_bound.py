@@ -1,24 +1,28 @@
 """How far can a demodulating denoiser get on renders whose albedo pass is noisy?
+``python -m denoiser.commands.albedo_bound``.
 
 A network with ``net.demodulate: true`` filters ``color / albedo`` and multiplies its output by
 the *input's* albedo again. Renderers that average the albedo over the pixel's samples (Cycles'
 ``Denoising Albedo``, at 4 spp) give an albedo with the same sub-pixel texture noise as the
-colour, and the remodulation puts that noise back. This script measures the ceiling it sets:
+colour, and the remodulation puts that noise back. This command measures the ceiling it sets:
 the reference irradiance (reference colour / reference albedo, both from the high-spp render)
 remodulated with the noisy render's albedo, against the reference colour, with the metrics of
 ``denoiser-eval`` (PSNR on ACES+sRGB tonemapped frames, ``denoiser.metrics``).
 
-    python scripts/albedo_bound.py data/blender/test [--out reports/blender/albedo_bound.md]
+Usage::
+
+    python -m denoiser.commands.albedo_bound data/blender/test [--out reports/blender/albedo_bound.md] [--warmup 2]
 
 Reads the splits through the Blender layout (``conf/layout/blender.yaml``: its pass aliases and
 view-layer prefixes), with one buffer more for this tool, the reference render's albedo
 (``reference_albedo``); the first ``--warmup`` frames are skipped, as in ``denoiser-eval``.
-Writes a Markdown table (noisy input, the bound) per sequence and the mean.
+Prints a Markdown table (noisy input, the bound) per sequence and the mean, and writes it to
+``--out`` when given. ``out=...`` and ``warmup=...`` are accepted as well as ``--out ...``; a bad
+input (no sequences, a missing reference frame) is one line ``error: ...`` on stderr and exit 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -26,6 +30,7 @@ import numpy as np
 import torch
 
 from denoiser.atomic import atomic_write_text
+from denoiser.commands.app import CommandParser, report_user_error
 from denoiser.configs import load_layout
 from denoiser.errors import UserError
 from denoiser.metrics import psnr
@@ -60,12 +65,14 @@ def sequence_bound(layout, seq: Path, warmup: int) -> tuple[float, float, int]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = CommandParser("denoiser.commands.albedo_bound", __doc__)
     p.add_argument("split_dir", type=Path, help="a Blender-layout split, e.g. data/blender/test")
     p.add_argument("--warmup", type=int, default=2, help="frames skipped at the start (default 2, as denoiser-eval)")
     p.add_argument("--out", type=Path, default=None, help="also write the table to this Markdown file")
     args = p.parse_args(argv)
     try:
+        if args.warmup < 0:
+            raise UserError(f"warmup: {args.warmup} is negative (frames skipped at the start)")
         layout = load_layout("blender", REFERENCE_ALBEDO)
         seqs = layout.list_sequences(args.split_dir) if args.split_dir.is_dir() else []
         if not seqs:
@@ -79,14 +86,16 @@ def main(argv=None) -> int:
             lines.append(f"| {seq.name} | {frames} | {n:.2f} | {b:.2f} |")
         mean = np.array(results).mean(axis=0)
         lines.append(f"| mean |  | {mean[0]:.2f} | {mean[1]:.2f} |")
+        text = "\n".join(lines) + "\n"
+        if args.out is not None:
+            try:
+                args.out.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(args.out, text)
+            except OSError as e:
+                raise UserError(f"{args.out}: cannot write: {e.strerror or e}") from None
     except UserError as e:  # ExrError included
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    text = "\n".join(lines) + "\n"
+        report_user_error(e)
     print(text, end="")
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(args.out, text)
     return 0
 
 

@@ -1,11 +1,20 @@
-#!/usr/bin/env python3
-"""What the networks of a source tree compute, as one hash per network config: ``scripts/readme_check.py``
-compares it between a README block's commit and ``HEAD`` when only ``denoiser/nn`` code changed, so a
-refactor that computes the same numbers leaves the README's measurements current.
+"""What the networks of a source tree compute, as one hash per network config:
+``python -m denoiser.commands.nn_fingerprint``. ``scripts/readme_check.py`` compares it between a
+README block's commit and ``HEAD`` when only ``denoiser/nn`` code changed, so a refactor that
+computes the same numbers leaves the README's measurements current.
 
-    PYTHONPATH=<tree> python scripts/nn_fingerprint.py --tree <tree> [--nets a,b,...]   # JSON {net: sha256}
+Usage::
 
-``<tree>`` is a checkout (or ``git archive``) of the commit: ``denoiser`` is imported from it. Per
+    python -m denoiser.commands.nn_fingerprint [--nets a,b,...]            # this install's denoiser
+    PYTHONPATH=<tree> python denoiser/commands/nn_fingerprint.py --tree <tree> [--nets a,b,...]
+
+prints JSON ``{net: sha256}``. ``<tree>`` is a checkout (or ``git archive``) of a commit:
+``denoiser`` is imported from it, this file's code hashes it (``scripts/readme_check.py`` runs this
+checkout's file on both trees, by path, so the two hashes are the same computation; the tree of an
+older commit need not have this module). So this file imports nothing of the package at its top,
+and of the package only what every tree has (``denoiser.configs``, ``denoiser.conf``,
+``denoiser.inference.step_graph``); it takes no help from :mod:`denoiser.commands.app` either:
+a mistake is one line ``error: ...`` (exit 2). Per
 config of ``conf/net`` (``--nets``: a subset), with torch's seed 0 and one thread, bit for bit:
 
 * the training forward pass over a fixed window (batch 2, 3 frames, 24x40, a reset inside: the
@@ -117,13 +126,20 @@ def fingerprint(name: str, exports: bool) -> str:
     return h.hexdigest()
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, as the commands' CommandParser (not imported: see above)
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
+def main(argv=None) -> None:
+    parser = _Parser(prog="python -m denoiser.commands.nn_fingerprint", description=__doc__,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tree", type=Path, help="the tree denoiser must be imported from (an error otherwise)")
     parser.add_argument("--nets", help="comma-separated conf/net names (default: every one)")
     parser.add_argument("--exports", default="demo_student,demo_teacher",
                         help="the nets whose exported graphs count too (the benchmarked ones)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import warnings
 
@@ -135,7 +151,9 @@ def main() -> None:
     from denoiser.conf import CONF_DIR
 
     if args.tree is not None and args.tree.resolve() not in Path(denoiser.__file__).resolve().parents:
-        sys.exit(f"error: denoiser was imported from {Path(denoiser.__file__).parent}, not from {args.tree}")
+        print(f"error: denoiser was imported from {Path(denoiser.__file__).parent}, not from {args.tree} "
+              f"(PYTHONPATH={args.tree})", file=sys.stderr)
+        sys.exit(2)
 
     names = sorted(p.stem for p in (Path(CONF_DIR) / "net").glob("*.yaml"))
     if args.nets:

@@ -1,19 +1,25 @@
-"""How a checkpoint's output follows the noise level of its input (denoiser.report.noise_response).
+"""How a checkpoint's output follows the noise level of its input: ``python -m denoiser.commands.noise_response``.
 
-    python scripts/noise_response.py ckpt=S.ckpt sequences=[data/blender/val/fast_101,data/blender/val/fast_102] \
+Usage::
+
+    python -m denoiser.commands.noise_response ckpt=S.ckpt sequences=[data/blender/val/fast_101,data/blender/val/fast_102] \\
         layout=blender factors=[0.25,0.5,1,2] grey=true out=reports/noise_response.md plot=reports/noise_response.png
 
 Prints the table (and writes it to ``out`` when given): per sequence and factor f, the PSNR of the
 input (the residual against the reference scaled by f) and of the output, on frame 0 and over
 frames 2+; with ``grey=true``, the same for the sequence in grey (colour, albedo and reference as
-their luminance).
+their luminance) (:mod:`denoiser.report.noise_response`). ``key=value`` arguments are accepted for
+every option as well as ``--key value``. A bad input (a missing file, a bad value) is one line
+``error: ...`` on stderr and exit 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from denoiser.commands.app import CommandParser, report_user_error
+from denoiser.errors import UserError
 
 
 def _list(text: str) -> list[str]:
@@ -21,11 +27,7 @@ def _list(text: str) -> list[str]:
 
 
 def parse_args(argv):
-    from denoiser.commands.app import key_value_argv
-
-    argv = key_value_argv(argv)  # key=value (the project's command style) is the same as --key value
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = CommandParser("denoiser.commands.noise_response", __doc__)
     p.add_argument("--ckpt", required=True, type=Path, help="checkpoint of a Denoiser")
     p.add_argument("--sequences", required=True, type=_list, help="[dir,dir,...]: labeled sequence directories")
     p.add_argument("--layout", default="native", help="native (default) or blender")
@@ -38,8 +40,7 @@ def parse_args(argv):
 
 
 def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
-    from denoiser.errors import UserError
+    args = parse_args(argv)
     from denoiser.report.noise_response import run
 
     try:
@@ -52,8 +53,7 @@ def main(argv=None) -> int:
         _, text = run(args.ckpt, args.sequences, args.layout, factors, args.out, trust=args.trust_checkpoint,
                       grey_too=args.grey.lower() == "true", plot=args.plot)
     except UserError as e:  # ExrError and ConfigError included
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        report_user_error(e)
     print(text, end="")
     for path in (args.out, args.plot):
         if path is not None:

@@ -1,0 +1,20 @@
+"""The pipelines as code: ``denoiser-pipeline pipeline=<name>`` runs ``conf/pipeline/<name>.yaml``.
+
+- :mod:`denoiser.pipeline.stages`: a stage as data (its jobs, their command lines, checkpoints);
+- :mod:`denoiser.pipeline.runner`: the stages in order, jobs side by side, skip and resume;
+- :mod:`denoiser.pipeline.timings`: the stage-time table (reused work keeps its run's seconds).
+
+Importing the package registers the OmegaConf resolvers of the pipeline configs: ``${best:<run
+dir>}`` (the checkpoint a training run is evaluated with), ``${opt:key,${value}}`` (``key=value``,
+or no argument when the value is null) and ``${concat:[a],${list}}`` (:mod:`denoiser.pipeline.stages`).
+"""
+
+from __future__ import annotations
+
+from omegaconf import OmegaConf
+
+from denoiser.pipeline.stages import best, concat, optional
+
+OmegaConf.register_new_resolver("best", best, replace=True)
+OmegaConf.register_new_resolver("opt", optional, replace=True)
+OmegaConf.register_new_resolver("concat", concat, replace=True)

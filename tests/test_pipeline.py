@@ -1,0 +1,359 @@
+"""denoiser-pipeline (denoiser/pipeline): the stages of conf/pipeline/*.yaml run by stub commands
+that log their calls. Skipping, resuming after a killed stage, jobs side by side, a failed stage,
+the stage-time table and the checkpoint choice, plus the grammar's pieces against plain loops."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import STUB_HEADER, compose_command, stub_calls
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMANDS = ["denoiser-train", "denoiser-eval", "denoiser-bench", "denoiser-render", "denoiser-pareto", "python"]
+
+# A stub of every command: logs its call; a training run (hydra.run.dir=...) leaves DONE and a
+# last.ckpt (skip_done=true with DONE there: nothing written, as the trainer's own skip); STUB_FAIL
+# (a run name) fails that run; STUB_SLEEP sleeps first (STUB_SIDE: a file the job's start and end go to).
+STUB = STUB_HEADER + r"""
+dir=""
+for a in "$@"; do case $a in hydra.run.dir=*) dir=${a#hydra.run.dir=} ;; out_dir=*) out=${a#out_dir=} ;; esac; done
+[ -n "${STUB_SIDE:-}" ] && echo "start ${dir##*/}- $(date +%s.%N) threads=${OMP_NUM_THREADS:-}" >> "$STUB_SIDE"
+[ -n "${STUB_SLEEP:-}" ] && sleep "$STUB_SLEEP"
+[ -n "${STUB_SIDE:-}" ] && echo "end ${dir##*/}- $(date +%s.%N)" >> "$STUB_SIDE"
+if [ -n "${STUB_FAIL:-}" ] && [ "${dir##*/}" = "$STUB_FAIL" ]; then echo "stub: $STUB_FAIL fails" >&2; exit 1; fi
+if [ -n "$dir" ]; then
+    [ -f "$dir/DONE" ] && exit 0
+    mkdir -p "$dir/checkpoints" && touch "$dir/checkpoints/last.ckpt" "$dir/DONE"
+fi
+if [ -n "${out:-}" ]; then mkdir -p "$out/images" && echo "| a |" > "$out/metrics.md" && echo "| b |" > "$out/report.md"; fi
+for a in "$@"; do case $a in out=*) mkdir -p "$(dirname "${a#out=}")" && touch "${a#out=}" ;; esac; done
+exit 0
+"""
+
+
+@pytest.fixture
+def tree(tmp_path):
+    """``tmp_path`` as a checkout's working folder with a ``bin`` of stub commands and demo data."""
+    (tmp_path / "bin").mkdir()
+    for name in COMMANDS:
+        (tmp_path / "bin" / name).write_text(STUB)
+        (tmp_path / "bin" / name).chmod(0o755)
+    (tmp_path / "data" / "demo" / "test").mkdir(parents=True)
+    return tmp_path
+
+
+def pipeline(tree: Path, *overrides: str, env: dict | None = None, check: bool = True, popen: bool = False):
+    """``denoiser-pipeline`` in ``tree`` with the stubs; the finished process (or the Popen)."""
+    argv = [sys.executable, "-m", "denoiser.commands.pipeline", f"bin_dir={tree / 'bin'}",
+            f"python={tree / 'bin' / 'python'}", "cores=2", *overrides]
+    environ = {**os.environ, "STUB_LOG": str(tree / "calls.log"), "DENOISER_DATA": str(tree / "data"), **(env or {})}
+    if popen:
+        return subprocess.Popen(argv, cwd=tree, env=environ, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                start_new_session=True)
+    proc = subprocess.run(argv, cwd=tree, env=environ, capture_output=True, text=True, timeout=120, check=False)
+    if check:
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    return proc
+
+
+def rows(table_path: Path) -> dict[str, list[str]]:
+    out = {}
+    for line in table_path.read_text().splitlines()[2:]:
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        out[cells[0]] = cells[1:]
+    return out
+
+
+def train_dirs(calls) -> list[str]:
+    return [a.split("=", 1)[1] for c in calls if c[0] == "denoiser-train" for a in c if a.startswith("hydra.run.dir=")]
+
+
+def arg(call, key: str) -> str | None:
+    return next((a.split("=", 1)[1] for a in call if a.startswith(key + "=")), None)
+
+
+# --- the grammar's pieces against plain computations ---------------------------------------------
+
+def test_matrix_jobs_are_every_combination_in_order_with_their_extra_args():
+    from denoiser.pipeline.stages import expand
+
+    stage = {"matrix": {"seed": [0, 1, 2], "kind": {"distilled": ["experiment=d"], "no_kd": ["experiment=n"]}},
+             "name": "student_{kind}_s{seed}", "run_dir": "runs/{name}", "args": ["seed={seed}", "ckpt={a: b}"]}
+    jobs = expand("students", stage)
+    expected = [(s, k) for s, k in itertools.product([0, 1, 2], ["distilled", "no_kd"])]  # the last key fastest
+    assert [j.name for j in jobs] == [f"student_{k}_s{s}" for s, k in expected]
+    for job, (seed, kind) in zip(jobs, expected):
+        assert job.args == [f"seed={seed}", "ckpt={a: b}", "experiment=" + kind[0]]  # other braces kept
+        assert job.run_dir == f"runs/student_{kind}_s{seed}" and job.ckpt == f"runs/student_{kind}_s{seed}/checkpoints/last.ckpt"
+    assert [j.name for j in expand("teacher", {"run_dir": "t"})] == ["teacher"]
+
+
+def test_best_checkpoint_is_best_then_last_and_the_choice_follows_where(tmp_path):
+    from denoiser.pipeline.stages import Job, best, choose_checkpoints, ckpt_override
+
+    run = tmp_path / "run"
+    assert best(run) == str(run / "checkpoints" / "last.ckpt")  # the path it will have
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.ckpt").touch()
+    assert best(run) == str(run / "checkpoints" / "last.ckpt")
+    (run / "checkpoints" / "best.ckpt").touch()
+    assert best(run) == str(run / "checkpoints" / "best.ckpt")
+    stages = {"teacher": [Job("teacher", {"name": "teacher"}, [], ckpt="t.ckpt")],
+              "students": [Job(f"s{seed}_{v}", {"seed": str(seed), "variant": v}, [], ckpt=f"{seed}{v}.ckpt")
+                           for seed in (0, 1) for v in ("a", "b", "c")]}
+    chosen = choose_checkpoints({"stages": ["teacher", "students"], "where": {"seed": 0, "variant": ["a", "c"]}}, stages)
+    assert chosen == {"teacher": "t.ckpt", "s0_a": "0a.ckpt", "s0_c": "0c.ckpt"}
+    assert ckpt_override(chosen) == "ckpt={teacher: t.ckpt, s0_a: 0a.ckpt, s0_c: 0c.ckpt}"
+
+
+def test_a_stage_with_an_unknown_key_or_nothing_to_run_is_one_line(tree):
+    proc = pipeline(tree, "pipeline=demo", "+stages.render.jbos=2", check=False)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
+    assert "stages.render: unknown key(s) jbos" in proc.stderr
+    proc = pipeline(tree, "pipeline=demo", "stages.render.command=null", check=False)
+    assert proc.returncode == 2 and "stages.render: give exactly one of command, module or copy" in proc.stderr
+
+
+# --- make demo through the command ---------------------------------------------------------------
+
+def test_demo_trains_the_recipe_evaluates_the_interpolations_and_writes_the_table(tree):
+    proc = pipeline(tree, "pipeline=demo")
+    calls = stub_calls(tree / "calls.log")
+    dirs = train_dirs(calls)
+    students = sorted(f"student_{k}_s{s}" for s in (0, 1, 2) for k in ("distilled", "no_kd"))
+    assert dirs[0] == "reports/demo/runs/teacher" and dirs[7] == "reports/demo_refine/runs/teacher_tuned"
+    assert sorted(dirs[1:7]) == [f"reports/demo/runs/{n}" for n in students]  # side by side: any order
+    assert sorted(dirs[8:]) == [f"reports/demo_refine/runs/{n}" for n in students]
+    by_dir = {arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
+    assert arg(by_dir["reports/demo/runs/student_distilled_s1"], "model.teacher_ckpt") == \
+        "reports/demo/runs/teacher/checkpoints/last.ckpt"  # resolved when the stage started: the teacher's file
+    refine = by_dir["reports/demo_refine/runs/student_distilled_s2"]
+    assert arg(refine, "model.init_ckpt") == "reports/demo/runs/student_distilled_s2"
+    assert arg(refine, "model.teacher_ckpt") == "reports/demo_refine/runs/teacher_tuned/checkpoints/last.ckpt"
+    assert arg(refine, "threads") == "1" and arg(refine, "seed") == "2"
+    assert "skip_done=true" in refine and "ckpt_path=auto" in refine
+    evaluations = [c for c in calls if c[0] == "denoiser-eval"]
+    assert len(evaluations) == 1  # no data/blender/test: no Cycles evaluation
+    ckpt = arg(evaluations[0], "ckpt")
+    assert ckpt.startswith("{teacher: reports/demo_refine/runs/teacher_tuned/checkpoints/last.ckpt, student_distilled_s0: "
+                           "reports/demo_refine/runs/student_distilled_s0/checkpoints/interpolated_a0.75.ckpt")
+    assert ckpt.count("interpolated_a0.75.ckpt") == 6 and arg(evaluations[0], "purpose")
+    bench = next(c for c in calls if c[0] == "denoiser-bench")
+    assert arg(bench, "ckpt").count("_s0:") == 2 and "_s1" not in arg(bench, "ckpt")  # the first seed only
+    summary = next(c for c in calls if c[0] == "python" and "denoiser.commands.demo_summary" in c)
+    assert "interpolation_alpha=0.75" in summary and "base_runs=reports/demo/runs" in summary
+    assert (tree / "reports" / "demo_refine" / "metrics.md").is_file() and (tree / "reports" / "demo_refine" / "bench.md").is_file()
+    table = rows(tree / "reports" / "demo_refine" / "timings.md")
+    assert list(table) == ["render", "render_motion", "teacher", "students", "teacher_tuned", "refine", "interpolate", "eval",
+                           "bench", "summary", "report", "total", "work"]
+    assert table["total"][1].endswith(": wall time") and "==== demo finished" in proc.stdout
+
+
+def test_demo_with_more_seeds_fewer_jobs_and_a_stage_left_out_are_keys(tree):
+    pipeline(tree, "pipeline=demo", "seeds=[3,4]", "jobs=1", "~stages.render_motion", "alpha=1")
+    calls = stub_calls(tree / "calls.log")
+    assert not any(c[0] == "denoiser-render" and "dataset=fast" in c for c in calls)
+    students = [c for c in calls if c[0] == "denoiser-train" and "reports/demo/runs/student" in (arg(c, "hydra.run.dir") or "")]
+    assert [arg(c, "seed") for c in students] == ["3", "3", "4", "4"] and {arg(c, "threads") for c in students} == {"2"}
+
+
+def test_a_second_run_skips_what_is_done_and_keeps_the_seconds_of_the_run_that_did_it(tree):
+    pipeline(tree, "pipeline=demo")
+    first = rows(tree / "reports" / "demo_refine" / "timings.md")
+    time.sleep(1.1)  # another run id
+    (tree / "calls.log").unlink()
+    pipeline(tree, "pipeline=demo")
+    second = rows(tree / "reports" / "demo_refine" / "timings.md")
+    for stage in ("teacher", "students", "teacher_tuned", "refine"):  # the trainer skipped them (no new DONE)
+        assert second[stage] == first[stage], stage
+    this_run = second["total"][1].removesuffix(": wall time")
+    assert this_run != first["total"][1].removesuffix(": wall time") and second["eval"][1] == this_run
+    assert second["work"][0] == str(sum(int(v[0]) for k, v in second.items() if k not in ("total", "work")))
+
+
+def test_a_failed_job_stops_the_pipeline_with_one_line_naming_it(tree):
+    proc = pipeline(tree, "pipeline=demo", env={"STUB_FAIL": "student_no_kd_s1"}, check=False)
+    assert proc.returncode == 3
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert errors == ["error: [students] student_no_kd_s1 failed (exit 1), see reports/demo/runs/student_no_kd_s1.log"]
+    assert "stub: student_no_kd_s1 fails" in (tree / "reports/demo/runs/student_no_kd_s1.log").read_text()
+    calls = stub_calls(tree / "calls.log")
+    assert not any(c[0] == "denoiser-eval" for c in calls) and "reports/demo_refine/runs/teacher_tuned" not in train_dirs(calls)
+    assert not (tree / "reports" / "demo_refine" / "timings.md").exists()  # the table of a finished run only
+
+
+def test_jobs_run_side_by_side_with_their_share_of_the_cores(tree):
+    side = tree / "side.txt"
+    pipeline(tree, "pipeline=demo", "seeds=[0]", "~stages.render_motion", "~stages.teacher_tuned", "~stages.refine",
+             "~stages.interpolate", "~stages.eval", "~stages.bench", "~stages.summary", "~stages.report",
+             env={"STUB_SLEEP": "1", "STUB_SIDE": str(side)})
+    events = {}
+    for line in side.read_text().splitlines():
+        kind, name, stamp, *rest = line.split()
+        events[(kind, name.removesuffix("-"))] = (float(stamp), rest)
+    a, b = "student_distilled_s0", "student_no_kd_s0"
+    assert events[("start", a)][0] < events[("end", b)][0] and events[("start", b)][0] < events[("end", a)][0]  # overlap
+    assert events[("start", a)][1] == ["threads=1"] and events[("start", "teacher")][1] == ["threads="]
+
+
+def test_a_killed_pipeline_stops_its_jobs_and_the_next_run_resumes(tree):
+    proc = pipeline(tree, "pipeline=demo", "seeds=[0]", env={"STUB_SLEEP": "30"}, popen=True)
+    deadline = time.time() + 60
+    while time.time() < deadline and not ((tree / "calls.log").exists() and "denoiser-render" in (tree / "calls.log").read_text()):
+        time.sleep(0.2)
+    time.sleep(0.5)
+    os.kill(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130 and "interrupted" in err
+    time.sleep(0.5)
+    ps = subprocess.run(["pgrep", "-f", f"{tree}/bin/"], capture_output=True, text=True, check=False)
+    assert ps.stdout.strip() == "", "a stub command outlived the pipeline"
+    pipeline(tree, "pipeline=demo", "seeds=[0]")
+    calls = stub_calls(tree / "calls.log")
+    assert "reports/demo/runs/teacher" in train_dirs(calls) and (tree / "reports/demo_refine/timings.md").is_file()
+    assert all("ckpt_path=auto" in c for c in calls if c[0] == "denoiser-train")  # the trainer resumes a run
+
+
+def test_an_evaluation_of_the_same_checkpoints_is_not_redone_and_a_newer_checkpoint_redoes_it(tree):
+    (tree / "reports" / "demo" / "runs").mkdir(parents=True)
+    for name in ["student_distilled_s0", "student_no_kd_s0", "teacher"]:
+        (tree / "reports" / "demo" / "runs" / name / "checkpoints").mkdir(parents=True)
+        (tree / "reports" / "demo" / "runs" / name / "checkpoints" / "last.ckpt").touch()
+        (tree / "reports" / "demo" / "runs" / name / "DONE").touch()
+    ablate = ["pipeline=ablations", "seeds=[0]", "variants=[no_pyramid,direct]"]
+    pipeline(tree, *ablate)
+    first = stub_calls(tree / "calls.log")
+    assert sum(c[0] == "denoiser-eval" for c in first) == 1
+    ckpt = arg(next(c for c in first if c[0] == "denoiser-eval"), "ckpt")
+    assert ckpt == ("{none_s0: reports/demo/runs/student_distilled_s0/checkpoints/last.ckpt, no_kd_s0: "
+                    "reports/demo/runs/student_no_kd_s0/checkpoints/last.ckpt, no_pyramid_s0: "
+                    "reports/ablations/runs/no_pyramid_s0/checkpoints/last.ckpt, direct_s0: "
+                    "reports/ablations/runs/direct_s0/checkpoints/last.ckpt}")
+    bench = next(c for c in first if c[0] == "denoiser-bench")
+    assert arg(bench, "ckpt").count(": ") == 3 and "no_kd" not in arg(bench, "ckpt")
+    (tree / "calls.log").unlink()
+    pipeline(tree, *ablate)
+    assert not any(c[0] in ("denoiser-eval", "denoiser-bench") for c in stub_calls(tree / "calls.log"))
+    assert rows(tree / "reports" / "ablations" / "timings.md")["eval"][1].startswith("run ")  # the first run's row
+    time.sleep(0.05)
+    (tree / "reports" / "ablations" / "runs" / "direct_s0" / "checkpoints" / "last.ckpt").touch()  # retrained
+    (tree / "calls.log").unlink()
+    pipeline(tree, *ablate)
+    assert [c[0] for c in stub_calls(tree / "calls.log") if c[0] in ("denoiser-eval", "denoiser-bench")] == \
+        ["denoiser-eval", "denoiser-bench"]
+
+
+def test_ablations_and_compare_need_make_demo_in_one_line(tree):
+    for name in ("ablations", "compare", "paper"):
+        proc = pipeline(tree, f"pipeline={name}", check=False)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+        assert "(run make demo first" in proc.stderr
+    (tree / "reports" / "demo" / "runs" / "teacher").mkdir(parents=True)
+    (tree / "reports" / "demo" / "runs" / "teacher" / "DONE").touch()
+    proc = pipeline(tree, "pipeline=ablations", check=False)
+    assert proc.returncode == 2 and "student_distilled_s0: make demo's distilled student missing" in proc.stderr
+
+
+def test_paper_runs_each_pipeline_as_a_stage_and_adds_up_their_work(tree):
+    calls = pipeline(tree, "pipeline=paper", "dry_run=true").stdout.splitlines()
+    assert [line.split("]")[0][1:] for line in calls] == ["ablations", "compare", "pareto", "summary"]
+    assert calls[0].endswith("denoiser-pipeline pipeline=ablations")
+    assert "denoiser.commands.paper_summary paper=reports/paper/timings.md" in calls[3]
+
+
+@pytest.mark.parametrize("name", ["demo", "ablations", "compare", "pareto", "paper"])
+def test_every_pipeline_composes_and_its_training_overrides_compose_with_train(tree, name):
+    """Each pipeline's dry run, and each of its training command lines composed by denoiser-train's config."""
+    out = pipeline(tree, f"pipeline={name}", "dry_run=true").stdout
+    trains = [line.split("denoiser-train ", 1)[1] for line in out.splitlines() if "denoiser-train " in line]
+    import shlex
+    for line in trains:
+        args = [a for a in shlex.split(line) if not a.startswith(("hydra", "-m")) and "," not in a.split("=", 1)[-1]]
+        cfg = compose_command("train", args)
+        assert cfg.trainer.max_steps > 0
+
+
+def test_help_lists_the_pipelines_and_their_keys(tree):
+    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.pipeline", "pipeline=ablations", "--help"],
+                          capture_output=True, text=True, check=True)
+    for word in ("denoiser-pipeline", "demo, ablations", "compare, pareto, paper", "variants:", "seeds:", "stages:"):
+        assert word in proc.stdout, word
+
+
+def test_demo_evaluates_on_the_blender_sequences_when_they_exist_and_drops_a_stale_table(tree):
+    (tree / "reports" / "demo_refine" / "blender").mkdir(parents=True)  # an earlier run's table, no sequences now
+    pipeline(tree, "pipeline=demo", "seeds=[0]")
+    assert not (tree / "reports" / "demo_refine" / "blender").exists()
+    (tree / "data" / "blender" / "test").mkdir(parents=True)
+    (tree / "calls.log").unlink()
+    pipeline(tree, "pipeline=demo", "seeds=[0]")
+    evaluations = [c for c in stub_calls(tree / "calls.log") if c[0] == "denoiser-eval"]
+    assert len(evaluations) == 2 and "layout=blender" in evaluations[1]
+    assert arg(evaluations[1], "data.root") == str(tree / "data" / "blender") and arg(evaluations[1], "ckpt") == arg(evaluations[0], "ckpt")
+
+
+def test_a_collapsed_training_run_stops_demo_and_is_kept_by_ablations(tree):
+    run = tree / "reports" / "demo" / "runs" / "teacher"
+    run.mkdir(parents=True)
+    (run / "COLLAPSED").write_text("collapse: val/psnr fell 9 dB below its best at step 300")
+    proc = pipeline(tree, "pipeline=demo", "seeds=[0]", check=False)
+    assert proc.returncode == 3
+    assert proc.stderr.strip().splitlines()[-1] == "error: [teacher] teacher: collapse: val/psnr fell 9 dB below its best at step 300"
+    for name in ["student_distilled_s0", "student_no_kd_s0"]:
+        (tree / "reports" / "demo" / "runs" / name).mkdir(parents=True)
+        (tree / "reports" / "demo" / "runs" / name / "DONE").touch()
+    (run / "DONE").touch()
+    (tree / "reports" / "ablations" / "runs" / "k3_s0").mkdir(parents=True)
+    (tree / "reports" / "ablations" / "runs" / "k3_s0" / "COLLAPSED").write_text("collapse: k3")
+    proc = pipeline(tree, "pipeline=ablations", "seeds=[0]", "variants=[k3]")
+    assert "warning: [k3_s0] collapse: k3 (kept, marked in the summary)" in proc.stdout
+
+
+def test_compare_renders_its_data_and_evaluates_nppd_ws_and_make_demos_networks_with_onnd(tree):
+    for name in ["teacher", "student_distilled_s0", "student_distilled_s1"]:
+        (tree / "reports" / "demo" / "runs" / name / "checkpoints").mkdir(parents=True)
+        (tree / "reports" / "demo" / "runs" / name / "DONE").touch()
+        (tree / "reports" / "demo" / "runs" / name / "checkpoints" / "best.ckpt").touch()
+    pipeline(tree, "pipeline=compare", "seeds=[0,1]")
+    calls = stub_calls(tree / "calls.log")
+    render = next(c for c in calls if c[0] == "denoiser-render")
+    assert "dataset=demo_compare" in render and arg(render, "reference_from") == str(tree / "data" / "demo")
+    assert train_dirs(calls) == [f"reports/compare/runs/{n}_demo_s{s}" for s in (0, 1) for n in ("nppd", "ws")]
+    nppd = next(c for c in calls if c[0] == "denoiser-train")
+    assert arg(nppd, "model.teacher_ckpt") == "reports/demo/runs/teacher/checkpoints/best.ckpt" and arg(nppd, "net") == "nppd_demo"
+    evaluation = next(c for c in calls if c[0] == "denoiser-eval")
+    assert arg(evaluation, "baselines") == "compare" and arg(evaluation, "ckpt") == (
+        "{teacher: reports/demo/runs/teacher/checkpoints/best.ckpt, student_s0: reports/demo/runs/student_distilled_s0/"
+        "checkpoints/best.ckpt, student_s1: reports/demo/runs/student_distilled_s1/checkpoints/best.ckpt, nppd_s0: "
+        "reports/compare/runs/nppd_demo_s0/checkpoints/last.ckpt, ws_s0: reports/compare/runs/ws_demo_s0/checkpoints/"
+        "last.ckpt, nppd_s1: reports/compare/runs/nppd_demo_s1/checkpoints/last.ckpt, ws_s1: reports/compare/runs/"
+        "ws_demo_s1/checkpoints/last.ckpt}")
+    summary = next(c for c in calls if c[0] == "python")
+    assert summary[1:5] == ["-m", "denoiser.commands.demo_summary", "--config-name", "compare_summary"]
+
+
+def test_pareto_retrains_the_fronts_variants_named_in_its_table(tree, tmp_path):
+    from denoiser.report.pareto import finished_runs, front_seed_jobs
+
+    table = tmp_path / "pareto.csv"
+    table.write_text("job,kind,front,seeds,overrides\n0,network,True,cfg,experiment=pareto net=a\n"
+                     "1,network,False,cfg,experiment=pareto net=b\n2,network,True,\"0,1,2\",net=c\n3,baseline,True,,\n")
+    assert front_seed_jobs(table, [1, 2]) == [{"name": "front_seeds_0", "args": [
+        "experiment=pareto", "net=a", "seed=1,2", "hydra.sweep.subdir=0_s${seed}"]}]
+    assert front_seed_jobs(table, []) == [] and front_seed_jobs(tmp_path / "none.csv", [1]) == []
+    for job, done in (("0", True), ("1", False)):
+        (tmp_path / "sweep" / job / ".hydra").mkdir(parents=True)
+        (tmp_path / "sweep" / job / ".hydra" / "overrides.yaml").write_text("- net=a\n")
+        (tmp_path / "sweep" / job / "checkpoints").mkdir()
+        (tmp_path / "sweep" / job / "checkpoints" / "last.ckpt").touch()
+        if done:
+            (tmp_path / "sweep" / job / "DONE").touch()
+    assert finished_runs([tmp_path / "sweep", tmp_path / "missing"]) == [
+        {"name": "job0", "run_dir": str(tmp_path / "sweep" / "0"), "ckpt": str(tmp_path / "sweep" / "0" / "checkpoints" / "last.ckpt")}]

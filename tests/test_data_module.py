@@ -22,7 +22,7 @@ from denoiser.data.dataset import index_split
 from denoiser.data.layouts import NativeLayout
 from denoiser.data.reader import FrameReader
 from denoiser.data.synthetic import write_synthetic_sequence
-from denoiser.errors import UserError
+from denoiser.errors import ConfigError, UserError
 
 DATA_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "data").glob("*.yaml"))
 LAYOUT_OPTIONS = sorted(p.stem for p in (Path(CONF_DIR) / "layout").glob("*.yaml"))
@@ -278,6 +278,49 @@ def test_extra_roots_join_the_splits_they_have(root, extra_root):
     alone.setup("fit")
     assert len(dm.train_set) - len(alone.train_set) == 4 - dm.window + 1
     assert len(dm.val_set) == 2
+
+
+def test_share_sampler_draws_each_group_its_share_without_repeats_before_a_pass_ends():
+    from collections import Counter
+
+    from denoiser.data.sampler import ShareSampler, share_counts
+
+    assert share_counts([0.5, 0.25, 0.25], 10) == [5, 3, 2] or share_counts([0.5, 0.25, 0.25], 10) == [5, 2, 3]
+    assert sum(share_counts([1 / 3] * 3, 100)) == 100 and share_counts([0.0, 1.0], 7) == [0, 7]
+    groups = [[0, 1, 2, 3, 4, 5], [10, 11], [20, 21, 22]]
+    sampler = ShareSampler(groups, [0.5, 0.25, 0.25], 20)
+    order = list(sampler)
+    assert len(order) == len(sampler) == 20
+    counts = Counter("abc"[i // 10] for i in order)
+    assert (counts["a"], counts["b"] + counts["c"]) == (10, 10) and {counts["b"], counts["c"]} == {5}
+    # a plain check of "whole passes before a repeat": group a (6 windows) drawn 10 times holds all 6, 4 twice
+    seen = Counter(i for i in order if i < 10)
+    assert sorted(seen.values()) == [1, 1, 2, 2, 2, 2]
+    with pytest.raises(ConfigError, match="has no windows"):
+        ShareSampler([[0], []], [0.5, 0.5], 4)
+    with pytest.raises(ConfigError, match="summing to 1"):
+        ShareSampler([[0], [1]], [0.5, 0.6], 4)
+
+
+def test_extra_share_draws_that_share_of_the_labeled_windows_from_extra_roots(root, extra_root):
+    dm = make(root, f"data.extra_roots=[{extra_root}]", "data.batch_size=1", "data.extra_share=0.75", "data.window=2",
+              "data.num_workers=0", "data.crop=16")
+    dm.setup("fit")
+    extra = dm.extra_windows()
+    assert extra == [dm.train_set.sources[i].name == "train/f0" for i, _ in dm.train_set.windows]
+    n = len(dm.train_set)
+    sampler = dm.train_dataloader().sampler
+    drawn = list(sampler)
+    assert len(drawn) == n and sum(extra[i] for i in drawn) == round(0.75 * n)
+    # null: the loader of today (shuffled, every window once), untouched
+    plain = make(root, f"data.extra_roots=[{extra_root}]", "data.batch_size=1", "data.num_workers=0")
+    assert sorted(plain.train_dataloader().sampler) == list(range(len(plain.train_set)))
+    from denoiser.configs import instantiate_config
+
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        cfg = compose(overrides=["+data=tiny", f"data.root={root}", "data.extra_share=0.5"])
+    with pytest.raises(ConfigError, match="data.extra_share: 0.5 needs data.extra_roots"):
+        instantiate_config(cfg.data, "data")  # how the commands build it: the one line, no Hydra wrapper
 
 
 def test_extra_roots_reach_evaluation(root, extra_root):

@@ -9,7 +9,11 @@ without a copy: :func:`~denoiser.data.dataset.index_split`). Loaders:
   (windows of ``window`` frames, ``stride`` apart, random ``crop``, ``augment``), shuffled,
   ``batch_size`` items; with ``use_unlabeled`` also windows of ``unlabeled_split`` mixed in at
   ``unlabeled_ratio`` (:class:`~denoiser.data.sampler.MixedSampler`); every item then has a
-  ``reference`` (zeros when unlabeled) and ``labeled: bool[B]`` says which are real;
+  ``reference`` (zeros when unlabeled) and ``labeled: bool[B]`` says which are real.
+  ``extra_share`` (null: every labeled window alike) draws that share of the labeled windows from
+  the sequences of ``extra_roots`` and the rest from ``root``'s, an epoch as many windows as the
+  labeled split holds (:class:`~denoiser.data.sampler.ShareSampler`): the mix of a recipe that
+  trains on both, a config key;
 * ``val_dataloader`` / ``test_dataloader``: :class:`~denoiser.data.dataset.SequenceDataset`,
   whole frames in order, batch size 1; ``val_window: null`` gives one whole sequence per batch.
   Under DDP each rank gets whole sequences (all their pieces, in order):
@@ -38,7 +42,7 @@ from denoiser.data.collate import collate_items
 from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
 from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
-from denoiser.data.sampler import MixedSampler, SequenceShardSampler
+from denoiser.data.sampler import MixedSampler, SequenceShardSampler, ShareSampler
 from denoiser.errors import ConfigError
 
 
@@ -99,6 +103,7 @@ class SequenceDataModule(L.LightningDataModule):
         test_split: str | None = "test",
         unlabeled_split: str = "unlabeled",
         val_window: int | None = None,
+        extra_share: float | None = None,
     ):
         super().__init__()
         self.root = str(root)
@@ -122,6 +127,9 @@ class SequenceDataModule(L.LightningDataModule):
         self.unlabeled_ratio = float(unlabeled_ratio)
         self.splits = {"train": train_split, "val": val_split, "test": test_split, "unlabeled": unlabeled_split}
         self.val_window = val_window
+        self.extra_share = None if extra_share is None else float(extra_share)
+        if self.extra_share is not None and not (0.0 <= self.extra_share <= 1.0 and self.extra_roots):
+            raise ConfigError(f"data.extra_share: {extra_share} needs data.extra_roots and a value in [0, 1]")
         if self.batch_size < 1:
             raise ConfigError(f"data.batch_size: must be >= 1, got {batch_size}")
         self.train_set: WindowDataset | None = None
@@ -192,9 +200,33 @@ class SequenceDataModule(L.LightningDataModule):
                           multiprocessing_context=worker_context(self.multiprocessing_context)
                           if self.num_workers > 0 else None)
 
+    def extra_windows(self) -> list[bool]:
+        """Per labeled training window: whether its sequence lies under one of ``extra_roots``."""
+        if self.train_set is None:
+            self.setup("fit")
+        roots = [os.path.realpath(r) for r in self.extra_roots]
+        extra = [any(os.path.realpath(s.directory).startswith(r + os.sep) for r in roots) for s in self.train_set.sources]
+        return [extra[i] for i, _ in self.train_set.windows]
+
     def train_dataloader(self) -> DataLoader:
         if self.train_set is None:
             self.setup("fit")
+        if self.extra_share is not None:
+            extra = self.extra_windows()
+            n, u = len(self.train_set), (self.unlabeled_ratio if self.unlabeled_set is not None else 0.0)
+            groups = [[i for i, e in enumerate(extra) if not e], [i for i, e in enumerate(extra) if e]]
+            shares = [(1 - u) * (1 - self.extra_share), (1 - u) * self.extra_share]
+            dataset = self.train_set
+            if self.unlabeled_set is not None:
+                dataset = ConcatDataset([self.train_set, self.unlabeled_set])
+                groups.append(list(range(n, n + len(self.unlabeled_set))))
+                shares.append(u)
+            try:
+                sampler = ShareSampler(groups, shares, round(n / (1 - u)))
+            except ConfigError as exc:
+                raise ConfigError(f"data.extra_share: {exc} (main root {len(groups[0])} windows, "
+                                  f"extra_roots {len(groups[1])})") from None
+            return self._loader(dataset, self.batch_size, sampler=sampler)
         if self.unlabeled_set is not None:
             mixed = ConcatDataset([self.train_set, self.unlabeled_set])
             sampler = MixedSampler(len(self.train_set), len(self.unlabeled_set), self.unlabeled_ratio)

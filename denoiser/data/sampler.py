@@ -1,6 +1,7 @@
 """Samplers: labeled and unlabeled training windows mixed in a fixed proportion
-(:class:`MixedSampler`); validation/test sequences sharded whole over DDP ranks
-(:class:`SequenceShardSampler`)."""
+(:class:`MixedSampler`); groups of training windows drawn in fixed shares, e.g. the families of
+``data.extra_roots`` against the main root's (:class:`ShareSampler`); validation/test sequences
+sharded whole over DDP ranks (:class:`SequenceShardSampler`)."""
 
 from __future__ import annotations
 
@@ -46,6 +47,50 @@ class MixedSampler(Sampler[int]):
         order = torch.cat([labeled, unlabeled + self.n_labeled])
         order = order[torch.randperm(len(order), generator=g)]
         return iter(order.tolist())
+
+
+class ShareSampler(Sampler[int]):
+    """Indices drawn from groups in fixed shares: ``length`` per epoch, ``shares[g]`` of them from
+    ``groups[g]`` (a list of dataset indices), all shuffled together.
+
+    A group's count is its share of ``length`` rounded so the counts add up to ``length`` (largest
+    remainders first); it is drawn without replacement, whole shuffled passes over the group
+    followed by a partial one, so every index of a group is drawn before any is drawn twice.
+    ``shares`` are >= 0 and sum to 1; a group with a positive share must not be empty.
+    """
+
+    def __init__(self, groups: list[list[int]], shares: list[float], length: int):
+        if len(groups) != len(shares) or not groups:
+            raise ValueError("ShareSampler: one share per group")
+        if any(s < 0 for s in shares) or abs(sum(shares) - 1.0) > 1e-6:
+            raise ConfigError(f"shares {list(shares)}: each in [0, 1], summing to 1")
+        for group, share in zip(groups, shares):
+            if share > 0 and not group:
+                raise ConfigError(f"a group with share {share:g} has no windows")
+        self.groups = [torch.as_tensor(list(g), dtype=torch.int64) for g in groups]
+        self.counts = share_counts(shares, int(length))
+
+    def __len__(self) -> int:
+        return sum(self.counts)
+
+    def __iter__(self) -> Iterator[int]:
+        seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        g = torch.Generator().manual_seed(seed)
+        drawn = []
+        for group, count in zip(self.groups, self.counts):
+            passes = [group[torch.randperm(len(group), generator=g)] for _ in range(-(-count // max(1, len(group))))]
+            drawn.append(torch.cat(passes)[:count] if passes else group[:0])
+        order = torch.cat(drawn)
+        return iter(order[torch.randperm(len(order), generator=g)].tolist())
+
+
+def share_counts(shares: list[float], length: int) -> list[int]:
+    """``length`` split by ``shares``: floors, then the largest remainders get one more each."""
+    raw = [s * length for s in shares]
+    counts = [int(r) for r in raw]
+    for i in sorted(range(len(raw)), key=lambda i: counts[i] - raw[i])[: length - sum(counts)]:
+        counts[i] += 1
+    return counts
 
 
 class SequenceShardSampler(DistributedSampler):

@@ -1,19 +1,23 @@
 #!/usr/bin/env python3
-"""Fail when a results block of ``README.md`` is older than the code it measures: ``make readme-check``.
+"""Fail when a results block is older than the code it measures: ``make readme-check``.
 
-Every block ``<!-- NAME:begin --> ... <!-- NAME:end -->`` that ``scripts/readme_results.py``
-copied names, in its ``copied by`` line, the commit of the run that wrote it. A block is stale
-when what the numbers measure (:data:`MEASURED`: the networks, their configs and the dataset)
-differs between that commit and ``HEAD``: ``git diff -M --name-status <commit> HEAD -- <paths>``
-lists a file added or deleted, or a file whose meaning changed. Meaning, not bytes: a Python file
-is compared as its syntax tree without docstrings (comments are not in the tree), a YAML file as
-the data it parses to (comments dropped), anything else byte for byte; so a comment, a docstring
-or a file that only moved (a rename, e.g. the configs from ``denoiser/conf/`` to ``conf/``, both
-locations listed) leaves a block current, and a changed value, default or line of code does not.
-An added YAML file is a new option of its group (a new experiment, dataset or net), which nothing
-composes unless a changed file selects it: it leaves a block current too. Also stale: a block that names no commit, or a commit git does not
-know. A ``-dirty`` commit counts as its base commit. One line per stale block on stderr, then
-exit 1; exit 0 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
+The blocks live in ``README.md`` and ``docs/results.md`` (:data:`FILES`, both checked unless
+``--readme`` names the files). Every block ``<!-- NAME:begin --> ... <!-- NAME:end -->`` that
+``scripts/readme_results.py`` copied names, in its ``copied by`` line, the commit of the evaluation
+that wrote it. A block is stale when what the numbers depend on (:data:`MEASURED`: the package, every
+config, the scripts that make a block's inputs; less :data:`UNMEASURED`) differs between that commit
+and ``HEAD``: ``git diff -M --name-status <commit> HEAD -- <paths>`` lists a file added or deleted,
+or a file whose meaning changed. Meaning, not bytes: a Python file is compared as its syntax tree
+without docstrings (comments are not in the tree), a YAML file as the data it parses to (comments
+dropped), anything else byte for byte; so a comment, a docstring or a file that only moved (a
+rename, e.g. the configs from ``denoiser/conf/`` to ``conf/``, both locations measured) leaves a
+block current, and a changed value, default or line of code (a recipe's config in ``conf/base``,
+``conf/experiment`` or ``conf/pipeline``, a line of ``denoiser/lit``) does not. An added YAML file
+is a new option of its group (a new experiment, dataset or net), which nothing composes unless a
+changed file selects it: it leaves a block current too. Also stale: a block that names no commit, or
+a commit git does not know. A ``-dirty`` commit counts as its base commit. One line per stale block
+on stderr, naming its file, then exit 1 (``--report-only``: exit 0, the lines all the same); exit 0
+when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
 Code of the networks (:data:`BEHAVIOUR`, ``denoiser/nn``) is judged by what it computes when
 nothing else measured changed: :mod:`denoiser.commands.nn_fingerprint` (this checkout's file, by
@@ -23,7 +27,8 @@ pass's outputs and gradients and the exported ONNX graphs, bit for bit. Equal fi
 refactor: code moved between modules, renamed, restructured) leave the block current, with a
 line on stdout saying so; different ones, or a tree the fingerprint cannot run on, make it stale.
 
-    python scripts/readme_check.py [--readme README.md] [--repo DIR]   # DIR: the README's directory
+    python scripts/readme_check.py                        # README.md and docs/results.md of this checkout
+    python scripts/readme_check.py --readme README.md [--readme docs/results.md] [--repo DIR] [--report-only]
 """
 
 from __future__ import annotations
@@ -39,10 +44,31 @@ import sys
 import tempfile
 from pathlib import Path
 
-#: what the README's numbers measure: a change under one of these makes every block stale (the
-#: config groups at both of their locations: conf/ at the top level, denoiser/conf/ before)
-MEASURED = ("denoiser/nn/", *(f"{root}{group}/" for root in ("conf/", "denoiser/conf/")
-                              for group in ("net", "kernel", "experiment", "dataset")))
+#: the files that hold results blocks, relative to the checkout (those that exist are checked by default)
+FILES = ("README.md", "docs/results.md")
+#: where the configs live: conf/ at the top level, denoiser/conf/ before (both measured: a block may be older)
+CONF_ROOTS = ("conf/", "denoiser/conf/")
+#: what a block's numbers depend on: a change under one of these (less UNMEASURED) makes every block
+#: stale. The package: training (denoiser/lit), data and rendering, the networks, evaluation and
+#: metrics, the benchmark and its backends (a block's time columns), the pipelines' runner and the
+#: summaries that write the blocks; every config (the recipes: conf/base, conf/experiment,
+#: conf/pipeline, ...); the scripts that make a block's inputs (the Cycles sequences, make gpu-check's run)
+MEASURED = ("denoiser/", "conf/", "scripts/blender_sequences.py", "scripts/gpu_check.sh")  # denoiser/conf/ in denoiser/
+#: tools that no pipeline (conf/pipeline), summary or gpu-check runs and that no measured module imports
+#: (tests/test_claims.py checks both), with their configs: benchmarks of what no block shows (data
+#: loading, long sequences, network variants, the renderer), the parameter and FLOP count, export and
+#: denoise (a trained network applied to a user's frames), the val table
+TOOLS = ("bench_data", "bench_longseq", "bench_networks", "bench_render", "netstats", "export", "denoise", "val_table")
+#: under MEASURED but unable to change a trained network or a block's numbers
+UNMEASURED = (
+    *(f"{root}hydra/help/" for root in CONF_ROOTS),           # the --help text
+    "denoiser/commands/nn_fingerprint.py",                     # this check's own probe
+    *(f"denoiser/commands/{tool}.py" for tool in TOOLS),
+    *(f"{root}{tool}.yaml" for root in CONF_ROOTS for tool in TOOLS),
+    # diagnoses and tables written to files of their own, never into a block (run by hand)
+    "denoiser/commands/albedo_bound.py", "denoiser/commands/diagnose_history.py", "denoiser/commands/noise_response.py",
+    "denoiser/report/history_diagnosis.py", "denoiser/report/noise_response.py", "denoiser/report/cpu_speed.py",
+)
 #: a file deleted at the first location and added at the second is the same file moved (paired
 #: even when git's rename detection, which goes by similarity, does not pair a small edited file)
 MOVED = (("denoiser/conf/", "conf/"),)
@@ -101,11 +127,13 @@ def _blob(repo: Path, commit: str, path: str) -> str:
     return shown.stdout
 
 
-def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASURED) -> list[str]:
-    """``git diff -M --name-status`` lines between ``commit`` and ``HEAD`` under ``measured`` whose
-    file was added, deleted, or changed in :func:`meaning` (pure moves, comments and docstrings
-    drop out)."""
-    diff = git(repo, "diff", "-M", "--name-status", commit, "HEAD", "--", *measured)
+def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASURED,
+                     unmeasured: tuple[str, ...] = UNMEASURED) -> list[str]:
+    """``git diff -M --name-status`` lines between ``commit`` and ``HEAD`` under ``measured`` but not
+    ``unmeasured`` whose file was added, deleted, or changed in :func:`meaning` (pure moves,
+    comments and docstrings drop out)."""
+    diff = git(repo, "diff", "-M", "--name-status", commit, "HEAD", "--", *measured,
+               *(f":(exclude){path}" for path in unmeasured))
     if diff.returncode != 0:
         raise SystemExit(f"error: {repo}: git diff {commit} HEAD failed: {diff.stderr.strip()}")
     entries = [line.split("\t") for line in diff.stdout.splitlines() if line]
@@ -186,13 +214,14 @@ def same_behaviour(repo: Path, commit: str, changed: list[str]) -> tuple[bool, s
 
 
 def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED) -> list[str]:
-    """One line per stale block of ``readme`` (empty when all are current); ``repo``: the git checkout."""
+    """One line per stale block of ``readme`` (empty when all are current), each starting with the
+    file's name (:func:`shown`); ``repo``: the git checkout."""
     if git(repo, "rev-parse", "--verify", "--quiet", "HEAD").returncode != 0:
         raise SystemExit(f"error: {repo}: not a git checkout with a commit")
     lines = []
     for block in BLOCK.finditer(readme.read_text()):
         name, found = block["name"], COPIED_COMMIT.search(block["body"])
-        where = f"{readme}: block '{name}'"
+        where = f"{shown(readme)}: block '{name}'"
         if not found:
             lines.append(f"{where} names no commit (regenerate it: its make target, then make readme)")
             continue
@@ -212,19 +241,47 @@ def stale_blocks(readme: Path, repo: Path, measured: tuple[str, ...] = MEASURED)
     return lines
 
 
+def shown(path: Path) -> str:
+    """``path`` relative to the working directory when it lies below it, else as given."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def toplevel(directory: Path) -> Path:
+    """The git checkout holding ``directory`` (git's paths are relative to it); ``directory`` itself
+    outside one (:func:`stale_blocks` then says so)."""
+    top = git(directory, "rev-parse", "--show-toplevel")
+    return Path(top.stdout.strip()) if top.returncode == 0 else directory
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--readme", type=Path, default=Path("README.md"))
-    parser.add_argument("--repo", type=Path, help="the git checkout (default: the README's directory)")
+    parser.add_argument("--readme", type=Path, action="append",
+                        help=f"a file holding results blocks, repeatable (default: {' and '.join(FILES)} of the checkout)")
+    parser.add_argument("--repo", type=Path, help="the git checkout (default: the one holding the first file, "
+                                                  "or the working directory)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="list the stale blocks but exit 0 (make test: a stale block is a result to rerun, not a failure)")
     args = parser.parse_args()
-    if not args.readme.is_file():
-        sys.exit(f"error: {args.readme}: not found")
-    stale = stale_blocks(args.readme, args.repo or args.readme.resolve().parent)
+    for path in args.readme or []:
+        if not path.is_file():
+            sys.exit(f"error: {path}: not found")
+    repo = args.repo or toplevel(args.readme[0].resolve().parent if args.readme else Path.cwd())
+    files = args.readme or [repo / name for name in FILES if (repo / name).is_file()]
+    if not files:
+        sys.exit(f"error: {repo}: none of {', '.join(FILES)} found (--readme names the files)")
+    stale = [line for path in files for line in stale_blocks(path, repo)]
     for line in stale:
         print(line, file=sys.stderr)
-    if stale:
+    if stale and not args.report_only:
         sys.exit(1)
-    print(f"{args.readme}: what every results block measures is unchanged since its commit")
+    if stale:
+        print(f"{len(stale)} stale results block(s) (listed on stderr; --report-only): rerun what wrote them, then make readme")
+    for path in files:
+        if not any(line.startswith(f"{shown(path)}: ") for line in stale):
+            print(f"{shown(path)}: what every results block measures is unchanged since its commit")
 
 
 if __name__ == "__main__":

@@ -195,6 +195,28 @@ def test_summary_intervals_verdicts_and_sentences(tmp_path):
     assert "| none | 0 | reports/demo/runs/student_distilled_s0 |" in text and "not found" in text
 
 
+def test_the_summary_names_the_evaluations_commit_and_looks(tmp_path):
+    """The header's commit is the one the evaluation ran at (eval/evaluation.json), and the block
+    opens with the test ledger's line: its split's looks now and which look the evaluation was; an
+    evaluation without evaluation.json says its looks were not recorded."""
+    from denoiser.report import ledger
+
+    out, book = report(tmp_path), tmp_path / "ledger.csv"
+    assert summary(tmp_path, f"ledger={book}").returncode == 0
+    text = (out / "summary.md").read_text()
+    assert "\n- commit: " in text and "(the summary's: the evaluation wrote no evaluation.json)" in text
+    assert "<!-- ablations:begin -->\nTest ledger: looks not recorded (evaluated before the ledger" in text
+    digest = "cd34" * 16
+    look = ledger.record("data/demo", "test", digest, 8, ["none_s0"], [], "89abcde", "report", book)
+    told = ledger.provenance("89abcde", "2026-01-02T03:04:05Z", "data/demo", "test", digest, 8, look, book)
+    (out / "eval" / "evaluation.json").write_text(json.dumps(told))
+    assert summary(tmp_path, f"ledger={book}").returncode == 0
+    text = (out / "summary.md").read_text()
+    assert "\n- commit: 89abcde (the evaluation's)\n" in text
+    assert (f"<!-- ablations:begin -->\nTest ledger: this test split (SHA-256 {digest[:12]}) has been evaluated 1 time "
+            f"({book}); this summary's evaluation is look 1.\n") in text
+
+
 def test_readme_copy_of_the_block_and_its_figure(tmp_path):
     out = report(tmp_path)
     assert summary(tmp_path).returncode == 0
@@ -207,7 +229,7 @@ def test_readme_copy_of_the_block_and_its_figure(tmp_path):
     assert proc.returncode == 0, proc.stderr
     text = readme.read_text()
     assert "Pending" not in text and "struggles to remove noise" in text and "## next" in text
-    assert re.search(r"<!-- copied by scripts/readme_results.py from .*, run id .*, commit \S+ -->", text)
+    assert re.search(r"<!-- copied by scripts/readme_results.py from .*, run id .*, commit \S+ \(the summary's: .*\) -->", text)
     assert "![ablations: crops_a1.png](docs/images/ablations_a1.png)" in text
 
 

@@ -178,6 +178,12 @@ def test_summary_claims_come_from_the_paired_intervals(tmp_path):
     assert (f"- student_distilled is ahead of OIDN-fast on PSNR dB: {head.mean:+.2f} [{head.lo:+.2f}, "
             f"{head.hi:+.2f}] (± {head.half_width:.2f}, 42 sequences).") in block
     assert "- student_distilled is behind OIDN-fast on PSNR dB frames 2+: -0.30 [-0.30, -0.30]" in block
+    # the headline's tPSNR (temporal stability) with its paired interval: here tPSNR = PSNR - 1 for every method
+    tpsnr = paired_interval([seed_mean("student_distilled", q, "tpsnr") for q in seqs],
+                            [by[("OIDN-fast", q)]["tpsnr"] for q in seqs])
+    assert (f"- student_distilled is ahead of OIDN-fast on tPSNR dB: {tpsnr.mean:+.2f} [{tpsnr.lo:+.2f}, "
+            f"{tpsnr.hi:+.2f}] (± {tpsnr.half_width:.2f}, 42 sequences).") in block
+    assert "| student_distilled | OIDN-fast | tPSNR dB ↑ |" in block
     no_kd = paired_interval([seed_mean("student_distilled", q, "psnr") for q in seqs],
                             [seed_mean("student_no_kd", q, "psnr") for q in seqs])
     assert no_kd.mean > 0 and no_kd.lo < 0  # the means favour distillation; the interval does not
@@ -282,6 +288,130 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
     git(repo, "commit", "-qam", "wider config")
     proc = readme_check(repo)
     assert proc.returncode == 1 and "conf/net/student.yaml" in proc.stderr
+
+
+RECIPE_FILES = {
+    "denoiser/lit/distill.py": "ALPHA = 0.5\n",
+    "denoiser/commands/netstats.py": "WIDTH = 1\n",
+    "conf/base/model.yaml": "lr: 0.001\n",
+    "conf/experiment/demo_distill.yaml": "trainer:\n  max_steps: 900\n",
+    "conf/pipeline/demo.yaml": "alpha: 0.75\n",
+    "conf/hydra/help/command.yaml": "header: usage\n",
+    "docs/notes.md": "words\n",
+}
+
+
+def test_readme_check_catches_a_changed_recipe_in_every_file_of_blocks(tmp_path):
+    """What a result depends on is all of denoiser/ and conf/ (less hydra/help and the tools no
+    pipeline runs): a changed value of a recipe config (conf/base, conf/experiment, conf/pipeline)
+    or a changed line of denoiser/lit makes a block stale, in README.md and in docs/results.md, one
+    line per block naming its file; comments, --help text and a tool's code do not. With no
+    --readme, both files are checked; --report-only lists the stale blocks and exits 0."""
+    repo = tmp_path / "repo"
+    for path, text in RECIPE_FILES.items():
+        (repo / path).parent.mkdir(parents=True, exist_ok=True)
+        (repo / path).write_text(text)
+    git(repo, "init", "-q")
+    git(repo, "add", ".")
+    git(repo, "commit", "-qm", "recipe")
+    at = git(repo, "rev-parse", "--short", "HEAD")
+    (repo / "README.md").write_text(README.format(commit=at))
+    (repo / "docs" / "results.md").write_text(README.format(commit=at).replace("results:", "ablations:"))
+
+    def check(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_check.py"), *args], cwd=repo,
+                              capture_output=True, text=True, check=False, timeout=600)
+
+    def commit(path: str, text: str) -> None:
+        (repo / path).write_text(text)
+        git(repo, "commit", "-qam", f"edit {path}")
+
+    # comments, the help text, a tool that no pipeline runs, and the docs: both blocks stay current
+    commit("denoiser/lit/distill.py", "ALPHA = 0.5  # the distillation weight\n")
+    commit("conf/base/model.yaml", "# the base recipe\nlr: 0.001  # Adam\n")
+    commit("conf/hydra/help/command.yaml", "header: usage, longer\n")
+    commit("denoiser/commands/netstats.py", "WIDTH = 2\n")
+    commit("docs/notes.md", "other words\n")
+    proc = check()
+    assert proc.returncode == 0, proc.stderr
+    assert "README.md" in proc.stdout and "docs/results.md" in proc.stdout
+    # each recipe change alone makes both blocks stale, one line each, naming its file
+    for path, text in (("conf/experiment/demo_distill.yaml", "trainer:\n  max_steps: 1200\n"),
+                       ("conf/base/model.yaml", "lr: 0.002\n"), ("conf/pipeline/demo.yaml", "alpha: 1.0\n"),
+                       ("denoiser/lit/distill.py", "ALPHA = 0.7\n")):
+        before = (repo / path).read_text()
+        commit(path, text)
+        proc = check()
+        assert proc.returncode == 1, (path, proc.stdout)
+        lines = proc.stderr.splitlines()
+        assert len(lines) == 2 and all(path in line for line in lines), (path, lines)
+        assert lines[0].startswith("README.md: block 'results'") and lines[1].startswith("docs/results.md: block 'ablations'")
+        assert check("--readme", "docs/results.md").stderr.splitlines() == lines[1:]  # one file: its blocks only
+        report = check("--report-only")
+        assert report.returncode == 0 and report.stderr.splitlines() == lines
+        commit(path, before)  # back to the block's values: current again
+        assert check().returncode == 0, path
+
+
+def test_what_readme_check_leaves_unmeasured_no_pipeline_runs_and_no_measured_module_imports():
+    """scripts/readme_check.py's UNMEASURED modules cannot change a block: no measured Python file
+    imports one (at any depth of its syntax tree, or by its old name: denoiser/_aliases.py) or names
+    one in a string (``python -m <module>``), no measured config names one (a _target_, a pipeline
+    stage's module), and no pipeline stage runs one as its console command."""
+    import ast
+    import importlib.util
+
+    import tomllib
+    import yaml
+
+    spec = importlib.util.spec_from_file_location("readme_check", ROOT / "scripts" / "readme_check.py")
+    check = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(check)
+    from denoiser._aliases import MOVED
+
+    off = {p.removesuffix(".py").replace("/", ".") for p in check.UNMEASURED if p.endswith(".py")}
+    assert "denoiser.commands.netstats" in off and all(importlib.util.find_spec(m) for m in off)
+    off |= {old for old, new in MOVED.items() if new in off}  # denoiser.history_diagnosis
+
+    def measured(path: Path) -> bool:
+        rel = path.relative_to(ROOT).as_posix()
+        return rel.startswith(check.MEASURED) and not rel.startswith(check.UNMEASURED)
+
+    def strings(data):
+        if isinstance(data, dict):
+            for key, value in data.items():
+                yield from strings(key)
+                yield from strings(value)
+        elif isinstance(data, list):
+            for value in data:
+                yield from strings(value)
+        elif isinstance(data, str):
+            yield data
+
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    for path in [*(ROOT / "denoiser").rglob("*.py"), *(ROOT / "scripts").glob("*.py")]:
+        if not measured(path):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and path.name != "_aliases.py":  # the alias table itself
+                assert node.value not in off, f"{path}:{node.lineno} names {node.value}"
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or "", *(f"{node.module}.{a.name}" for a in node.names)]
+            else:
+                continue
+            assert not off & set(names), f"{path} imports {off & set(names)}"
+    configs = [p for p in (ROOT / "conf").rglob("*.yaml") if measured(p)]
+    assert any(p.parent.name == "pipeline" for p in configs)
+    for path in configs:
+        data = yaml.safe_load(path.read_text())
+        named = {s for s in strings(data) if any(s == m or s.startswith(m + ".") for m in off)}
+        assert not named, f"{path} names {named}"
+        for stage in ((data or {}).get("stages") or {}).values() if path.parent.name == "pipeline" else []:
+            if stage.get("command"):
+                target = scripts[f"denoiser-{stage['command']}"].split(":")[0]
+                assert target not in off, f"{path}: a stage runs {target}"
 
 
 @pytest.mark.slow

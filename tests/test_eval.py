@@ -1,5 +1,6 @@
 """Tests of denoiser-eval on tiny real EXR sequences with a checkpoint built in the test."""
 
+import json
 import math
 import subprocess
 import sys
@@ -157,11 +158,28 @@ def test_a_look_at_the_test_split_needs_a_purpose_and_is_recorded(setup, tmp_pat
     assert rows[0]["checkpoints"] == "a.ckpt" and rows[0]["baselines"] == "noisy input;OIDN-fast"
     assert rows[0]["sequences"] == "2" and rows[0]["date"].endswith("Z") and rows[0]["commit"]
     assert "this evaluation is look 2 of 2 recorded" in (tmp_path / "1" / "metrics.md").read_text()
+    # beside the tables, the provenance: the ledger row's commit, date, split, hash and look
+    for k, row in enumerate(rows):
+        told = json.loads((tmp_path / str(k) / "evaluation.json").read_text())
+        assert told == {"commit": row["commit"], "date": row["date"], "dataset": str(root / "data"), "split": "test",
+                        "split_sha256": digest, "sequences": 2, "look": k + 1, "ledger": str(book.resolve())}
     copy = tmp_path / "copy"
     shutil.copytree(root / "data", copy)
     shutil.copytree(copy / "test", copy / "val")
     run(compose_eval([*base, f"data.root={copy}", "split=val", "purpose=", f"out_dir={tmp_path / 'val'}"]))
     assert len(ledger.read(book)) == 2  # val: no purpose needed, no row
+    told = json.loads((tmp_path / "val" / "evaluation.json").read_text())
+    assert told["split"] == "val" and told["split_sha256"] == digest and told["look"] is None and told["ledger"] is None
     run(compose_eval([*base, f"data.root={copy}", "purpose=debug", f"out_dir={tmp_path / 'copy_out'}"]))
     assert ledger.read(book)[-1]["look"] == "3" and ledger.looks(digest, book) == 3
+    # the demo summary of the second evaluation: its commit, its look (2) and the looks now (3)
+    from denoiser.commands.demo_summary import run as summarize
+
+    (tmp_path / "report").mkdir()
+    (tmp_path / "report" / "eval").symlink_to(tmp_path / "1")
+    summary = summarize(compose_command("demo_summary", [f"report={tmp_path / 'report'}", f"data_root={root / 'data'}",
+                                                         f"ledger={book}", "extra_evals={}"])).read_text()
+    assert f"\n- commit: {rows[1]['commit']} (the evaluation's)\n" in summary
+    assert (f"<!-- results:begin -->\nTest ledger: this test split (SHA-256 {digest[:12]}) has been evaluated 3 times "
+            f"({book}); this summary's evaluation is look 2;") in summary
     assert ledger.run_id(Path("runs/student_s0/checkpoints/best.ckpt")) == "student_s0"

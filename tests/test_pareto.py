@@ -239,7 +239,9 @@ def test_optuna_sweeper_runs_and_resumes_after_a_kill(data_root, tmp_path):
             counts = trial_counts(db) if db.exists() else {}
             if counts.get("COMPLETE", 0) >= 2 and counts.get("RUNNING", 0) >= 1:
                 break
-            assert first.poll() is None, f"the sweep ended before it could be killed: {counts}"
+            if first.poll() is not None:  # its last lines say why (seen once under make test: exit 1, no trial)
+                pytest.fail(f"the sweep ended (exit {first.returncode}) before it could be killed: {counts}\n"
+                            + first.stderr.read().decode(errors="replace")[-3000:])
             assert time.monotonic() < deadline, counts
             time.sleep(0.1)
     finally:

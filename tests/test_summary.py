@@ -89,6 +89,61 @@ def test_summary_and_readme_copy(tmp_path):
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "metrics.csv" in bad.stderr
 
 
+def test_summary_names_the_evaluations_commit_and_the_looks_of_its_split(tmp_path):
+    """The summary's commit is the one its evaluation ran at (eval/evaluation.json, which
+    denoiser-eval writes; tests/test_eval.py), and readme_results/readme_check read that commit; each
+    block opens with the ledger's looks of its split: how many now, and which one this evaluation
+    was. An evaluation without evaluation.json (older than it): the summary's own commit, said so,
+    and its looks not recorded."""
+    import json
+    import re
+
+    from denoiser.report import ledger
+
+    report, book = tmp_path / "report", tmp_path / "ledger.csv"
+    for sub in ("eval", "blender"):
+        (report / sub).mkdir(parents=True)
+        with open(report / sub / "metrics.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, FIELDS)
+            writer.writeheader()
+            writer.writerows(eval_rows())
+    digest = "ab12" * 16
+    for _ in range(3):  # three looks at the split; the evaluation summarised was the second
+        ledger.record("data/demo", "test", digest, 2, ["student_s0"], ["OIDN-fast"], "0123abc", "report", book)
+    told = ledger.provenance("4567def-dirty", "2026-01-02T03:04:05Z", "data/demo", "test", digest, 2, 2, book)
+    (report / "eval" / "evaluation.json").write_text(json.dumps(told))
+    cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", f"report={report}", f"data_root={tmp_path}",
+           f"ledger={book}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = (report / "summary.md").read_text()
+    assert "\n- commit: 4567def-dirty (the evaluation's)\n" in summary
+    block = summary.split("<!-- results:begin -->\n")[1].split("<!-- results:end -->")[0]
+    assert block.startswith(f"Test ledger: this test split (SHA-256 {digest[:12]}) has been evaluated 3 times "
+                            f"({book}); this summary's evaluation is look 2; a split looked at more than once is "
+                            "no longer unseen.\n\n| method |")
+    blender = summary.split("<!-- blender:begin -->\n")[1]
+    assert blender.startswith("Test ledger: looks not recorded (evaluated before the ledger")
+    readme = tmp_path / "README.md"
+    readme.write_text("<!-- results:pending -->\n")
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--summary", str(report / "summary.md"),
+                    "--readme", str(readme)], capture_output=True, text=True, check=True)
+    copied = readme.read_text()
+    assert "has been evaluated 3 times" in copied  # the block says it too
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        from readme_check import COPIED_COMMIT
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    assert COPIED_COMMIT.search(copied)["commit"] == "4567def"
+    # an evaluation older than evaluation.json
+    (report / "eval" / "evaluation.json").unlink()
+    assert subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False).returncode == 0
+    summary = (report / "summary.md").read_text()
+    assert re.search(r"^- commit: \S+ \(the summary's: the evaluation wrote no evaluation.json\)$", summary, re.MULTILINE)
+    assert "<!-- results:begin -->\nTest ledger: looks not recorded (evaluated before the ledger" in summary
+
+
 def test_summary_of_a_recipe_of_fine_tunes_names_their_starts_and_the_interpolation(tmp_path):
     """base_runs (make demo's refine: the runs its networks start from) are listed by path beside the
     report's own runs, and interpolation_alpha says how the students were evaluated; an alpha outside

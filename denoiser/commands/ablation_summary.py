@@ -20,9 +20,11 @@ ablations``) at its end. It reads
 * each run directory (``run_dirs``, else ``<report>/runs/<variant>_s<seed>``): steps, best val
   PSNR, collapse marker and the teacher it was taught by;
 
-and writes ``summary.md``: the run id, commit, seeds, teacher and test-split hash, then between
+and writes ``summary.md``: the run id, the commit the evaluation ran at (``<report>/eval/evaluation.json``;
+the summary's own, said so, without one), seeds, teacher and test-split hash, then between
 ``<!-- ablations:begin -->`` and ``<!-- ablations:end -->`` (``make readme`` copies it
-into the README) the Fig. A.1 tables with one sentence per claim of the paper (holds or does not
+into docs/results.md) the test ledger's line (how many times the split has been evaluated, in
+``ledger``, and which look this evaluation is: :func:`denoiser.report.ledger.looks_line`), the Fig. A.1 tables with one sentence per claim of the paper (holds or does not
 hold, with the interval) and the ablations table with one sentence per ablation (the paper's
 direction holds or not here); below it the crop figure (``crops_a1.png``: ``denoiser-eval``'s
 crop image of one test sequence, the same frame of the figure's variants) and the runs table.
@@ -43,11 +45,12 @@ from denoiser.atomic import atomic_write_text
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import markdown_table, median_interval, read_csv
 from denoiser.metrics import COLUMNS
+from denoiser.report import ledger
 from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
 from denoiser.report.summary import (
+    commit_line,
     format_interval,
     format_mean_std,
-    git_commit,
     group_sequences,
     method_means,
     paired_difference,
@@ -390,11 +393,12 @@ def run(cfg: DictConfig) -> Path:
     runs = run_table_rows(cfg, names, seeds)
     test_dir = Path(cfg.data_root) / "test"
     n_seq = statistics.median(len(per_sequence[n].get(str(cfg.decide_metric), {})) for n in names)
+    evaluated = ledger.read_provenance(metrics_csv.parent)
     lines = [
         "# Ablations summary (the paper's Fig. A.1 and distillation ablations on the demo's held-out scenes)",
         "",
         f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
-        f"- commit: {git_commit()}",
+        commit_line(evaluated),
         f"- seeds (every variant): {seeds}",
         f"- teacher (every distilled run): `{cfg.teacher}`" if cfg.get("teacher") else "- teacher: not stated",
         f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
@@ -410,6 +414,8 @@ def run(cfg: DictConfig) -> Path:
         "verdicts follow it."),
         "",
         BEGIN,
+        ledger.looks_line(evaluated, cfg.get("ledger") or ledger.LEDGER),
+        "",
     ]
     if figure:
         h, w = size

@@ -22,9 +22,12 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``conf/pipeline/demo.yaml`` 
   demo networks on the Blender Cycles sequences), when it exists: one more table per
   evaluation, with every method's PSNR gain over the noisy input, and its claims;
 
-and writes ``summary.md`` with the run id, commit, seeds, steps, the SHA-256 of the test split's
-files, and the tables. ``scripts/readme_results.py`` copies its results block (the table and the
-claims) into the README.
+and writes ``summary.md`` with the run id, the commit the evaluation ran at (``<report>/eval/evaluation.json``,
+written by ``denoiser-eval``; the summary's own commit, said so, for an evaluation without one),
+seeds, steps, the SHA-256 of the test split's files, and the tables. Each results block opens with
+the test ledger's line (:func:`denoiser.report.ledger.looks_line`): how many times its split has been
+evaluated (``ledger``: the ledger read) and which look its evaluation is. ``scripts/readme_results.py``
+copies a results block (the ledger's line, the table and the claims) into docs/results.md.
 
 ``make compare`` (``conf/pipeline/compare.yaml``) runs it over ``conf/compare_summary.yaml``::
 
@@ -46,14 +49,15 @@ from denoiser.atomic import atomic_write_text
 from denoiser.errors import ConfigError, UserError
 from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS
+from denoiser.report import ledger
 from denoiser.report.figure_tables import figure_sections
 from denoiser.report.summary import (
     SUMMARY_COLUMNS,
     check_claims,
     claim_lines,
+    commit_line,
     family_lines,
     format_mean_std,
-    git_commit,
     group_sequences,
     group_timing,
     merge_identical,
@@ -192,10 +196,12 @@ def gain_table(groups: list[dict], noisy: str = "noisy input") -> str:
                           headers={**HEADERS, "gain": "PSNR gain dB"})
 
 
-def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric: str | None = None) -> list[str]:
+def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric: str | None = None,
+                   book: str | Path = ledger.LEDGER) -> list[str]:
     """Markdown lines of one table (and the claims, and with ``family_metric`` their per-family
     table in that metric) per ``{dir: title}`` whose ``<report>/<dir>/metrics.csv`` exists, between
-    ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme`` copies it)."""
+    ``<!-- <dir>:begin -->`` and ``<!-- <dir>:end -->`` (``make readme`` copies it), the block opening
+    with the looks of its split in the test ledger ``book``."""
     lines: list[str] = []
     for name, title in extra.items():
         csv_path = report / str(name) / "metrics.csv"
@@ -204,8 +210,9 @@ def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric:
             groups = merge_identical(groups, per_sequence)
             by_family = (["", *family_lines(claims, per_sequence, families(csv_path), family_metric), ""]
                          if claims and family_metric else [])
+            looks = ledger.looks_line(ledger.read_provenance(csv_path.parent), book)
             lines += [f"## {title}", "", f"From `{csv_path}`; students: mean ± std over seeds.", "",
-                      f"<!-- {name}:begin -->", gain_table(groups).rstrip(), *merged_note(groups), "",
+                      f"<!-- {name}:begin -->", looks, "", gain_table(groups).rstrip(), *merged_note(groups), "",
                       *claim_lines(claims, per_sequence), *by_family, f"<!-- {name}:end -->", ""]
     return lines
 
@@ -238,11 +245,13 @@ def run(cfg: DictConfig) -> Path:
     runs += run_rows(report / "runs", by_path=base is not None) if (report / "runs").is_dir() else []
     recipe = recipe_lines(cfg, report)
     test_dir = Path(cfg.data_root) / "test"
+    book = cfg.get("ledger") or ledger.LEDGER
+    evaluated = ledger.read_provenance(metrics_csv.parent)
     lines = [
         f"# {cfg.title}",
         "",
         f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
-        f"- commit: {git_commit()}",
+        commit_line(evaluated),
         f"- seeds (students): {list(cfg.seeds)}",
         f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
         *recipe,
@@ -267,6 +276,8 @@ def run(cfg: DictConfig) -> Path:
         "## Test split, every method" if cfg.tables else "## Test split (students: mean ± std over seeds)",
         "",
         markers(cfg.marker)[0],
+        ledger.looks_line(evaluated, book),
+        "",
         results_table(merged, bench, size, cfg.speed_reference).rstrip(),
         *merged_note(merged),
         "",
@@ -274,7 +285,7 @@ def run(cfg: DictConfig) -> Path:
         markers(cfg.marker)[1],
         "",
         *(family_lines(claims, per_sequence, families(metrics_csv), cfg.family_metric) + [""] if claims else []),
-        *extra_sections(report, cfg.get("extra_evals") or {}, claims, cfg.get("extra_family_metric")),
+        *extra_sections(report, cfg.get("extra_evals") or {}, claims, cfg.get("extra_family_metric"), book),
         "## Training runs (steps and best validation PSNR)",
         "",
         markdown_table(runs, ["run", "seed", "steps", "val_psnr", "collapsed"], formats={"val_psnr": ".2f"},

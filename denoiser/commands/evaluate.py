@@ -29,11 +29,15 @@ Outputs in ``out_dir``:
   per-sequence table;
 * ``images/<split>_<sequence>.png`` - tonemapped crops side by side (methods, then the
   reference) of one frame per sequence;
+* ``evaluation.json`` - its provenance (:func:`denoiser.report.ledger.provenance`): the commit it ran
+  at, the UTC date, the data root, the split and its SHA-256, and for a test split the look it
+  recorded in the test ledger (the summaries name this commit and look);
 * ``exr/<method>/<split>/<sequence>/frame_XXXX.exr`` - denoised frames (``save_exr=true``).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -54,6 +58,7 @@ from denoiser.metrics import METRICS
 from denoiser.report import ledger
 from denoiser.report.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
 from denoiser.report.plot_crops import save_crops
+from denoiser.report.summary import git_commit, tree_hash
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +104,7 @@ def run(cfg: DictConfig) -> dict:
         raise ConfigError(f"split={cfg.split}: purpose= is required. Every look at a test split is a row of the test "
                           f"ledger ({ledger.LEDGER.relative_to(ledger.ROOT)}); say why, e.g. "
                           "purpose='final judgement of recipe X', 'report' or 'debug'")
+    commit = git_commit()  # the code that evaluates, taken before it runs
     threads = set_threads(cfg.get("threads"))
     out_dir = Path(cfg.out_dir)
     for stale in remove_stale_temporaries(out_dir, partial_dirs=".eval-*.partial"):  # left by a killed run
@@ -125,20 +131,21 @@ def run(cfg: DictConfig) -> dict:
                     save_crops(staging / "images" / f"{source.name.replace('/', '_')}.png", panels["panels"],
                                panels["notes"], title=f"{source.name} frame {image_frame}, crop {w}x{h} at "
                                f"(x={left}, y={top}); PSNR of the whole frame")
+        # the outputs are replaced from here on: the provenance of the ones before goes first, and the
+        # new one is written last (a run killed in between leaves none: a summary says so)
+        (out_dir / ledger.PROVENANCE).unlink(missing_ok=True)
         _move_tree(staging, out_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    look_line = ""
+    date, digest = ledger.utc_now(), tree_hash(Path(cfg.data.root) / cfg.split)
+    look_line, look, where = "", None, None
     if looked:  # after a complete evaluation: the look happened
-        from denoiser.report.summary import git_commit, tree_hash
-
         where = cfg.get("ledger") or ledger.LEDGER
-        digest = tree_hash(Path(cfg.data.root) / cfg.split)
         named = checkpoint_paths(cfg.get("ckpt"))
         checkpoints = [ledger.run_id(p) for p in named.values()]
         baselines = [name for name in methods if name not in named]
         look = ledger.record(str(cfg.data.root), str(cfg.split), digest, len(sources), checkpoints, baselines,
-                             git_commit(), str(cfg.purpose).strip(), where)
+                             commit, str(cfg.purpose).strip(), where, date=date)
         look_line = ledger.look_sentence(look, digest, where)
         print(look_line)
     rows = ev.sequence_rows()
@@ -151,10 +158,13 @@ def run(cfg: DictConfig) -> dict:
               "\"frames 2+\": every frame of a sequence but its first (frames counted from 1), warm-up or not.\n\n"
               + (look_line + "\n\n" if look_line else ""))
     atomic_write_text(out_dir / "metrics.md", markdown_report(ev, rows, header))
+    provenance = ledger.provenance(commit, date, str(cfg.data.root), str(cfg.split), digest, len(sources), look, where)
+    atomic_write_text(out_dir / ledger.PROVENANCE, json.dumps(provenance, indent=2) + "\n")
     overall = {r["method"]: {m: r[m] for m in ev.columns} for r in rows if r["sequence"] == "mean"}
     print(markdown_table([r for r in rows if r["sequence"] == "mean"], ["method", *ev.columns, "ms_per_frame"],
                          METRIC_FORMATS, METRIC_HEADERS))
-    print(f"wrote {out_dir / 'metrics.csv'}, {out_dir / 'metrics.md'} and {out_dir / 'images'}")
+    print(f"wrote {out_dir / 'metrics.csv'}, {out_dir / 'metrics.md'}, {out_dir / ledger.PROVENANCE} and "
+          f"{out_dir / 'images'}")
     return overall
 
 

@@ -20,17 +20,24 @@ successful evaluation, appends one row to the ledger (:data:`LEDGER`, or ``ledge
 
 Looks are counted per split hash: a split copied to another folder keeps its count, and a split
 rendered afresh (new seeds) starts at 1.
+
+Beside its tables, every evaluation writes :data:`PROVENANCE` (:func:`provenance`): the commit it
+ran at, its date, the split and its hash, and for a test split the look it recorded. A summary takes
+its commit from there, not from the checkout it runs in, and says which look its evaluation is of
+how many the ledger holds now (:func:`looks_line`).
 """
 
 from __future__ import annotations
 
 import csv
 import fcntl
+import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from denoiser.errors import UserError
 from denoiser.measure import write_csv
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -40,6 +47,13 @@ COLUMNS = ["date", "dataset", "split", "split_sha256", "sequences", "checkpoints
            "look"]
 #: the split name whose evaluations are recorded (and need a purpose)
 TEST_SPLIT = "test"
+#: the evaluation's provenance, a JSON file beside its metrics.csv (denoiser-eval's out_dir)
+PROVENANCE = "evaluation.json"
+
+
+def utc_now() -> str:
+    """The UTC date and time as the ledger writes it, ``YYYY-MM-DDTHH:MM:SSZ``."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
 def is_test_split(split: str) -> bool:
@@ -70,17 +84,18 @@ def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER) -> int:
 
 
 def record(dataset: str, split: str, split_sha256: str, sequences: int, checkpoints: Sequence[str],
-           baselines: Sequence[str], commit: str, purpose: str, ledger: str | os.PathLike = LEDGER) -> int:
+           baselines: Sequence[str], commit: str, purpose: str, ledger: str | os.PathLike = LEDGER,
+           date: str | None = None) -> int:
     """Append one evaluation to ``ledger`` (created with its header when missing; an exclusive lock
     on a side file keeps concurrent evaluations from losing a row; the write is atomic). Returns the
-    look number of this row."""
+    look number of this row. ``date``: the row's (:func:`utc_now`, now when None)."""
     path = Path(ledger)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.with_name(path.name + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         rows: list[dict] = read(path)
         look = 1 + sum(1 for row in rows if row.get("split_sha256") == split_sha256)
-        rows.append({"date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "dataset": str(dataset),
+        rows.append({"date": date or utc_now(), "dataset": str(dataset),
                      "split": str(split), "split_sha256": split_sha256, "sequences": int(sequences),
                      "checkpoints": ";".join(checkpoints), "baselines": ";".join(baselines), "commit": commit,
                      "purpose": purpose, "look": look})
@@ -93,3 +108,52 @@ def look_sentence(look: int, split_sha256: str, ledger: str | os.PathLike = LEDG
     total = looks(split_sha256, ledger)
     return (f"Test ledger: this evaluation is look {look} of {total} recorded at {split_sha256[:12]} "
             f"({Path(ledger).name}); a split looked at more than once is no longer unseen.")
+
+
+def provenance(commit: str, date: str, dataset: str, split: str, split_sha256: str, sequences: int,
+               look: int | None, ledger: str | os.PathLike | None) -> dict:
+    """What :data:`PROVENANCE` holds: the commit the evaluation ran at (``-dirty`` with uncommitted
+    changes), its UTC date, the data root, the split, its SHA-256, how many sequences, and for a
+    test split the look it recorded and the ledger it recorded it in (None for another split)."""
+    return {"commit": commit, "date": date, "dataset": str(dataset), "split": str(split), "split_sha256": split_sha256,
+            "sequences": int(sequences), "look": look, "ledger": None if ledger is None else str(Path(ledger).resolve())}
+
+
+def read_provenance(eval_dir: str | os.PathLike) -> dict | None:
+    """The :data:`PROVENANCE` of an evaluation's ``out_dir``; None when there is none (an evaluation
+    older than the file). UserError when it is not a JSON object."""
+    path = Path(eval_dir) / PROVENANCE
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: not readable as JSON ({exc})") from None
+    if not isinstance(data, dict) or not data.get("commit"):
+        raise UserError(f"{path}: not an evaluation's provenance (no commit)")
+    return data
+
+
+def _named(ledger: str | os.PathLike) -> str:
+    """The ledger's path relative to the checkout when it lies in it (docs/results/test_ledger.csv)."""
+    path = Path(ledger).resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def looks_line(evaluation: Mapping | None, ledger: str | os.PathLike = LEDGER) -> str:
+    """One line for a summary's results block: how many times ``ledger`` has recorded the evaluated
+    test split now, and which look ``evaluation`` (:func:`read_provenance`) was."""
+    if evaluation is None:
+        return "Test ledger: looks not recorded (evaluated before the ledger: no evaluation.json beside its metrics)."
+    if evaluation.get("look") is None:
+        return (f"Test ledger: looks not recorded (split `{evaluation.get('split')}` is not a test split; only a "
+                f"split named {TEST_SPLIT} is).")
+    digest, look = str(evaluation["split_sha256"]), int(evaluation["look"])
+    total = looks(digest, ledger)
+    text = (f"Test ledger: this test split (SHA-256 {digest[:12]}) has been evaluated {total} "
+            f"time{'' if total == 1 else 's'} ({_named(ledger)}); this summary's evaluation is look {look}")
+    if look > total:
+        text += f" (recorded in another ledger: {evaluation.get('ledger')})"
+    elif total > 1:
+        text += "; a split looked at more than once is no longer unseen"
+    return text + "."

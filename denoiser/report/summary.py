@@ -289,6 +289,16 @@ def tree_hash(root: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
+def commit_line(evaluation: Mapping | None) -> str:
+    """A summary's ``- commit:`` line (``scripts/readme_results.py`` copies it into the ``copied by``
+    line that ``scripts/readme_check.py`` reads): the commit its evaluation ran at (``evaluation``:
+    :func:`denoiser.report.ledger.read_provenance`), else, for an evaluation older than its
+    ``evaluation.json``, this checkout's commit now, said so."""
+    if evaluation is not None:
+        return f"- commit: {evaluation['commit']} (the evaluation's)"
+    return f"- commit: {git_commit()} (the summary's: the evaluation wrote no evaluation.json)"
+
+
 def git_commit() -> str:
     """The checkout's short commit (``-dirty`` with uncommitted changes to tracked files), or
     ``unknown`` outside a git checkout: what a report names as the code that wrote it."""

@@ -24,7 +24,7 @@ setup: $(VENV)/.installed
 
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ISOLATION) $(PYTEST_ARGS)
-	$(PY) scripts/readme_check.py
+	$(PY) scripts/readme_check.py --report-only
 
 # Build the OpenVINO extension (denoiser/inference/ovext: one C++ header per operation) ahead of
 # time into its cache ($$DENOISER_CACHE/ovext, else ~/.cache/denoiser/ovext), as a package
@@ -51,24 +51,26 @@ paper: setup
 
 # Copy every results block of the reports into docs/results.md (never typed by hand): make demo's
 # table (and its Blender table), the ablations, the comparison, the Pareto front, make paper's budget
-# and make gpu-check's block; a report not made yet is said and skipped. SUMMARY: another summary.
+# and make gpu-check's block; make demo's table also into README.md, its one results table. A report
+# not made yet is said and skipped. SUMMARY: another summary. copy SUMMARY MARKER FILE [IMAGE].
 SUMMARY ?= reports/demo_refine/summary.md
 RESULTS ?= docs/results.md
 readme:
-	@copy() { if [ -f "$$1" ]; then python3 scripts/readme_results.py --summary "$$1" --readme $(RESULTS) --marker "$$2" $${3:+--image "$$3"}; \
-		else echo "$$1: not made yet, its block ($$2) left as it is"; fi; }; \
-	copy $(SUMMARY) results; \
-	if [ -f $(SUMMARY) ] && grep -q '<!-- blender:begin -->' $(SUMMARY); then copy $(SUMMARY) blender; fi; \
-	copy reports/ablations/summary.md ablations reports/ablations/crops_a1.png:docs/images/ablations_a1.png; \
-	copy reports/compare/summary.md compare; \
-	copy reports/pareto/pareto.md pareto reports/pareto/accuracy_vs_time.png:docs/images/pareto.png; \
-	copy reports/paper/summary.md paper; \
-	copy docs/results/gpu.md gpu
+	@copy() { if [ -f "$$1" ]; then python3 scripts/readme_results.py --summary "$$1" --readme "$$3" --marker "$$2" $${4:+--image "$$4"}; \
+		else echo "$$1: not made yet, its block ($$2) in $$3 left as it is"; fi; }; \
+	copy $(SUMMARY) results README.md; \
+	copy $(SUMMARY) results $(RESULTS); \
+	if [ -f $(SUMMARY) ] && grep -q '<!-- blender:begin -->' $(SUMMARY); then copy $(SUMMARY) blender $(RESULTS); fi; \
+	copy reports/ablations/summary.md ablations $(RESULTS) reports/ablations/crops_a1.png:docs/images/ablations_a1.png; \
+	copy reports/compare/summary.md compare $(RESULTS); \
+	copy reports/pareto/pareto.md pareto $(RESULTS) reports/pareto/accuracy_vs_time.png:docs/images/pareto.png; \
+	copy reports/paper/summary.md paper $(RESULTS); \
+	copy docs/results/gpu.md gpu $(RESULTS)
 
 # Fail (one line per block) when what a results block measures changed since its commit (a pure move
 # does not count): rerun, then copy (make readme).
 readme-check: setup
-	$(PY) scripts/readme_check.py --readme README.md
+	$(PY) scripts/readme_check.py
 
 lint: setup
 	$(VENV)/bin/ruff check denoiser tests hydra_plugins train.py

@@ -13,7 +13,7 @@ dropped), anything else byte for byte; so a comment, a docstring or a file that 
 rename, e.g. the configs from ``denoiser/conf/`` to ``conf/``, both locations measured) leaves a
 block current, and a changed value, default or line of code (a recipe's config in ``conf/base``,
 ``conf/experiment`` or ``conf/pipeline``, a line of ``denoiser/lit``) does not. An added YAML file
-is a new option of its group (a new experiment, dataset or net), which nothing composes unless a
+is a new option of its group (a new experiment, render preset or net), which nothing composes unless a
 changed file selects it: it leaves a block current too. Also stale: a block that names no commit, or
 a commit git does not know. A ``-dirty`` commit counts as its base commit. One line per stale block
 on stderr, naming its file, then exit 1 (``--report-only``: exit 0, the lines all the same); exit 0
@@ -72,7 +72,7 @@ UNMEASURED = (
 #: a file deleted at the first location and added at the second is the same file moved (paired
 #: even when git's rename detection, which goes by similarity, does not pair a small edited file)
 MOVED = (("denoiser/conf/", "conf/"),)
-#: an added file of these kinds is a new option of its config group (``conf/dataset/fast.yaml``): a
+#: an added file of these kinds is a new option of its config group (``conf/render_set/fast.yaml``): a
 #: config composes it only when selected by name, and a changed file that selects it is in the diff
 NEW_OPTION = (".yaml", ".yml")
 #: Python code judged by what the networks compute (denoiser.commands.nn_fingerprint), not by its text

@@ -1,4 +1,4 @@
-"""`make compare`: its data (dataset=demo_compare: demo's test job with per-sample radiance, in
+"""`make compare`: its data (render_set=demo_compare: demo's test job with per-sample radiance, in
 its own root) and its summary (the Fig. A.2 / A.3 tables of conf/compare_summary.yaml, their
 mean ± std over seeds, 1080p times and ranking lines), checked against plain computations."""
 
@@ -23,7 +23,7 @@ def _render_cfg(*overrides: str):
 
 
 def test_demo_compare_renders_exactly_demos_test_job_with_samples_in_its_own_root():
-    demo, compare = _render_cfg("dataset=demo"), _render_cfg("dataset=demo_compare")
+    demo, compare = _render_cfg("render_set=demo"), _render_cfg("render_set=demo_compare")
     demo_test = [j for j in plan(demo) if j.split == "test"]
     jobs = plan(compare)
     assert demo_test and len(jobs) == len(demo_test)

@@ -159,7 +159,7 @@ def test_demo_trains_the_recipe_evaluates_the_interpolations_and_writes_the_tabl
 def test_demo_with_more_seeds_fewer_jobs_and_a_stage_left_out_are_keys(tree):
     pipeline(tree, "pipeline=demo", "seeds=[3,4]", "jobs=1", "~stages.render_motion", "alpha=1")
     calls = stub_calls(tree / "calls.log")
-    assert not any(c[0] == "denoiser-render" and "dataset=fast" in c for c in calls)
+    assert not any(c[0] == "denoiser-render" and "render_set=fast" in c for c in calls)
     students = [c for c in calls if c[0] == "denoiser-train" and "reports/demo/runs/student" in (arg(c, "hydra.run.dir") or "")]
     assert [arg(c, "seed") for c in students] == ["3", "3", "4", "4"] and {arg(c, "threads") for c in students} == {"2"}
 
@@ -324,7 +324,7 @@ def test_compare_renders_its_data_and_evaluates_nppd_ws_and_make_demos_networks_
     pipeline(tree, "pipeline=compare", "seeds=[0,1]")
     calls = stub_calls(tree / "calls.log")
     render = next(c for c in calls if c[0] == "denoiser-render")
-    assert "dataset=demo_compare" in render and arg(render, "reference_from") == str(tree / "data" / "demo")
+    assert "render_set=demo_compare" in render and arg(render, "reference_from") == str(tree / "data" / "demo")
     assert train_dirs(calls) == [f"reports/compare/runs/{n}_demo_s{s}" for s in (0, 1) for n in ("nppd", "ws")]
     nppd = next(c for c in calls if c[0] == "denoiser-train")
     assert arg(nppd, "model.teacher_ckpt") == "reports/demo/runs/teacher/checkpoints/best.ckpt" and arg(nppd, "net") == "nppd_demo"
@@ -357,3 +357,18 @@ def test_pareto_retrains_the_fronts_variants_named_in_its_table(tree, tmp_path):
             (tmp_path / "sweep" / job / "DONE").touch()
     assert finished_runs([tmp_path / "sweep", tmp_path / "missing"]) == [
         {"name": "job0", "run_dir": str(tmp_path / "sweep" / "0"), "ckpt": str(tmp_path / "sweep" / "0" / "checkpoints" / "last.ckpt")}]
+
+
+def test_a_pipeline_runs_as_one_slurm_job_through_hydras_submitit_launcher():
+    """``denoiser-pipeline -m pipeline=paper hydra/launcher=submitit_slurm``: the pipeline process is
+    one SLURM job (its stages then run on that job's node); the launcher composes with the app."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    from hydra import compose, initialize_config_dir
+
+    from denoiser.conf import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("pipeline", overrides=["pipeline=paper", "hydra/launcher=submitit_slurm",
+                                             "hydra.launcher.timeout_min=360"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith("SlurmLauncher") and cfg.hydra.launcher.timeout_min == 360
+    assert list(cfg.stages) == ["ablations", "compare", "pareto", "summary"]

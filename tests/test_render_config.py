@@ -136,7 +136,7 @@ def _compose(overrides):
 def test_demo_preset_keeps_test_only_scenes_out_of_training():
     from denoiser.commands.render import plan
 
-    cfg = _compose(["dataset=demo"])
+    cfg = _compose(["render_set=demo"])
     assert cfg.name == "demo" and cfg.root.endswith("data/demo")
     jobs = plan(cfg)
     splits = {j.split for j in jobs}
@@ -149,13 +149,13 @@ def test_demo_preset_keeps_test_only_scenes_out_of_training():
 
 
 def test_fast_preset_is_the_demo_settings_with_the_fast_motion_families():
-    """dataset=fast (data/fast, joined to another root by data.extra_roots): demo's size, spp,
+    """render_set=fast (data/fast, joined to another root by data.extra_roots): demo's size, spp,
     aux and references; fast_objects for train and unlabeled, fast_spin for val, no test split;
     and the sequences the same seeds give as when rendered into data/demo_fast by hand."""
     from denoiser.commands.render import plan
     from denoiser.render.seeds import sequence_seed
 
-    demo, fast = _compose(["dataset=demo"]), _compose(["dataset=fast"])
+    demo, fast = _compose(["render_set=demo"]), _compose(["render_set=fast"])
     assert fast.name == "fast" and fast.root.endswith("data/fast")
     assert {k: fast[k] for k in ("width", "height", "spp", "ref_spp", "aux", "seed")} == \
         {k: demo[k] for k in ("width", "height", "spp", "ref_spp", "aux", "seed")}
@@ -168,29 +168,7 @@ def test_fast_preset_is_the_demo_settings_with_the_fast_motion_families():
     def seeds(cfg, js):
         return [(j.directory, sequence_seed(cfg.seed, j.scene_name, j.split, j.index), j.settings) for j in js]
 
-    assert seeds(_compose(["dataset=demo"]), by_hand) == seeds(fast, [j for j in jobs if j.split == "train"])
-
-
-def test_testfamilies_val_draws_the_test_families_with_seeds_no_test_split_holds():
-    """dataset=testfamilies_val: the demo's test families into a val split, at the test job's
-    settings, with sequence seeds disjoint from data/demo's test split and data/demo_fresh's."""
-    from denoiser.commands.render import plan
-    from denoiser.render.seeds import sequence_seed
-
-    demo, fresh, val = (_compose([f"dataset={d}"]) for d in ("demo", "demo_fresh", "testfamilies_val"))
-    jobs = plan(val)
-    test = [j for j in plan(demo) if j.split == "test"]
-    assert {j.split for j in jobs} == {"val"} and val.root.endswith("data/testfamilies_val")
-    assert sorted({j.scene_name for j in jobs}) == sorted({j.scene_name for j in test}) and len(jobs) == 14
-    assert {(j.settings.frames, j.settings.spp, j.settings.ref_spp, j.settings.aux) for j in jobs} == \
-        {(j.settings.frames, j.settings.spp, j.settings.ref_spp, j.settings.aux) for j in test}
-
-    def seeds(cfg, js):
-        return {sequence_seed(cfg.seed, j.scene_name, "test", j.index) for j in js}
-
-    taken = seeds(demo, test) | seeds(fresh, plan(fresh))
-    assert not seeds(val, jobs) & taken  # even were the split's name not in the seed
-    assert val.seed == demo.seed
+    assert seeds(_compose(["render_set=demo"]), by_hand) == seeds(fast, [j for j in jobs if j.split == "train"])
 
 
 def test_test_only_scene_refused_for_training():
@@ -245,12 +223,12 @@ def test_preset_refuses_sequences_it_does_not_describe(tmp_path, monkeypatch):
 
     monkeypatch.setattr(render, "render_sequence", no_render)
     monkeypatch.setattr("denoiser.render.variant.activate", lambda variant: pytest.fail("activated the renderer"))
-    cfg = _compose(["dataset=demo", f"root={tmp_path}"])
+    cfg = _compose(["render_set=demo", f"root={tmp_path}"])
     stale = tmp_path / "test" / "gallery_006"
     stale.mkdir(parents=True)
     (stale / "sequence.json").write_text("{}")
     (tmp_path / "test" / "notes.txt").write_text("not a sequence")
-    with pytest.raises(UserError, match=r"test/gallery_006: a sequence that dataset=demo does not describe"):
+    with pytest.raises(UserError, match=r"test/gallery_006: a sequence that render_set=demo does not describe"):
         render.run(cfg)
 
 

@@ -294,7 +294,7 @@ def _reference(out, t: int = 0) -> np.ndarray:
 
 
 def test_references_copied_from_a_donor_are_the_ones_rendered(static_seq, mi, tmp_path, capsys):
-    """dataset=demo_compare re-renders demo's test split with per-sample radiance: its references
+    """render_set=demo_compare re-renders demo's test split with per-sample radiance: its references
     come from data/demo (reference_from), and they are the references the sequence would render."""
     donor, _ = static_seq
     spec = build_scene(static_scene(), 0)

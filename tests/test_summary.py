@@ -211,7 +211,7 @@ def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tm
 
 def test_demo_dataset_splits():
     """Every effect appears in train; val has a family train never sees; test families are new."""
-    jobs = {job.split: list(job.scenes) for job in OmegaConf.load(Path(CONF_DIR) / "dataset" / "demo.yaml").dataset.jobs}
+    jobs = {job.split: list(job.scenes) for job in OmegaConf.load(Path(CONF_DIR) / "render_set" / "demo.yaml").render_set.jobs}
     train, val, test = set(jobs["train"]), set(jobs["val"]), set(jobs["test"])
     effects = set()
     for scene in train:

@@ -4,9 +4,10 @@ One scene::
 
     denoiser-render scene=cornell split=train sequences=2 frames=8 spp=4 ref_spp=256 width=128 height=128
 
-A dataset preset (``conf/dataset/*.yaml``) renders several scenes and splits in one command::
+A render preset (``conf/render_set/*.yaml``, its jobs under ``render_set.jobs``) renders several
+scenes and splits in one command::
 
-    denoiser-render dataset=demo            # -> data/demo/{train,val,test,unlabeled}/<scene>_<k>/
+    denoiser-render render_set=demo         # -> data/demo/{train,val,test,unlabeled}/<scene>_<k>/
 
 Output root: ``root`` (default ``data/<name>``, ``name`` = the preset's name or ``default``).
 Resumable: finished frames are skipped. Scenes marked ``test_only`` are refused for the
@@ -69,16 +70,16 @@ def _settings(cfg: DictConfig, job: dict, split: str) -> RenderSettings:
 
 
 def plan(cfg: DictConfig) -> list[SequenceJob]:
-    """Expand the config (one scene, or the jobs of ``dataset``) into sequences to render."""
-    if cfg.get("dataset"):
-        jobs = [OmegaConf.to_container(j, resolve=True) for j in cfg.dataset.jobs]
+    """Expand the config (one scene, or the jobs of ``render_set``) into sequences to render."""
+    if cfg.get("render_set"):
+        jobs = [OmegaConf.to_container(j, resolve=True) for j in cfg.render_set.jobs]
     else:
         jobs = [{"split": cfg.split, "scenes": [cfg.scene]}]
     out: list[SequenceJob] = []
     for i, job in enumerate(jobs):
         unknown = set(job) - JOB_KEYS
         if unknown:
-            raise ConfigError(f"dataset.jobs[{i}]: unknown key(s) {', '.join(sorted(unknown))}")
+            raise ConfigError(f"render_set.jobs[{i}]: unknown key(s) {', '.join(sorted(unknown))}")
         split = job.get("split", cfg.split)
         if split not in SPLITS:
             raise ConfigError(f"render: key 'split' must be one of {', '.join(SPLITS)}, got {split!r}")
@@ -104,7 +105,7 @@ def check_no_stale_sequences(root: Path, jobs: list[SequenceJob], preset: str) -
         for meta in sorted((root / split).glob("*/sequence.json")):
             directory = f"{split}/{meta.parent.name}"
             if directory not in planned:
-                raise ConfigError(f"{root / directory}: a sequence that dataset={preset} does not describe (retired by "
+                raise ConfigError(f"{root / directory}: a sequence that render_set={preset} does not describe (retired by "
                                   f"a change of the preset, or added by hand); move it out of {root / split}, or "
                                   "training and evaluation read it as part of the split")
 
@@ -115,7 +116,7 @@ def run(cfg: DictConfig) -> None:
 
     jobs = plan(cfg)
     root = Path(cfg.root)
-    if cfg.get("dataset"):
+    if cfg.get("render_set"):
         check_no_stale_sequences(root, jobs, cfg.name)
     # Build every scene first: configuration mistakes surface before any rendering.
     specs = [build_scene(j.scene_config, sequence_seed(cfg.seed, j.scene_name, j.split, j.index)) for j in jobs]

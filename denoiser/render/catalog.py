@@ -1,4 +1,4 @@
-"""Scene configs by name (``conf/scene/<name>.yaml``), for dataset presets that list scenes."""
+"""Scene configs by name (``conf/scene/<name>.yaml``), for render presets (``conf/render_set/``) that list scenes."""
 
 from __future__ import annotations
 

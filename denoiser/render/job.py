@@ -11,7 +11,7 @@ A labeled sequence may take its references from a *donor*: the same sequence dir
 another root (``denoiser-render reference_from=<root>``) rendered with the same scene, sequence
 seed, reference spp, size, precision and renderer (:func:`reference_donor`): its frames'
 ``reference`` buffers are copied instead of rendered again, which is most of a labeled frame's
-time (``dataset=demo_compare`` re-renders data/demo's test split with per-sample radiance; its
+time (``render_set=demo_compare`` re-renders data/demo's test split with per-sample radiance; its
 references are data/demo's). The reference pass has a seed of its own, so a donor's reference
 is the one this sequence would render; ``sequence.json`` names the donor (``reference_from``).
 """

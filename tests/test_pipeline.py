@@ -372,3 +372,10 @@ def test_a_pipeline_runs_as_one_slurm_job_through_hydras_submitit_launcher():
                                              "hydra.launcher.timeout_min=360"], return_hydra_config=True)
     assert cfg.hydra.launcher._target_.endswith("SlurmLauncher") and cfg.hydra.launcher.timeout_min == 360
     assert list(cfg.stages) == ["ablations", "compare", "pareto", "summary"]
+
+
+def test_a_dry_run_read_by_head_ends_without_a_traceback(tree):
+    argv = [sys.executable, "-m", "denoiser.commands.pipeline", "pipeline=demo", "dry_run=true", f"bin_dir={tree / 'bin'}"]
+    proc = subprocess.run(f"{' '.join(argv)} | head -2", shell=True, cwd=tree, capture_output=True, text=True, check=False,
+                          env={**os.environ, "DENOISER_DATA": str(tree / "data")})
+    assert len(proc.stdout.splitlines()) == 2 and "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr

@@ -10,6 +10,7 @@ The stages, their skipping and resuming, and the stage-time table: :mod:`denoise
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -30,8 +31,17 @@ def context(cfg: DictConfig):
         ctx.python = str(cfg.python)
     if cfg.get("cores"):
         ctx.cores = int(cfg.cores)
-    ctx.say = lambda line: print(line, flush=True)
+    ctx.say = say
     return ctx
+
+
+def say(line: str) -> None:
+    """Print a progress line; a closed stdout (``denoiser-pipeline ... dry_run=true | head``) is
+    not an error: the rest goes to /dev/null and the pipeline carries on."""
+    try:
+        print(line, flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def run(cfg: DictConfig):

@@ -271,13 +271,38 @@ def test_paper_runs_each_pipeline_as_a_stage_and_adds_up_their_work(tree):
 @pytest.mark.parametrize("name", ["demo", "ablations", "compare", "pareto", "paper"])
 def test_every_pipeline_composes_and_its_training_overrides_compose_with_train(tree, name):
     """Each pipeline's dry run, and each of its training command lines composed by denoiser-train's config."""
+    import shlex
+
     out = pipeline(tree, f"pipeline={name}", "dry_run=true").stdout
     trains = [line.split("denoiser-train ", 1)[1] for line in out.splitlines() if "denoiser-train " in line]
-    import shlex
     for line in trains:
         args = [a for a in shlex.split(line) if not a.startswith(("hydra", "-m")) and "," not in a.split("=", 1)[-1]]
         cfg = compose_command("train", args)
         assert cfg.trainer.max_steps > 0
+    # the other Hydra commands' lines compose with their own entry configs, their values as written
+    # (lists, quoted strings with spaces, checkpoint mappings: what the shell passes)
+    entry = {"denoiser-eval ": "eval", "denoiser-bench ": "bench", "denoiser-render ": "render",
+             "denoiser.commands.demo_summary ": "demo_summary", "denoiser.commands.ablation_summary ": "ablation_summary",
+             "denoiser.commands.interpolate ": "interpolate"}
+    composed = 0
+    for line in out.splitlines():
+        for marker, config in entry.items():
+            if marker not in line:
+                continue
+            args = shlex.split(line.split(marker, 1)[1])
+            if args[:1] == ["--config-name"]:
+                config, args = args[1], args[2:]
+            cfg = compose_command(config, [a for a in args if not a.startswith("hydra.")])
+            if "ckpt" in cfg and any(a.startswith("ckpt=") for a in args) and name != "pareto":  # pareto's: runs not there yet
+                assert len(cfg.ckpt) >= 1 and all(str(v).endswith(".ckpt") for v in cfg.ckpt.values())
+            if "seeds" in cfg and any(a.startswith("seeds=") for a in args):
+                assert list(cfg.seeds) == [0, 1, 2]
+            if config == "ablation_summary":
+                assert list(cfg.variants)[:3] == ["none", "no_kd", "no_pyramid"]
+            if config == "eval" and "images.methods" in line:
+                assert list(cfg.images.methods) == ["noisy input", "none_s0", "no_pyramid_s0", "direct_s0"]
+            composed += 1
+    assert composed >= {"demo": 11, "ablations": 3, "compare": 4, "pareto": 2, "paper": 0}[name]
 
 
 def test_help_lists_the_pipelines_and_their_keys(tree):

@@ -331,9 +331,9 @@ BUILDERS = {"orbit": build_orbit, "slide": build_slide, "probe": build_probe}
 #: the XZ plane, so a motion in X/Z at a fixed depth is the same number of pixels everywhere)
 MOVING_CAMERA = {"location": (0.0, -6.0, 1.4), "lens": 35.0, "sensor": 36.0}
 MOVING_SPEED = (8.0, 15.0)      # px per frame, at the rendered width
-FAST_SPIN = (5.0, 15.0)       # degrees per frame
-FAST_SHAPES = ("cube", "uv_sphere", "ico_sphere", "cylinder", "cone", "torus")
-FAST_TEXTURES = ("checker", "noise", "brick")
+MOVING_SPIN = (5.0, 15.0)       # degrees per frame
+MOVING_SHAPES = ("cube", "uv_sphere", "ico_sphere", "cylinder", "cone", "torus")
+MOVING_TEXTURES = ("checker", "noise", "brick")
 
 
 def fast_seed(name: str) -> int | None:
@@ -346,7 +346,7 @@ def _hue_color(rng: random.Random, sat=(0.5, 0.9), val=(0.55, 0.9)):
     return colorsys.hsv_to_rgb(rng.random(), rng.uniform(*sat), rng.uniform(*val))
 
 
-def _fast_material(rng: random.Random, name: str, scale: tuple[float, float], textures=FAST_TEXTURES):
+def _fast_material(rng: random.Random, name: str, scale: tuple[float, float], textures=MOVING_TEXTURES):
     texture = rng.choice(textures)
     mat = material(name, "principled", _hue_color(rng), rng.uniform(0.35, 0.8), texture=texture,
                    color2=_hue_color(rng, (0.1, 0.6), (0.05, 0.25)), scale=rng.uniform(*scale))
@@ -358,7 +358,7 @@ def _fast_material(rng: random.Random, name: str, scale: tuple[float, float], te
 
 
 def _fast_object(rng: random.Random, index: int, radius: float):
-    shape = rng.choice(FAST_SHAPES)
+    shape = rng.choice(MOVING_SHAPES)
     mat = _fast_material(rng, f"Object{index}", (3.0, 7.0))
     if shape == "cube":
         return add("cube", mat, size=1.6 * radius)
@@ -400,7 +400,7 @@ def build_fast(frames: int, width: int, seed: int) -> dict:
         centre = (rng.uniform(-0.12, 0.12) * width, rng.uniform(0.0, 0.15) * width + 0.1 * width * k)
         spin_axis = [rng.gauss(0.0, 1.0) for _ in range(3)]
         norm = math.sqrt(sum(a * a for a in spin_axis)) or 1.0
-        spin = rng.uniform(*FAST_SPIN) * rng.choice((-1.0, 1.0))
+        spin = rng.uniform(*MOVING_SPIN) * rng.choice((-1.0, 1.0))
         rates = [math.radians(spin) * a / norm for a in spin_axis]
         obj = _fast_object(rng, k, rng.uniform(0.45, 0.6))
         phase = [rng.uniform(0.0, 2 * math.pi) for _ in range(3)]
@@ -481,7 +481,7 @@ def parse_args(argv):
 
 
 #: version of the ``fast_<seed>`` builder, recorded in render.json: a change re-renders them
-FAST_VERSION = 1
+MOVING_VERSION = 1
 
 
 def settings(args, name: str, width: int, height: int) -> dict:
@@ -489,7 +489,7 @@ def settings(args, name: str, width: int, height: int) -> dict:
     out = {"blender": bpy.app.version_string, "width": width, "height": height, "frames": args.frames,
            "noisy": {"spp": args.spp, "seed": args.seed}}
     if fast_seed(name) is not None:
-        out["builder"] = f"fast v{FAST_VERSION}"
+        out["builder"] = f"fast v{MOVING_VERSION}"
     if not args.no_reference:
         out["reference"] = {"spp": args.ref_spp, "seed": args.seed + 1000}
     return out

@@ -186,12 +186,13 @@ def done_before(folder: Path, text: str) -> bool:
     return True
 
 
-def _newer_than(folder: str, pattern: str, since: float) -> bool:
-    return any(p.stat().st_mtime >= since for p in Path(folder).rglob(pattern)) if Path(folder).is_dir() else False
-
-
-def _had_any(folder: str, pattern: str) -> bool:
-    return Path(folder).is_dir() and next(Path(folder).rglob(pattern), None) is not None
+def reused_work(folder: str, pattern: str, since: float) -> bool:
+    """``folder`` holds files matching ``pattern`` and none was written at ``since`` or later: the
+    stage's command reused an earlier run's work (one walk over the folder)."""
+    if not Path(folder).is_dir():
+        return False
+    times = [p.stat().st_mtime for p in Path(folder).rglob(pattern)]
+    return bool(times) and max(times) < since
 
 
 def resolved_stage(cfg, name: str) -> dict:
@@ -312,7 +313,7 @@ def _run_stage(name: str, stage: Mapping, jobs: list[Job], ctx: Context, report:
         ctx.say(f"<== [{name}] failed after {time.monotonic() - t0:.0f}s")
         raise
     seconds = time.monotonic() - t0
-    reused = bool(reuse) and _had_any(reuse["dir"], reuse["pattern"]) and not _newer_than(reuse["dir"], reuse["pattern"], wall)
+    reused = bool(reuse) and reused_work(reuse["dir"], reuse["pattern"], wall)
     table.add(name, seconds, reused=reused)
     if produces:
         produces.mkdir(parents=True, exist_ok=True)

@@ -133,27 +133,30 @@ def expand(name: str, stage: Mapping) -> list[Job]:
             choices.append([(str(v), []) for v in values])
         else:
             choices.append([(str(values), [])])
+    args = [a for a in flat(stage.get("args")) if a not in (None, "")]
     jobs = []
     for combo in itertools.product(*choices):
         variables = {key: value for key, (value, _) in zip(keys, combo)}
         variables["name"] = fill(str(stage.get("name") or name), variables)
         extra = [fill(str(a), variables) for _, more in combo for a in more]
-        args = [fill(str(a), variables) for a in flat(stage.get("args")) if a not in (None, "")] + extra
-        run_dir = fill(str(stage["run_dir"]), variables) if stage.get("run_dir") else None
-        ckpt = fill(str(stage["ckpt"]), variables) if stage.get("ckpt") else (best(run_dir) if run_dir else None)
-        jobs.append(Job(variables["name"], variables, args, run_dir, ckpt))
+        jobs.append(_job(stage, variables, [fill(str(a), variables) for a in args] + extra))
     if stage.get("jobs_from"):
         jobs = [] if not stage.get("matrix") else jobs
         for more in _instantiate(stage["jobs_from"]):
             variables = {**{k: str(v) for k, v in (more.get("variables") or {}).items()}, "name": str(more["name"])}
-            args = [fill(str(a), variables) for a in flat(stage.get("args")) if a not in (None, "")]
-            args += [str(a) for a in more.get("args") or []]
-            run_dir = more.get("run_dir") or (fill(str(stage["run_dir"]), variables) if stage.get("run_dir") else None)
-            ckpt = more.get("ckpt") or (fill(str(stage["ckpt"]), variables) if stage.get("ckpt")
-                                        else (best(run_dir) if run_dir else None))
-            jobs.append(Job(variables["name"], variables, args, str(run_dir) if run_dir else None,
-                            str(ckpt) if ckpt else None))
+            jobs.append(_job(stage, variables, [fill(str(a), variables) for a in args]
+                             + [str(a) for a in more.get("args") or []], more.get("run_dir"), more.get("ckpt")))
     return jobs
+
+
+def _job(stage: Mapping, variables: dict[str, str], args: list[str], run_dir=None, ckpt=None) -> Job:
+    """A job of ``stage``: its run directory and checkpoint as given, else from the stage's
+    templates (a training run's checkpoint: :func:`best` of its directory)."""
+    if run_dir is None and stage.get("run_dir"):
+        run_dir = fill(str(stage["run_dir"]), variables)
+    if ckpt is None:
+        ckpt = fill(str(stage["ckpt"]), variables) if stage.get("ckpt") else (best(run_dir) if run_dir else None)
+    return Job(variables["name"], variables, args, str(run_dir) if run_dir else None, str(ckpt) if ckpt else None)
 
 
 def _instantiate(spec: Mapping):

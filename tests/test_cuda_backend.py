@@ -265,6 +265,7 @@ def test_gpu_check_loader_rate_runs_past_one_epoch(tmp_path):
 
     root = write_dataset(tmp_path, split="train", sequences=1, frames=4, size=32)
     overrides = ["experiment=demo", *["net=tiny", "kernel=student"], f"data.root={root}", "data.val_split=null",
+                 "data.extra_share=null", "data.extra_roots=[]",
                  "data.window=2", "data.crop=16", "data.batch_size=1", "data.num_workers=0", "data.pin_memory=false"]
     assert loader_rate(overrides, batches=12) > 0
 

@@ -323,6 +323,20 @@ def test_extra_share_draws_that_share_of_the_labeled_windows_from_extra_roots(ro
         instantiate_config(cfg.data, "data")  # how the commands build it: the one line, no Hydra wrapper
 
 
+def test_extra_share_with_no_extra_windows_is_one_line_naming_the_roots(root, tmp_path):
+    """experiment=demo joins data/demo_motion at extra_share 0.25: a user who rendered only data/demo
+    gets one line naming the missing root and both ways out, not a sampler's error."""
+    missing = tmp_path / "demo_motion"
+    dm = make(root, f"data.extra_roots=[{missing}]", "data.extra_share=0.25", "data.num_workers=0")
+    with pytest.raises(ConfigError) as err:
+        dm.train_dataloader()
+    line = str(err.value)
+    assert "\n" not in line and str(missing) in line and "render_set=demo_motion" in line
+    assert "data.extra_share=null" in line
+    # a share of 0 asks for none of them: no error
+    assert len(make(root, f"data.extra_roots=[{missing}]", "data.extra_share=0", "data.num_workers=0").train_dataloader())
+
+
 def test_extra_roots_reach_evaluation(root, extra_root):
     from omegaconf import OmegaConf
 

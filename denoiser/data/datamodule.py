@@ -215,6 +215,10 @@ class SequenceDataModule(L.LightningDataModule):
             extra = self.extra_windows()
             n, u = len(self.train_set), (self.unlabeled_ratio if self.unlabeled_set is not None else 0.0)
             groups = [[i for i, e in enumerate(extra) if not e], [i for i, e in enumerate(extra) if e]]
+            if self.extra_share > 0 and not groups[1]:
+                raise ConfigError(f"data.extra_share={self.extra_share:g}: no {self.splits['train']} windows under "
+                                  f"data.extra_roots ({', '.join(self.extra_roots)}); render them (e.g. denoiser-render "
+                                  "render_set=demo_motion) or train without them: data.extra_share=null data.extra_roots=[]")
             shares = [(1 - u) * (1 - self.extra_share), (1 - u) * self.extra_share]
             dataset = self.train_set
             if self.unlabeled_set is not None:

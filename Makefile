@@ -37,7 +37,7 @@ ovext: setup
 # resuming, the stage times in reports/<name>/timings.md). Keys go on the command line of
 # denoiser-pipeline (denoiser-pipeline pipeline=demo 'seeds=[0,1,2,3,4]' jobs=2; --help lists them), or
 # through ARGS here: make demo ARGS="'seeds=[0,1,2,3,4]'".
-#   demo       render, teacher, distilled and no-KD students (3 seeds), evaluation, benchmark -> reports/demo_refine
+#   demo       render, teacher, distilled and no-KD students (3 seeds), evaluation, benchmark -> reports/demo
 #   ablations  Fig. A.1 and the distillation ablations, after make demo -> reports/ablations
 #   compare    Fig. A.2 / A.3 (NPPD, WS, ONND, OIDN), after make demo -> reports/compare
 #   pareto     the accuracy-vs-time Pareto front -> reports/pareto
@@ -53,7 +53,7 @@ paper: setup
 # table (and its Blender table), the ablations, the comparison, the Pareto front, make paper's budget
 # and make gpu-check's block; make demo's table also into README.md, its one results table. A report
 # not made yet is said and skipped. SUMMARY: another summary. copy SUMMARY MARKER FILE [IMAGE].
-SUMMARY ?= reports/demo_refine/summary.md
+SUMMARY ?= reports/demo/summary.md
 RESULTS ?= docs/results.md
 readme:
 	@copy() { if [ -f "$$1" ]; then python3 scripts/readme_results.py --summary "$$1" --readme "$$3" --marker "$$2" $${4:+--image "$$4"}; \

@@ -72,7 +72,7 @@ UNMEASURED = (
 #: a file deleted at the first location and added at the second is the same file moved (paired
 #: even when git's rename detection, which goes by similarity, does not pair a small edited file)
 MOVED = (("denoiser/conf/", "conf/"),)
-#: an added file of these kinds is a new option of its config group (``conf/render_set/fast.yaml``): a
+#: an added file of these kinds is a new option of its config group (``conf/render_set/demo_motion.yaml``): a
 #: config composes it only when selected by name, and a changed file that selects it is in the diff
 NEW_OPTION = (".yaml", ".yml")
 #: Python code judged by what the networks compute (denoiser.commands.nn_fingerprint), not by its text

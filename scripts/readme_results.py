@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Copy a generated table (and pictures) into ``README.md``: ``make readme`` (the demo's
-``reports/demo_refine/summary.md``) and ``make readme`` (``reports/pareto/pareto.md`` and its plot).
+``reports/demo/summary.md``) and ``make readme`` (``reports/pareto/pareto.md`` and its plot).
 
 The table is the block between ``<!-- <marker>:begin -->`` and ``<!-- <marker>:end -->`` in both
 files; the README's block is replaced, with a line naming the source file and the run id and
@@ -9,7 +9,7 @@ the README has no block yet, the paragraph holding ``<!-- <marker>:pending -->``
 ``--image SRC:DST`` copies a picture (e.g. to ``docs/images/``) and shows it in the block. Figures
 in the README are therefore never typed by hand.
 
-    python scripts/readme_results.py [--summary reports/demo_refine/summary.md] [--readme README.md]
+    python scripts/readme_results.py [--summary reports/demo/summary.md] [--readme README.md]
     python scripts/readme_results.py --summary reports/pareto/pareto.md --marker pareto \\
         --image reports/pareto/accuracy_vs_time.png:docs/images/pareto.png
 """
@@ -44,7 +44,7 @@ def readme_span(text: str, where: str, marker: str) -> tuple[int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--summary", default="reports/demo_refine/summary.md")
+    parser.add_argument("--summary", default="reports/demo/summary.md")
     parser.add_argument("--readme", default="README.md")
     parser.add_argument("--marker", default="results", help="the block's name: <!-- NAME:begin --> ... end")
     parser.add_argument("--image", action="append", default=[], metavar="SRC:DST", help="also copy a picture")

@@ -5,7 +5,7 @@ import torch
 from conftest import compose_command, tiny_checkpoint
 
 from denoiser.checkpoint import load_weights, read_checkpoint
-from denoiser.configs import compose_net_config
+from denoiser.configs import compose_net_config, instantiate_config
 from denoiser.errors import ConfigError, UserError
 from denoiser.lit.distill import DistillationModule
 from denoiser.lit.supervised import SupervisedModule
@@ -38,12 +38,15 @@ def test_another_architecture_is_one_error_naming_the_file(tmp_path):
         load_weights(other, tmp_path / "missing.ckpt")  # the missing file is named, not a traceback
 
 
-def test_demo_motion_tune_composes_the_teacher_recipe_with_a_start(tmp_path):
-    cfg = compose_command("train", ["experiment=demo_motion_tune", "model.init_ckpt=t.ckpt"])
-    teacher = compose_command("train", ["experiment=demo_motion_teacher"])
+def test_an_experiment_with_init_ckpt_is_that_recipe_from_a_start(tmp_path):
+    """A fine-tune is an experiment plus model.init_ckpt (steps and lr overridden as wanted): the
+    demo teacher's network and data, trained from the checkpoint's weights."""
+    cfg = compose_command("train", ["experiment=demo_teacher", "model.init_ckpt=t.ckpt", "trainer.max_steps=400",
+                                    "model.optimizer.lr=5e-4"])
+    teacher = compose_command("train", ["experiment=demo_teacher"])
     assert cfg.model.init_ckpt == "t.ckpt" and teacher.model.init_ckpt is None
     assert cfg.trainer.max_steps == 400 and cfg.model.optimizer.lr == 5e-4
-    assert cfg.net == teacher.net and cfg.data == teacher.data  # the motion recipe's data, the teacher's network
+    assert cfg.net == teacher.net and cfg.data == teacher.data
 
 
 def student(tmp_path, init_ckpt=None, **kw):
@@ -69,15 +72,24 @@ def test_distillation_refuses_init_ckpt_with_param_transfer(tmp_path):
         student(tmp_path, str(path), param_transfer=transfer)
 
 
-def test_demo_motion_distill_tune_composes_the_student_recipe_with_a_start():
-    cfg = compose_command("train", ["experiment=demo_motion_distill_tune", "model.init_ckpt=s.ckpt",
-                                    "model.teacher_ckpt=t.ckpt"])
-    recipe = compose_command("train", ["experiment=demo_motion_distill", "model.teacher_ckpt=t.ckpt"])
-    assert cfg.model.init_ckpt == "s.ckpt" and recipe.model.init_ckpt is None
+def test_demo_distill_from_a_student_composes_and_starts_from_it(tmp_path):
+    """experiment=demo_distill model.init_ckpt=<student> model.param_transfer=null: the distillation
+    recipe (teacher, data, losses) from the student's weights; without param_transfer=null one error
+    line; experiment=demo model.init_ckpt=<student>: its no-KD comparison."""
+    start = tiny_checkpoint(tmp_path / "student.ckpt", seed=7)
+    teacher = tiny_checkpoint(tmp_path / "teacher.ckpt", seed=3)
+    tiny = ["net=tiny", "kernel=student", f"model.teacher_ckpt={teacher}"]
+    cfg = compose_command("train", ["experiment=demo_distill", *tiny, f"model.init_ckpt={start}", "model.param_transfer=null"])
+    recipe = compose_command("train", ["experiment=demo_distill", *tiny])
+    assert cfg.model.init_ckpt == str(start) and recipe.model.init_ckpt is None
     assert cfg.model.param_transfer is None and recipe.model.param_transfer is not None
-    assert cfg.trainer.max_steps == 400 and cfg.model.optimizer.lr == 5e-4
     assert cfg.net == recipe.net and cfg.data == recipe.data and cfg.model.loss == recipe.model.loss
-    assert cfg.callbacks.best is None and recipe.callbacks.best is not None  # evaluated at last.ckpt
-    no_kd = compose_command("train", ["experiment=demo_motion_nokd_tune", "model.init_ckpt=s.ckpt"])
-    assert no_kd.model.init_ckpt == "s.ckpt" and no_kd.trainer.max_steps == 400 and no_kd.callbacks.best is None
-    assert no_kd.data == compose_command("train", ["experiment=demo_motion"]).data
+    assert cfg.trainer == recipe.trainer and cfg.model.optimizer == recipe.model.optimizer
+    saved = {k.removeprefix("net."): v for k, v in read_checkpoint(start)["state_dict"].items()}
+    tuned = instantiate_config(cfg.model, "model").net.state_dict()
+    assert all(torch.equal(tuned[k], saved[k]) for k in saved)
+    with pytest.raises(ConfigError, match=r"model.init_ckpt and model.param_transfer: give one"):
+        instantiate_config(compose_command("train", ["experiment=demo_distill", *tiny, f"model.init_ckpt={start}"]).model,
+                           "model")
+    no_kd = compose_command("train", ["experiment=demo", f"model.init_ckpt={start}"])
+    assert no_kd.model.init_ckpt == str(start) and no_kd.data == compose_command("train", ["experiment=demo"]).data

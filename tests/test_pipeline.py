@@ -123,55 +123,57 @@ def test_a_stage_with_an_unknown_key_or_nothing_to_run_is_one_line(tree):
 
 # --- make demo through the command ---------------------------------------------------------------
 
-def test_demo_trains_the_recipe_evaluates_the_interpolations_and_writes_the_table(tree):
+def test_demo_renders_trains_the_recipe_evaluates_and_writes_the_table(tree):
     proc = pipeline(tree, "pipeline=demo")
     calls = stub_calls(tree / "calls.log")
+    renders = [c for c in calls if c[0] == "denoiser-render"]
+    assert sorted(arg(c, "render_set") for c in renders) == ["demo", "demo_motion"]  # the demo's two roots
     dirs = train_dirs(calls)
     students = sorted(f"student_{k}_s{s}" for s in (0, 1, 2) for k in ("distilled", "no_kd"))
-    assert dirs[0] == "reports/demo/runs/teacher" and dirs[7] == "reports/demo_refine/runs/teacher_tuned"
-    assert sorted(dirs[1:7]) == [f"reports/demo/runs/{n}" for n in students]  # side by side: any order
-    assert sorted(dirs[8:]) == [f"reports/demo_refine/runs/{n}" for n in students]
+    assert dirs[0] == "reports/demo/runs/teacher" and len(dirs) == 7
+    assert sorted(dirs[1:]) == [f"reports/demo/runs/{n}" for n in students]  # side by side: any order
     by_dir = {arg(c, "hydra.run.dir"): c for c in calls if c[0] == "denoiser-train"}
-    assert arg(by_dir["reports/demo/runs/student_distilled_s1"], "model.teacher_ckpt") == \
+    assert arg(by_dir["reports/demo/runs/teacher"], "experiment") == "demo_teacher"
+    distilled = by_dir["reports/demo/runs/student_distilled_s2"]
+    assert arg(distilled, "experiment") == "demo_distill" and arg(distilled, "model.teacher_ckpt") == \
         "reports/demo/runs/teacher/checkpoints/last.ckpt"  # resolved when the stage started: the teacher's file
-    refine = by_dir["reports/demo_refine/runs/student_distilled_s2"]
-    assert arg(refine, "model.init_ckpt") == "reports/demo/runs/student_distilled_s2"
-    assert arg(refine, "model.teacher_ckpt") == "reports/demo_refine/runs/teacher_tuned/checkpoints/last.ckpt"
-    assert arg(refine, "threads") == "1" and arg(refine, "seed") == "2"
-    assert "skip_done=true" in refine and "ckpt_path=auto" in refine
+    assert arg(distilled, "threads") == "1" and arg(distilled, "seed") == "2"
+    assert "skip_done=true" in distilled and "ckpt_path=auto" in distilled
+    no_kd = by_dir["reports/demo/runs/student_no_kd_s2"]
+    assert arg(no_kd, "experiment") == "demo" and arg(no_kd, "model.teacher_ckpt") is None
+    assert not any(arg(c, "model.init_ckpt") for c in by_dir.values())  # one stage: every run from its own start
     evaluations = [c for c in calls if c[0] == "denoiser-eval"]
     assert len(evaluations) == 1  # no data/blender/test: no Cycles evaluation
     ckpt = arg(evaluations[0], "ckpt")
-    assert ckpt.startswith("{teacher: reports/demo_refine/runs/teacher_tuned/checkpoints/last.ckpt, student_distilled_s0: "
-                           "reports/demo_refine/runs/student_distilled_s0/checkpoints/interpolated_a0.75.ckpt")
-    assert ckpt.count("interpolated_a0.75.ckpt") == 6 and arg(evaluations[0], "purpose")
+    assert ckpt.startswith("{teacher: reports/demo/runs/teacher/checkpoints/last.ckpt, student_distilled_s0: "
+                           "reports/demo/runs/student_distilled_s0/checkpoints/last.ckpt")
+    assert ckpt.count("reports/demo/runs/student_") == 6 and arg(evaluations[0], "purpose")
     bench = next(c for c in calls if c[0] == "denoiser-bench")
     assert arg(bench, "ckpt").count("_s0:") == 2 and "_s1" not in arg(bench, "ckpt")  # the first seed only
     summary = next(c for c in calls if c[0] == "python" and "denoiser.commands.demo_summary" in c)
-    assert "interpolation_alpha=0.75" in summary and "base_runs=reports/demo/runs" in summary
-    assert (tree / "reports" / "demo_refine" / "metrics.md").is_file() and (tree / "reports" / "demo_refine" / "bench.md").is_file()
-    table = rows(tree / "reports" / "demo_refine" / "timings.md")
-    assert list(table) == ["render", "render_motion", "teacher", "students", "teacher_tuned", "refine", "interpolate", "eval",
-                           "bench", "summary", "report", "total", "work"]
+    assert summary[summary.index("denoiser.commands.demo_summary") + 1:] == ["report=reports/demo", "seeds=[0, 1, 2]"]
+    assert (tree / "reports" / "demo" / "metrics.md").is_file() and (tree / "reports" / "demo" / "bench.md").is_file()
+    table = rows(tree / "reports" / "demo" / "timings.md")
+    assert list(table) == ["render", "teacher", "students", "eval", "bench", "summary", "report", "total", "work"]
     assert table["total"][1].endswith(": wall time") and "==== demo finished" in proc.stdout
 
 
 def test_demo_with_more_seeds_fewer_jobs_and_a_stage_left_out_are_keys(tree):
-    pipeline(tree, "pipeline=demo", "seeds=[3,4]", "jobs=1", "~stages.render_motion", "alpha=1")
+    pipeline(tree, "pipeline=demo", "seeds=[3,4]", "jobs=1", "~stages.render")
     calls = stub_calls(tree / "calls.log")
-    assert not any(c[0] == "denoiser-render" and "render_set=fast" in c for c in calls)
+    assert not any(c[0] == "denoiser-render" for c in calls)
     students = [c for c in calls if c[0] == "denoiser-train" and "reports/demo/runs/student" in (arg(c, "hydra.run.dir") or "")]
     assert [arg(c, "seed") for c in students] == ["3", "3", "4", "4"] and {arg(c, "threads") for c in students} == {"2"}
 
 
 def test_a_second_run_skips_what_is_done_and_keeps_the_seconds_of_the_run_that_did_it(tree):
     pipeline(tree, "pipeline=demo")
-    first = rows(tree / "reports" / "demo_refine" / "timings.md")
+    first = rows(tree / "reports" / "demo" / "timings.md")
     time.sleep(1.1)  # another run id
     (tree / "calls.log").unlink()
     pipeline(tree, "pipeline=demo")
-    second = rows(tree / "reports" / "demo_refine" / "timings.md")
-    for stage in ("teacher", "students", "teacher_tuned", "refine"):  # the trainer skipped them (no new DONE)
+    second = rows(tree / "reports" / "demo" / "timings.md")
+    for stage in ("teacher", "students"):  # the trainer skipped them (no new DONE)
         assert second[stage] == first[stage], stage
     this_run = second["total"][1].removesuffix(": wall time")
     assert this_run != first["total"][1].removesuffix(": wall time") and second["eval"][1] == this_run
@@ -185,14 +187,13 @@ def test_a_failed_job_stops_the_pipeline_with_one_line_naming_it(tree):
     assert errors == ["error: [students] student_no_kd_s1 failed (exit 1), see reports/demo/runs/student_no_kd_s1.log"]
     assert "stub: student_no_kd_s1 fails" in (tree / "reports/demo/runs/student_no_kd_s1.log").read_text()
     calls = stub_calls(tree / "calls.log")
-    assert not any(c[0] == "denoiser-eval" for c in calls) and "reports/demo_refine/runs/teacher_tuned" not in train_dirs(calls)
-    assert not (tree / "reports" / "demo_refine" / "timings.md").exists()  # the table of a finished run only
+    assert not any(c[0] in ("denoiser-eval", "denoiser-bench") for c in calls)
+    assert not (tree / "reports" / "demo" / "timings.md").exists()  # the table of a finished run only
 
 
 def test_jobs_run_side_by_side_with_their_share_of_the_cores(tree):
     side = tree / "side.txt"
-    pipeline(tree, "pipeline=demo", "seeds=[0]", "~stages.render_motion", "~stages.teacher_tuned", "~stages.refine",
-             "~stages.interpolate", "~stages.eval", "~stages.bench", "~stages.summary", "~stages.report",
+    pipeline(tree, "pipeline=demo", "seeds=[0]", "~stages.eval", "~stages.bench", "~stages.summary", "~stages.report",
              env={"STUB_SLEEP": "1", "STUB_SIDE": str(side)})
     events = {}
     for line in side.read_text().splitlines():
@@ -217,7 +218,7 @@ def test_a_killed_pipeline_stops_its_jobs_and_the_next_run_resumes(tree):
     assert ps.stdout.strip() == "", "a stub command outlived the pipeline"
     pipeline(tree, "pipeline=demo", "seeds=[0]")
     calls = stub_calls(tree / "calls.log")
-    assert "reports/demo/runs/teacher" in train_dirs(calls) and (tree / "reports/demo_refine/timings.md").is_file()
+    assert "reports/demo/runs/teacher" in train_dirs(calls) and (tree / "reports/demo/timings.md").is_file()
     assert all("ckpt_path=auto" in c for c in calls if c[0] == "denoiser-train")  # the trainer resumes a run
 
 
@@ -282,8 +283,7 @@ def test_every_pipeline_composes_and_its_training_overrides_compose_with_train(t
     # the other Hydra commands' lines compose with their own entry configs, their values as written
     # (lists, quoted strings with spaces, checkpoint mappings: what the shell passes)
     entry = {"denoiser-eval ": "eval", "denoiser-bench ": "bench", "denoiser-render ": "render",
-             "denoiser.commands.demo_summary ": "demo_summary", "denoiser.commands.ablation_summary ": "ablation_summary",
-             "denoiser.commands.interpolate ": "interpolate"}
+             "denoiser.commands.demo_summary ": "demo_summary", "denoiser.commands.ablation_summary ": "ablation_summary"}
     composed = 0
     for line in out.splitlines():
         for marker, config in entry.items():
@@ -302,7 +302,7 @@ def test_every_pipeline_composes_and_its_training_overrides_compose_with_train(t
             if config == "eval" and "images.methods" in line:
                 assert list(cfg.images.methods) == ["noisy input", "none_s0", "no_pyramid_s0", "direct_s0"]
             composed += 1
-    assert composed >= {"demo": 11, "ablations": 3, "compare": 4, "pareto": 2, "paper": 0}[name]
+    assert composed >= {"demo": 5, "ablations": 3, "compare": 4, "pareto": 2, "paper": 0}[name]
 
 
 def test_help_lists_the_pipelines_and_their_keys(tree):
@@ -316,9 +316,9 @@ def test_help_lists_the_pipelines_and_their_keys(tree):
 
 
 def test_demo_evaluates_on_the_blender_sequences_when_they_exist_and_drops_a_stale_table(tree):
-    (tree / "reports" / "demo_refine" / "blender").mkdir(parents=True)  # an earlier run's table, no sequences now
+    (tree / "reports" / "demo" / "blender").mkdir(parents=True)  # an earlier run's table, no sequences now
     pipeline(tree, "pipeline=demo", "seeds=[0]")
-    assert not (tree / "reports" / "demo_refine" / "blender").exists()
+    assert not (tree / "reports" / "demo" / "blender").exists()
     (tree / "data" / "blender" / "test").mkdir(parents=True)
     (tree / "calls.log").unlink()
     pipeline(tree, "pipeline=demo", "seeds=[0]")

@@ -148,27 +148,31 @@ def test_demo_preset_keeps_test_only_scenes_out_of_training():
     assert len({j.directory for j in jobs}) == len(jobs)
 
 
-def test_fast_preset_is_the_demo_settings_with_the_fast_motion_families():
-    """render_set=fast (data/fast, joined to another root by data.extra_roots): demo's size, spp,
-    aux and references; fast_objects for train and unlabeled, fast_spin for val, no test split;
-    and the sequences the same seeds give as when rendered into data/demo_fast by hand."""
+def test_demo_motion_preset_is_the_demo_settings_with_the_motion_families():
+    """render_set=demo_motion (data/demo_motion, joined to data/demo by the demo experiments'
+    data.extra_roots): demo's size, spp, aux, references and seed; fast_objects and vivid_objects
+    for train and unlabeled, fast_spin for val, 6 frames each, no test split; and a sequence's seed
+    does not depend on the preset's name: the same sequences as a by-hand render into another root."""
     from denoiser.commands.render import plan
     from denoiser.render.seeds import sequence_seed
 
-    demo, fast = _compose(["render_set=demo"]), _compose(["render_set=fast"])
-    assert fast.name == "fast" and fast.root.endswith("data/fast")
-    assert {k: fast[k] for k in ("width", "height", "spp", "ref_spp", "aux", "seed")} == \
-        {k: demo[k] for k in ("width", "height", "spp", "ref_spp", "aux", "seed")}
-    jobs = plan(fast)
-    assert sorted((j.split, Path(j.directory).name, j.settings.frames) for j in jobs) == [
-        ("train", "fast_objects_000", 6), ("train", "fast_objects_001", 6),
-        ("unlabeled", "fast_objects_000", 6), ("val", "fast_spin_000", 6)]
-    by_hand = plan(_compose(["scene=fast_objects", "split=train", "sequences=2", "frames=6", "spp=4",
+    demo, motion = _compose(["render_set=demo"]), _compose(["render_set=demo_motion"])
+    assert motion.name == "demo_motion" and motion.root.endswith("data/demo_motion")
+    keys = ("width", "height", "spp", "ref_spp", "aux", "seed")
+    assert {k: motion[k] for k in keys} == {k: demo[k] for k in keys}
+    jobs = plan(motion)
+    expected = sorted([*(("train", f"{scene}_{i:03d}", 6) for scene in ("fast_objects", "vivid_objects") for i in range(6)),
+                       *(("val", f"fast_spin_{i:03d}", 6) for i in range(3)),
+                       *(("unlabeled", f"fast_objects_{i:03d}", 6) for i in range(3)),
+                       *(("unlabeled", f"vivid_objects_{i:03d}", 6) for i in range(2))])
+    assert sorted((j.split, Path(j.directory).name, j.settings.frames) for j in jobs) == expected
+    by_hand = plan(_compose(["scene=fast_objects", "split=train", "sequences=6", "frames=6", "spp=4",
                              "ref_spp=256", "aux=samples", "name=demo_fast"]))
+
     def seeds(cfg, js):
         return [(j.directory, sequence_seed(cfg.seed, j.scene_name, j.split, j.index), j.settings) for j in js]
 
-    assert seeds(_compose(["render_set=demo"]), by_hand) == seeds(fast, [j for j in jobs if j.split == "train"])
+    assert seeds(demo, by_hand) == seeds(motion, [j for j in jobs if j.split == "train" and j.scene_name == "fast_objects"])
 
 
 def test_test_only_scene_refused_for_training():

@@ -144,39 +144,26 @@ def test_summary_names_the_evaluations_commit_and_the_looks_of_its_split(tmp_pat
     assert "<!-- results:begin -->\nTest ledger: looks not recorded (evaluated before the ledger" in summary
 
 
-def test_summary_of_a_recipe_of_fine_tunes_names_their_starts_and_the_interpolation(tmp_path):
-    """base_runs (make demo's refine: the runs its networks start from) are listed by path beside the
-    report's own runs, and interpolation_alpha says how the students were evaluated; an alpha outside
-    [0, 1] is one error line and no summary."""
-    report, base = tmp_path / "reports" / "demo_refine", tmp_path / "reports" / "demo" / "runs"
+def test_summary_lists_the_reports_own_runs_by_name(tmp_path):
+    """The training table holds one row per run directory of <report>/runs (those with checkpoints/),
+    by name, sorted; the header has no lines beyond the run id, commit, seeds and test split."""
+    report = tmp_path / "reports" / "demo"
     (report / "eval").mkdir(parents=True)
     with open(report / "eval" / "metrics.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, FIELDS)
         writer.writeheader()
         writer.writerows(eval_rows())
-    for runs in (base, report / "runs"):
-        for name in ("teacher" if runs == base else "teacher_tuned", "student_s0"):
-            (runs / name / "checkpoints").mkdir(parents=True)
-    cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", "report=reports/demo_refine",
-           f"data_root={tmp_path}", "base_runs=reports/demo/runs"]
-    proc = subprocess.run([*cmd, "interpolation_alpha=0.75"], capture_output=True, text=True, cwd=tmp_path, check=False)
+    for name in ("teacher", "student_s0"):
+        (report / "runs" / name / "checkpoints").mkdir(parents=True)
+    (report / "runs" / "notes").mkdir()  # no checkpoints/: not a run
+    cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", "report=reports/demo", f"data_root={tmp_path}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
     assert proc.returncode == 0, proc.stderr
     summary = (report / "summary.md").read_text()
     runs = [line.split("|")[1].strip() for line in summary.split("## Training runs")[1].splitlines()[4:] if line.startswith("| ")]
-    assert runs == ["reports/demo/runs/student_s0", "reports/demo/runs/teacher",
-                    "reports/demo_refine/runs/student_s0", "reports/demo_refine/runs/teacher_tuned"]
-    header = summary.split("Metrics:")[0]
-    assert "- fine-tunes (`reports/demo_refine/runs`) of the runs in `reports/demo/runs`" in header
-    assert "(1 - 0.75) x its start in `reports/demo/runs` + 0.75 x its fine-tune" in header
-    (report / "summary.md").unlink()
-    bad = subprocess.run([*cmd, "interpolation_alpha=1.5"], capture_output=True, text=True, cwd=tmp_path, check=False)
-    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "interpolation_alpha" in bad.stderr
-    assert not (report / "summary.md").exists()
-    # the default recipe's summary: its own runs by name, no recipe lines
-    proc = subprocess.run(cmd[:-1], capture_output=True, text=True, cwd=tmp_path, check=False)
-    assert proc.returncode == 0, proc.stderr
-    summary = (report / "summary.md").read_text()
-    assert "fine-tunes" not in summary and "| teacher_tuned |" in summary
+    assert runs == ["student_s0", "teacher"]
+    header = [line for line in summary.split("Metrics:")[0].splitlines() if line.startswith("- ")]
+    assert [line.split(":")[0] for line in header] == ["- run id", "- commit", "- seeds (students)", "- test split"]
 
 
 def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tmp_path):

@@ -3,8 +3,6 @@
 Usage::
 
     python -m denoiser.commands.demo_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
-    python -m denoiser.commands.demo_summary report=reports/demo_refine base_runs=reports/demo/runs \
-        interpolation_alpha=0.75        # make demo's own (its refine recipe: conf/pipeline/demo.yaml)
 
 A Hydra app over ``conf/demo_summary.yaml``, run by ``conf/pipeline/demo.yaml`` at its end. It reads
 
@@ -15,8 +13,7 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``conf/pipeline/demo.yaml`` 
   sequences and a verdict from it), with a per-family table of the same differences;
 * ``<report>/bench/bench.csv`` (``denoiser-bench``): ms per 1080p frame per method on its
   fastest backend per precision (fp32, bf16), and the paired speed-up over OIDN-fast with its interval;
-* every run directory under ``<report>/runs`` (and, for a recipe of fine-tunes, under ``base_runs``,
-  the runs they start from, named by path): steps trained (``last.ckpt``), best val PSNR
+* every run directory under ``<report>/runs``: steps trained (``last.ckpt``), best val PSNR
   (``best.ckpt``) and its seed;
 * each ``<report>/<dir>/metrics.csv`` named under ``extra_evals`` (``{dir: title}``, e.g. the
   demo networks on the Blender Cycles sequences), when it exists: one more table per
@@ -75,32 +72,9 @@ def markers(name: str) -> tuple[str, str]:
     return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
 
 
-def run_rows(runs: Path, by_path: bool = False) -> list[dict]:
-    """One row per run directory: name (its path, with ``by_path``), seed, steps (last.ckpt), best val
-    PSNR (best.ckpt)."""
-    rows = [run_row(run) for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir())]
-    if by_path:
-        rows = [{**row, "run": f"{runs.as_posix()}/{row['run']}"} for row in rows]
-    return rows
-
-
-def recipe_lines(cfg: DictConfig, report: Path) -> list[str]:
-    """The header lines of a recipe whose networks are fine-tunes of other runs (make demo's refine:
-    ``base_runs``, and ``interpolation_alpha`` when each student is evaluated as its weights
-    interpolated with its start); none otherwise. ConfigError on an alpha outside [0, 1]."""
-    lines = []
-    if cfg.get("base_runs"):
-        lines.append(f"- fine-tunes (`{report.as_posix()}/runs`) of the runs in `{cfg.base_runs}`; the teacher row is "
-                     "the fine-tuned teacher")
-    if cfg.get("interpolation_alpha") is not None:
-        alpha = float(cfg.interpolation_alpha)
-        if not 0.0 <= alpha <= 1.0:
-            raise ConfigError(f"interpolation_alpha: {alpha} is outside [0, 1]")
-        start = f"its start in `{cfg.base_runs}`" if cfg.get("base_runs") else "its start"
-        lines.append(f"- each student evaluated as (1 - {alpha:g}) x {start} + {alpha:g} x its fine-tune, weight by "
-                     "weight (`python -m denoiser.commands.interpolate`: "
-                     "`checkpoints/interpolated_a<alpha>.ckpt` in its run)")
-    return lines
+def run_rows(runs: Path) -> list[dict]:
+    """One row per run directory of ``runs`` (by name): seed, steps (last.ckpt), best val PSNR (best.ckpt)."""
+    return [run_row(run) for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir())]
 
 
 #: the precisions a summary shows time columns for, in order (f32 first: like with like against OIDN)
@@ -240,10 +214,7 @@ def run(cfg: DictConfig) -> Path:
     size = (int(cfg.bench_size[0]), int(cfg.bench_size[1]))
     bench_csv = report / "bench" / "bench.csv"
     bench = bench_rows(bench_csv, size) if bench_csv.exists() else {}
-    base = Path(cfg.base_runs) if cfg.get("base_runs") else None
-    runs = run_rows(base, by_path=True) if base is not None and base.is_dir() else []
-    runs += run_rows(report / "runs", by_path=base is not None) if (report / "runs").is_dir() else []
-    recipe = recipe_lines(cfg, report)
+    runs = run_rows(report / "runs") if (report / "runs").is_dir() else []
     test_dir = Path(cfg.data_root) / "test"
     book = cfg.get("ledger") or ledger.LEDGER
     evaluated = ledger.read_provenance(metrics_csv.parent)
@@ -254,7 +225,6 @@ def run(cfg: DictConfig) -> Path:
         commit_line(evaluated),
         f"- seeds (students): {list(cfg.seeds)}",
         f"- test split: `{test_dir}`, SHA-256 of its files {tree_hash(test_dir) if test_dir.is_dir() else 'missing'}",
-        *recipe,
         "",
         ("Metrics: the mean over test sequences of each sequence's mean over its frames kept after "
          f"denoiser-eval's warm-up; {COLUMNS['psnr_all'].label}: over every frame; "

@@ -3,14 +3,15 @@
 Usage::
 
     python -m denoiser.commands.interpolate start=reports/demo/runs/student_distilled_s0 \\
-        end=reports/demo_refine/runs/student_distilled_s0/checkpoints/last.ckpt alpha=0.5 out=mid.ckpt
+        end=<its fine-tune's run>/checkpoints/last.ckpt alpha=0.5 out=mid.ckpt
 
 A Hydra app over ``conf/interpolate.yaml``: writes ``out``, the weights ``(1 - alpha) * start +
 alpha * end`` (:func:`denoiser.checkpoint.interpolate_checkpoints`), a checkpoint every command
-loads (``denoiser-eval ckpt=mid.ckpt``). For a fine-tune that trades one kind of data for another
-(issue 33: make demo's student fine-tuned on fast-moving objects), ``alpha`` walks the line between
-the two; it is chosen on val. A user mistake (a missing file, two networks, alpha outside [0, 1])
-is one error line and exit code 2.
+loads (``denoiser-eval ckpt=mid.ckpt``). ``end`` is ``start``'s fine-tune (a training run with
+``model.init_ckpt=<start>``, docs/training.md); where the fine-tune trades one kind of data for
+another (issue 33 fine-tuned make demo's students on fast-moving objects: docs/results_log.md),
+``alpha`` walks the line between the two and is chosen on val. No pipeline runs it. A user mistake
+(a missing file, two networks, alpha outside [0, 1]) is one error line and exit code 2.
 """
 
 from __future__ import annotations

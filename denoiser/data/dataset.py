@@ -47,8 +47,8 @@ def index_split(layout: Layout, root: str | os.PathLike, split: str,
 
     ``extra_roots``: more dataset roots whose ``<extra>/<split>`` sequences join the split, when
     that folder exists (``data.extra_roots``: families rendered as their own dataset, e.g.
-    ``conf/render_set/fast.yaml``, added to another without copying it). A sequence name in two roots
-    is an error naming both folders."""
+    ``conf/render_set/demo_motion.yaml``, added to another without copying it). A sequence name in two
+    roots is an error naming both folders."""
     dirs = list(layout.list_sequences(os.path.join(root, split)))
     seen = {d.name: d for d in dirs}
     for extra in extra_roots:

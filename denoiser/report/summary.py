@@ -299,14 +299,20 @@ def commit_line(evaluation: Mapping | None) -> str:
     return f"- commit: {git_commit()} (the summary's: the evaluation wrote no evaluation.json)"
 
 
+#: tracked files the commands themselves write as they run (the test ledger's rows): not a change to the code
+RUN_RECORDS = ("docs/results/test_ledger.csv",)
+
+
 def git_commit() -> str:
-    """The checkout's short commit (``-dirty`` with uncommitted changes to tracked files), or
-    ``unknown`` outside a git checkout: what a report names as the code that wrote it."""
+    """The checkout's short commit (``-dirty`` with uncommitted changes to tracked files other than
+    :data:`RUN_RECORDS`), or ``unknown`` outside a git checkout: what a report names as the code that
+    wrote it (a pipeline's evaluation appends to the ledger; the bench after it ran the same code)."""
     import subprocess
 
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ":(top)",
+                                *(f":(top,exclude){p}" for p in RUN_RECORDS)], capture_output=True,
                                check=False, text=True).stdout.strip()
         return out.stdout.strip() + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):

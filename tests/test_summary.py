@@ -5,6 +5,7 @@ family in val, test families held out)."""
 from __future__ import annotations
 
 import csv
+import json
 import statistics
 import subprocess
 import sys
@@ -166,6 +167,38 @@ def test_summary_lists_the_reports_own_runs_by_name(tmp_path):
     assert [line.split(":")[0] for line in header] == ["- run id", "- commit", "- seeds (students)", "- test split"]
 
 
+def test_results_block_states_the_pipelines_stage_times(tmp_path):
+    """make demo's 45-minute budget is shown where the README copies from: the results block ends with
+    the stage-time table's seconds and their sum, from timings.md.tmp while the pipeline still runs
+    (the summary is one of its stages), else timings.md; no line without a table."""
+    report = tmp_path / "reports" / "demo"
+    (report / "eval").mkdir(parents=True)
+    with open(report / "eval" / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, FIELDS)
+        writer.writeheader()
+        writer.writerows(eval_rows())
+    cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", "report=reports/demo", f"data_root={tmp_path}"]
+
+    def block():
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
+        assert proc.returncode == 0, proc.stderr
+        text = (report / "summary.md").read_text()
+        return text.split("<!-- results:begin -->")[1].split("<!-- results:end -->")[0]
+
+    assert "Stage times" not in block()
+    (report / "timings.md").write_text("| stage | seconds | run |\n|---|---:|---|\n| render | 700 | run A |\n"
+                                       "| teacher | 400 | run B |\n| total | 1100 | run B: wall time |\n"
+                                       "| work | 1100 | every stage's seconds |\n")
+    assert "Stage times of the pipeline that made this report: 1100 s (18.3 min) in all, render 700, teacher 400" \
+        in block()
+    (report / "timings.md.tmp").write_text("| stage | seconds | run |\n|---|---:|---|\n| render | 5 | run C |\n")
+    assert ": 5 s (0.1 min) in all, render 5 (seconds" in block()
+    (report / "bench").mkdir()
+    (report / "bench" / "bench.json").write_text(json.dumps({"machine": {"cpu": "AMD EPYC", "logical_cores": 2,
+                                                                          "cpu_id": "AuthenticAMD family 25 model 17"}}))
+    assert "timings.md`), on AMD EPYC (AuthenticAMD family 25 model 17), 2 logical cores." in block()
+
+
 def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tmp_path):
     report = tmp_path / "report"
     for sub, rows in (("eval", eval_rows()), ("blender", eval_rows()[:2] + eval_rows()[4:])):
@@ -242,3 +275,27 @@ def test_blender_block_holds_the_claims_per_family_in_frames_2_plus(tmp_path):
     assert family["orbit"][2].strip() == "1" and family["orbit"][3].strip() == "-0.80 (one sequence)"   # 32.2 - 33.0
     off = subprocess.run([*cmd, "extra_family_metric=null"], capture_output=True, text=True, cwd=tmp_path, check=False)
     assert off.returncode == 0 and "Per family" not in (report / "summary.md").read_text().split("<!-- blender:begin -->")[1]
+
+
+def test_the_ledger_rows_a_run_appends_do_not_make_its_commit_dirty(tmp_path, monkeypatch):
+    """make demo's evaluation appends to the committed ledger, then its bench records the commit: that
+    is the same code (not "-dirty"); a change to any other tracked file still is."""
+    import subprocess
+
+    from denoiser.report.summary import git_commit
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    (tmp_path / "docs" / "results" / "test_ledger.csv").write_text("date\n")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
+    (tmp_path / "docs").joinpath("results", "test_ledger.csv").write_text("date\n2026\n")
+    monkeypatch.chdir(tmp_path / "docs")        # from a subfolder too: the paths are the checkout's
+    clean = git_commit()
+    assert clean and not clean.endswith("-dirty") and clean != "unknown"
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert git_commit() == clean + "-dirty"

@@ -13,6 +13,8 @@ A Hydra app over ``conf/demo_summary.yaml``, run by ``conf/pipeline/demo.yaml`` 
   sequences and a verdict from it), with a per-family table of the same differences;
 * ``<report>/bench/bench.csv`` (``denoiser-bench``): ms per 1080p frame per method on its
   fastest backend per precision (fp32, bf16), and the paired speed-up over OIDN-fast with its interval;
+* ``<report>/timings.md`` (the pipeline's stage-time table; ``timings.md.tmp`` while it runs): a line
+  in the results block with every stage's seconds and their sum;
 * every run directory under ``<report>/runs``: steps trained (``last.ckpt``), best val PSNR
   (``best.ckpt``) and its seed;
 * each ``<report>/<dir>/metrics.csv`` named under ``extra_evals`` (``{dir: title}``, e.g. the
@@ -75,6 +77,40 @@ def markers(name: str) -> tuple[str, str]:
 def run_rows(runs: Path) -> list[dict]:
     """One row per run directory of ``runs`` (by name): seed, steps (last.ckpt), best val PSNR (best.ckpt)."""
     return [run_row(run) for run in sorted(p for p in runs.iterdir() if (p / "checkpoints").is_dir())]
+
+
+def stage_times(report: Path) -> list[str]:
+    """The line of the pipeline's stage-time table (``<report>/timings.md``, or ``timings.md.tmp`` while
+    the pipeline that runs this summary is still going: the stages before it): every stage's seconds and
+    their sum, the wall time of a run that reused nothing. None without a table."""
+    from denoiser.pipeline.timings import read_rows
+
+    table = next((p for p in (report / "timings.md.tmp", report / "timings.md") if p.is_file()), None)
+    rows = read_rows(table) if table is not None else {}
+    if not rows:
+        return []
+    total = sum(seconds for seconds, _ in rows.values())
+    stages = ", ".join(f"{stage} {seconds}" for stage, (seconds, _) in rows.items())
+    machine = bench_machine(report)
+    return [f"Stage times of the pipeline that made this report: {total} s ({total / 60:.1f} min) in all, "
+            f"{stages} (seconds; `{report.as_posix()}/timings.md`)"
+            + (f", on {machine}." if machine else "."), ""]
+
+
+def bench_machine(report: Path) -> str | None:
+    """The CPU the report's benchmark ran on (``<report>/bench/bench.json``), e.g. ``AMD EPYC
+    (AuthenticAMD family 25 model 17), 2 logical cores``; None without a benchmark."""
+    import json
+
+    path = report / "bench" / "bench.json"
+    if not path.is_file():
+        return None
+    machine = json.loads(path.read_text()).get("machine") or {}
+    if not machine.get("cpu"):
+        return None
+    cpu_id = f" ({machine['cpu_id']})" if machine.get("cpu_id") else ""
+    cores = f", {machine['logical_cores']} logical cores" if machine.get("logical_cores") else ""
+    return f"{machine['cpu']}{cpu_id}{cores}"
 
 
 #: the precisions a summary shows time columns for, in order (f32 first: like with like against OIDN)
@@ -252,6 +288,8 @@ def run(cfg: DictConfig) -> Path:
         *merged_note(merged),
         "",
         *claim_lines(claims, per_sequence),
+        "",
+        *stage_times(report),
         markers(cfg.marker)[1],
         "",
         *(family_lines(claims, per_sequence, families(metrics_csv), cfg.family_metric) + [""] if claims else []),

@@ -82,8 +82,8 @@ gpu-check:
 	bash scripts/gpu_check.sh
 
 # Generalisation to a real renderer: small Blender Cycles test sequences (scripts/blender_sequences.py,
-# rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/ (orbit,
-# slide and six fast-object-motion sequences fast_201..206), the val split (fast_101..103, other
+# rendered with the `bpy` wheel in its own venv, never in $(VENV)) into data/blender/test/ (six
+# fast-object-motion sequences fast_301..306: fresh seeds, issue 49), the val split (fast_101..103, other
 # seeds: `make blender-val` alone, BLENDER_VAL_ARGS) into data/blender/val/, then
 # denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/,
 # and the ceiling a demodulating network meets on their noisy albedo (python -m denoiser.commands.albedo_bound).

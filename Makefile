@@ -46,8 +46,7 @@ ARGS ?=
 demo ablations compare pareto: setup
 	$(VENV)/bin/denoiser-pipeline pipeline=$@ $(ARGS)
 paper: setup
-	$(VENV)/bin/denoiser-pipeline pipeline=paper $(ARGS)
-	$(MAKE) readme
+	$(VENV)/bin/denoiser-pipeline pipeline=paper $(ARGS) && $(MAKE) readme
 
 # Copy every results block of the reports into docs/results.md (never typed by hand): make demo's
 # table (and its Blender table), the ablations, the comparison, the Pareto front, make paper's budget

@@ -145,15 +145,21 @@ def test_summary_names_the_evaluations_commit_and_the_looks_of_its_split(tmp_pat
     assert "<!-- results:begin -->\nTest ledger: looks not recorded (evaluated before the ledger" in summary
 
 
-def test_summary_lists_the_reports_own_runs_by_name(tmp_path):
-    """The training table holds one row per run directory of <report>/runs (those with checkpoints/),
-    by name, sorted; the header has no lines beyond the run id, commit, seeds and test split."""
+def demo_report(tmp_path: Path) -> Path:
+    """``<tmp_path>/reports/demo`` holding an evaluation's metrics.csv (:func:`eval_rows`)."""
     report = tmp_path / "reports" / "demo"
     (report / "eval").mkdir(parents=True)
     with open(report / "eval" / "metrics.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, FIELDS)
         writer.writeheader()
         writer.writerows(eval_rows())
+    return report
+
+
+def test_summary_lists_the_reports_own_runs_by_name(tmp_path):
+    """The training table holds one row per run directory of <report>/runs (those with checkpoints/),
+    by name, sorted; the header has no lines beyond the run id, commit, seeds and test split."""
+    report = demo_report(tmp_path)
     for name in ("teacher", "student_s0"):
         (report / "runs" / name / "checkpoints").mkdir(parents=True)
     (report / "runs" / "notes").mkdir()  # no checkpoints/: not a run
@@ -171,12 +177,7 @@ def test_results_block_states_the_pipelines_stage_times(tmp_path):
     """make demo's 45-minute budget is shown where the README copies from: the results block ends with
     the stage-time table's seconds and their sum, from timings.md.tmp while the pipeline still runs
     (the summary is one of its stages), else timings.md; no line without a table."""
-    report = tmp_path / "reports" / "demo"
-    (report / "eval").mkdir(parents=True)
-    with open(report / "eval" / "metrics.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, FIELDS)
-        writer.writeheader()
-        writer.writerows(eval_rows())
+    report = demo_report(tmp_path)
     cmd = [sys.executable, "-m", "denoiser.commands.demo_summary", "report=reports/demo", f"data_root={tmp_path}"]
 
     def block():

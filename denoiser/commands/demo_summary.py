@@ -80,9 +80,9 @@ def run_rows(runs: Path) -> list[dict]:
 
 
 def stage_times(report: Path) -> list[str]:
-    """The line of the pipeline's stage-time table (``<report>/timings.md``, or ``timings.md.tmp`` while
+    """The lines (a blank one, then the line) of the pipeline's stage-time table (``<report>/timings.md``, or ``timings.md.tmp`` while
     the pipeline that runs this summary is still going: the stages before it): every stage's seconds and
-    their sum, the wall time of a run that reused nothing. None without a table."""
+    their sum, the wall time of a run that reused nothing. None without a table (the block as before)."""
     from denoiser.pipeline.timings import read_rows
 
     table = next((p for p in (report / "timings.md.tmp", report / "timings.md") if p.is_file()), None)
@@ -92,9 +92,8 @@ def stage_times(report: Path) -> list[str]:
     total = sum(seconds for seconds, _ in rows.values())
     stages = ", ".join(f"{stage} {seconds}" for stage, (seconds, _) in rows.items())
     machine = bench_machine(report)
-    return [f"Stage times of the pipeline that made this report: {total} s ({total / 60:.1f} min) in all, "
-            f"{stages} (seconds; `{report.as_posix()}/timings.md`)"
-            + (f", on {machine}." if machine else "."), ""]
+    return ["", f"Stage times of the pipeline that made this report: {total} s ({total / 60:.1f} min) in all, "
+            f"{stages} (seconds; `{report.as_posix()}/timings.md`)" + (f", on {machine}." if machine else ".")]
 
 
 def bench_machine(report: Path) -> str | None:
@@ -288,7 +287,6 @@ def run(cfg: DictConfig) -> Path:
         *merged_note(merged),
         "",
         *claim_lines(claims, per_sequence),
-        "",
         *stage_times(report),
         markers(cfg.marker)[1],
         "",

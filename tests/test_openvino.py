@@ -164,7 +164,8 @@ def test_fused_option_forces_the_graph(monkeypatch):
 
 @pytest.mark.parametrize("extension", [True, False])
 def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, capsys, extension):
-    """Both precisions export denoiser::PyramidFilter when the extension is available; without it
+    """With the extension the f32 backend exports one denoiser::PyramidFilterHead (its matmul heads'
+    level-0 head computed inside the filter; bf16 exports denoiser::PyramidFilter); without it
     (no compiler) the backend says why on stderr and runs the plain graph, with the same numbers."""
     import onnx
 
@@ -178,7 +179,8 @@ def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, caps
     assert backend.fused_kernels is extension
     assert backend.label == f"openvino f32 ({'fused' if extension else 'plain'})"  # the graph that ran, in every row
     nodes = onnx.load(backend._export(net)).graph.node
-    assert sum(n.op_type == "PyramidFilter" for n in nodes) == int(extension)
+    assert sum(n.op_type == "PyramidFilterHead" for n in nodes) == int(extension)
+    assert not any(n.op_type == "PyramidFilter" for n in nodes)
     assert ("plain kernel filter graph (no C++ compiler" in capsys.readouterr().err) is not extension
     for frame, reset, (out, _) in zip(frames, RESETS, expected):
         got = runner(frame, reset)

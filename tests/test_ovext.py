@@ -197,6 +197,68 @@ def test_pyramid_filter_matches_the_module(tmp_path, sizes, scale, hw):
     assert np.array_equal(run_openvino(path, x, heads, threads=2), got)
 
 
+class FactoredPyramid(torch.nn.Module):
+    """A PyramidFilter reading head 0 as a :class:`~denoiser.nn.unet.FactoredHead` of ``skip0`` and
+    ``half`` (exported: one ``denoiser::PyramidFilterHead``)."""
+
+    def __init__(self, sizes, scale, mode, weight, bias):
+        super().__init__()
+        self.filter, self.mode = PyramidFilter(sizes, scale), mode
+        self.register_buffer("weight", weight)
+        self.register_buffer("bias", bias)
+
+    def forward(self, x, skip0, half, *heads):
+        from denoiser.nn.unet import FactoredHead
+
+        head0 = FactoredHead(skip0, half, self.weight, self.bias, self.mode, False if self.mode == "bilinear" else None)
+        return self.filter(x, [head0, *heads], None)[0]
+
+
+@needs_extension
+@pytest.mark.parametrize(("skip", "hw", "mode"), [
+    (16, (20, 44), "bilinear"),  # the demo student's 16 channels (blocks transposed in registers), a partial strip
+    (32, (12, 16), "bilinear"),  # the teacher's width
+    (5, (10, 14), "nearest"),  # any other width, nearest upsampling
+])
+def test_pyramid_filter_head_matches_the_module(tmp_path, skip, hw, mode):
+    """``denoiser::PyramidFilterHead`` against the eager PyramidFilter on head 0 computed as its
+    definition: the 1x1 convolution of ``[skip0, interpolate(half)]`` (a concatenation), not the
+    factored form; two images, one and two threads alike."""
+    import openvino as ov
+
+    from denoiser.nn.graph_ops import OPERATIONS
+
+    sizes, scale = [5, 5, 5], 2.5
+    n0, (h, w) = len(sizes) + sizes[0] ** 2, hw
+    g = torch.Generator().manual_seed(skip)
+    x = torch.rand(2, 3, h, w, generator=g) * 10
+    skip0, half = torch.randn(2, skip, h, w, generator=g), torch.randn(2, 7, h // 2, w // 2, generator=g)
+    weight, bias = torch.randn(n0, skip + 7, generator=g) * 0.5, torch.randn(n0, generator=g)
+    heads = [torch.randn(2, k * k, h >> i, w >> i, generator=g) * 3 for i, k in enumerate(sizes) if i > 0]
+    module = FactoredPyramid(sizes, scale, mode, weight, bias).eval()
+    up = torch.nn.functional.interpolate(half, size=hw, mode=mode, align_corners=False if mode == "bilinear" else None)
+    head0 = torch.nn.functional.conv2d(torch.cat([skip0, up], 1), weight[:, :, None, None], bias)
+    want = Pyramid(sizes, scale).eval()(x, head0, *heads).detach().numpy()
+    names = ["x", "skip", "half", "h1", "h2"]
+    with kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(module, (x, skip0, half, *heads), str(tmp_path / "f.onnx"), input_names=names,
+                          output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import onnx
+
+    ops = [n.op_type for n in onnx.load(str(tmp_path / "f.onnx")).graph.node if n.domain == "denoiser"]
+    assert ops == ["PyramidFilterHead"] and "PyramidFilterHead" in OPERATIONS
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "f.onnx")
+    feed = dict(zip(names, (t.numpy() for t in (x, skip0, half, *heads))))
+    got = []
+    for threads in (1, 2):
+        compiled = core.compile_model(core.read_model(str(tmp_path / "f.onnx")), "CPU",
+                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
+        got.append(compiled(feed)[compiled.output(0)])
+    np.testing.assert_allclose(got[0], want, rtol=1e-4, atol=1e-4)
+    assert np.array_equal(got[0], got[1])
+
+
 def one_hot(taps, k: int = 5) -> torch.Tensor:
     """Logits ``[1, k*k, H, W]``: +1e4 at tap ``taps[y]`` of row y, -1e4 elsewhere (saturated)."""
     logits = torch.full((1, k * k, len(taps), 1), -1e4)

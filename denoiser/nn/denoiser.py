@@ -72,6 +72,7 @@ from denoiser.nn.inputs import (
     sanitize,
 )
 from denoiser.nn.kernels import apply_kernels
+from denoiser.nn.unet import head_channels
 from denoiser.runner import unroll
 
 #: where the filter averages radiance: linear (unbiased), or log-compressed (module docstring)
@@ -245,11 +246,13 @@ class Denoiser(nn.Module):
         if isinstance(net_in, torch.Tensor):
             net_in = pad_to_multiple(net_in, self.multiple)
         heads, features = self.unet(net_in)
-        filter_heads = [heads[0][:, : self.filter_head0]] + list(heads[1:])
+        # heads[0] may be factored (unet.FactoredHead, exported graphs): the pyramid filter reads it as is
+        factored = getattr(self.filter, "reads_factored_head", False)
+        filter_heads = [head_channels(heads[0], 0, self.filter_head0, factored)] + list(heads[1:])
         weights: dict[str, torch.Tensor] = {}
         filter_in = color
         if history is not None:
-            temporal_head = heads[0][:, self.filter_head0:, :h, :w]
+            temporal_head = head_channels(heads[0], self.filter_head0)[:, :, :h, :w]
             filter_in, weights["history_in"] = self.temporal.blend_in(color, history, temporal_head)
         log = self.filter_domain == "log"
         padded = pad_to_multiple(filter_in, self.multiple)
@@ -265,7 +268,7 @@ class Denoiser(nn.Module):
             new_state = self.temporal.next_state(output, filter_in, temporal_head, guide)
         if albedo is not None:
             if self.remodulation_channels:
-                logits = heads[0][:, -self.remodulation_channels:, :h, :w]
+                logits = head_channels(heads[0], -self.remodulation_channels)[:, :, :h, :w]
                 albedo = apply_kernels(albedo, logits, getattr(self.filter, "logit_scale", None))
                 weights["remodulation"] = albedo
             output = output * albedo

@@ -19,7 +19,8 @@ that record them. Eager training and inference never take these paths.
   the operation's name in snake case, and ``extension.cpp``) against it.
 * The stubs (``torch.autograd.Function``): their value is the plain computation (the tracer
   records the node only); :class:`KernelApplyOp` (:func:`denoiser.nn.kernels.apply_kernels_graph`),
-  :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`Log1pOp`
+  :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`PyramidFilterHeadOp`
+  (the same with head 0 as :class:`denoiser.nn.unet.FactoredHead`), :class:`Log1pOp`
   (:func:`denoiser.nn.inputs.log1p`), :class:`AddUpsampledOp`
   (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`), :class:`ClampBlendOp`
   (:func:`denoiser.nn.temporal.clamp_blend`), :class:`GuideGateOp`
@@ -53,6 +54,10 @@ OPERATIONS: dict[str, Operation] = {
     "KernelApply": Operation(2, {"scale": "FLOAT", "has_scale": "INT"}),
     # x [B, 3, H, W], head_0 .. head_{L-1} -> [B, 3, H, W]
     "PyramidFilter": Operation(None, {"kernel_sizes": "INTS", "scale": "FLOAT", "has_scale": "INT"}),
+    # x [B, 3, H, W], skip [B, H, W, C_s] (channels-last), weight [L + k0^2, C_s], z [B, L + k0^2, h, w],
+    # head_1 .. head_{L-1} -> [B, 3, H, W]: PyramidFilter with head 0 = weight @ skip + up(z)
+    "PyramidFilterHead": Operation(None, {"kernel_sizes": "INTS", "scale": "FLOAT", "has_scale": "INT",
+                                          "mode": "STRING"}),
     # x -> log1p(x)
     "Log1p": Operation(1, {}),
     # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
@@ -185,6 +190,32 @@ class PyramidFilterOp(torch.autograd.Function):
                           **_scale_attributes(scale))
 
 
+class PyramidFilterHeadOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.pyramid.PyramidFilter.forward` with head 0 given by its factors
+    (:class:`denoiser.nn.unet.FactoredHead`), recorded as one ``denoiser::PyramidFilterHead`` node:
+    head 0 is ``weight @ skip + interpolate(z, (H, W), mode)``, computed row by row where the
+    filter reads it instead of written at full resolution.
+
+    forward(x ``[B, 3, H, W]``, skip ``[B, H, W, C_s]`` channels-last, weight ``[L + k0^2, C_s]``,
+    z ``[B, L + k0^2, h, w]``, kernel_sizes, scale, mode, align, head_1 .. head_{L-1})
+    -> ``[B, 3, H, W]`` float32, computed by the plain graph.
+    """
+
+    @staticmethod
+    def forward(ctx, x, skip, weight, z, kernel_sizes, scale, mode, align, *heads):
+        from denoiser.nn.parts import pointwise
+        from denoiser.nn.pyramid import pyramid_filter
+
+        head0 = pointwise(weight, None, skip.permute(0, 3, 1, 2)) + F.interpolate(
+            z, size=x.shape[-2:], mode=mode, align_corners=align)
+        return unfused(pyramid_filter, x, (head0, *heads), kernel_sizes, scale)[0]
+
+    @staticmethod
+    def symbolic(g, x, skip, weight, z, kernel_sizes, scale, mode, align, *heads):
+        return graph_node(g, "PyramidFilterHead", x, skip, weight, z, *heads, like=x,
+                          kernel_sizes=list(kernel_sizes), mode=mode, **_scale_attributes(scale))
+
+
 class Log1pOp(torch.autograd.Function):
     """:func:`denoiser.nn.inputs.log1p` recorded as one ``denoiser::Log1p`` node (the value: ``torch.log1p``)."""
 
@@ -252,6 +283,6 @@ class GuideGateOp(torch.autograd.Function):
         return out
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterOp",
+__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
            "untraced"]

@@ -29,8 +29,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import PyramidFilterOp, fused_kernels
+from denoiser.nn.graph_ops import PyramidFilterHeadOp, PyramidFilterOp, fused_kernels
 from denoiser.nn.kernels import apply_kernels, scale_logits
+from denoiser.nn.unet import FactoredHead
 
 #: smallest normaliser used for division; below it the input pixel is passed through
 NORM_EPS = 1e-30
@@ -87,6 +88,10 @@ class PyramidFilter(nn.Module):
     ``L + k_0^2`` channels (partition logits first), level i >= 1 ``k_i^2``.
     """
 
+    #: heads[0] may be a :class:`~denoiser.nn.unet.FactoredHead` (exported graphs with matmul heads
+    #: and the fused operations: one ``denoiser::PyramidFilterHead`` node computes its rows)
+    reads_factored_head = True
+
     def __init__(self, kernel_sizes: Sequence[int], logit_scale: float | None = None):
         super().__init__()
         self.kernel_sizes = check_kernel_sizes(kernel_sizes)
@@ -99,15 +104,27 @@ class PyramidFilter(nn.Module):
     def forward(self, x: torch.Tensor, heads: Sequence[torch.Tensor], scale: torch.Tensor
                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """x: ``[B, 3, H, W]`` linear radiance (H, W multiples of 2^(L-1));
-        heads[i]: ``[B, head_channels[i], H/2^i, W/2^i]``; scale: ``[B, 1, 1, 1]`` (unused).
+        heads[i]: ``[B, head_channels[i], H/2^i, W/2^i]`` (heads[0] also a
+        :class:`~denoiser.nn.unet.FactoredHead`); scale: ``[B, 1, 1, 1]`` (unused).
 
         Returns ``(output [B, 3, H, W] float32, {"partition": [B, L, H, W]})``.
         """
+        factored = isinstance(heads[0], FactoredHead)
         if fused_kernels():  # exported for OpenVINO with the project's extension: one node
             with torch.autocast(device_type=x.device.type, enabled=False):
-                out = PyramidFilterOp.apply(x.float(), tuple(self.kernel_sizes), self.logit_scale,
-                                             *[h.float() for h in heads])
+                rest = [h.float() for h in heads[1:]]
+                if factored:  # head 0 computed inside the node, never written (PyramidFilterHeadOp)
+                    h0 = heads[0]
+                    out = PyramidFilterHeadOp.apply(
+                        x.float(), h0.skip0.float().permute(0, 2, 3, 1), h0.skip_weight.float(),
+                        h0.upsampled_part().float(), tuple(self.kernel_sizes), self.logit_scale, h0.mode, h0.align,
+                        *rest)
+                else:
+                    out = PyramidFilterOp.apply(x.float(), tuple(self.kernel_sizes), self.logit_scale,
+                                                heads[0].float(), *rest)
             return out, {}
+        if factored:
+            heads = [heads[0].tensor()] + list(heads[1:])
         return pyramid_filter(x, heads, self.kernel_sizes, self.logit_scale)
 
 

@@ -20,6 +20,7 @@ upsample). These n maps are also returned as ``features`` (for feature distillat
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -112,7 +113,8 @@ class UNet(nn.Module):
         whose channel concatenation is that input (:meth:`first_conv_of_parts`).
 
         Returns ``(heads, features)``: ``heads[i]``: ``[B, head_channels[i], H/2^i, W/2^i]``
-        (None where head_channels[i] == 0); ``features[i]``: ``[B, feature_channels[i], H/2^i,
+        (None where head_channels[i] == 0; heads[0] a :class:`FactoredHead` in a graph exported
+        with matmul heads and the fused operations: read it through :func:`head_channels`); ``features[i]``: ``[B, feature_channels[i], H/2^i,
         W/2^i]`` for i in 0..levels-1.
         """
         skips = []
@@ -142,20 +144,67 @@ class UNet(nn.Module):
             heads[0] = self.head0_before_upsampling(skips[0], half)
         return heads, features
 
-    def head0_before_upsampling(self, skip0: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
-        """The level-0 head of ``[skip0, up(half)]`` with its upsampled part's product taken at
-        half resolution: ``W_s skip0 + up(W_u half + b)``, since a 1x1 convolution and the 2x
-        upsampling (bilinear or nearest, weights summing to 1) are linear maps over channels and
-        over pixels respectively, so they commute. skip0: ``[B, C_0, H, W]``; half: ``[B, C_u,
-        H/2, W/2]`` -> ``[B, head_channels[0], H, W]``, the same numbers up to float rounding with
-        a quarter of that part's multiply-adds. What the graph exported with matmul heads and the
-        fused operations runs (``denoiser::AddUpsampled`` keeps the sum planar; with OpenVINO's
-        own upsampling its channels-last output made the head's channel split a 137 ms reference
-        node at 1080p)."""
+    def head0_before_upsampling(self, skip0: torch.Tensor, half: torch.Tensor) -> FactoredHead:
+        """The level-0 head of ``[skip0, up(half)]`` as its factors (:class:`FactoredHead`), with
+        its upsampled part's product taken at half resolution. skip0: ``[B, C_0, H, W]``; half:
+        ``[B, C_u, H/2, W/2]``; its :meth:`FactoredHead.tensor` is ``[B, head_channels[0], H,
+        W]``."""
         head = self.heads[0]
-        weight, n = head.weight[:, :, 0, 0], skip0.shape[1]
-        # the bias joins the half-resolution product (the upsampling's weights sum to 1)
-        a, z = pointwise(weight[:, :n], None, skip0), pointwise(weight[:, n:], head.bias, half)
-        if fused_kernels():  # one planar denoiser::AddUpsampled node (the OpenVINO extension)
-            return AddUpsampledOp.apply(a, z, self.upsample_mode, self.align)
-        return a + self._up(z)
+        return FactoredHead(skip0, half, head.weight[:, :, 0, 0], head.bias, self.upsample_mode, self.align)
+
+
+@dataclass(frozen=True)
+class FactoredHead:
+    """A level-0 head ``W_s skip0 + up(W_u half + b)`` kept as its factors: the 1x1 convolution of
+    ``[skip0, up(half)]`` with the upsampled part's product taken at half resolution (a 1x1
+    convolution and the 2x upsampling, bilinear or nearest with weights summing to 1, are linear
+    maps over channels and over pixels respectively, so they commute: the same numbers up to
+    float rounding, with a quarter of that part's multiply-adds; the bias joins the
+    half-resolution product). What a graph exported with matmul heads and the fused operations
+    (:func:`~denoiser.nn.graph_ops.kernels_as_op`) carries as ``heads[0]``: the pyramid filter
+    computes the rows of its channels where it reads them (``denoiser::PyramidFilterHead``), so
+    the full-resolution head is never written; other readers take :meth:`tensor`.
+
+    skip0: ``[B, C_0, H, W]``; half: ``[B, C_u, H/2, W/2]``; weight: ``[C_out, C_0 + C_u]``; bias:
+    ``[C_out]`` or None; mode, align: the upsampling's (``F.interpolate``).
+    """
+
+    skip0: torch.Tensor
+    half: torch.Tensor
+    weight: torch.Tensor
+    bias: torch.Tensor | None
+    mode: str
+    align: bool | None
+
+    def select(self, start: int, stop: int | None = None) -> FactoredHead:
+        """Output channels ``start:stop`` (as ``head[:, start:stop]``)."""
+        bias = None if self.bias is None else self.bias[start:stop]
+        return FactoredHead(self.skip0, self.half, self.weight[start:stop], bias, self.mode, self.align)
+
+    @property
+    def skip_weight(self) -> torch.Tensor:
+        """``W_s``: ``[C_out, C_0]``."""
+        return self.weight[:, : self.skip0.shape[1]]
+
+    def upsampled_part(self) -> torch.Tensor:
+        """``W_u half + b`` before its upsampling: ``[B, C_out, H/2, W/2]``."""
+        return pointwise(self.weight[:, self.skip0.shape[1]:], self.bias, self.half)
+
+    def tensor(self) -> torch.Tensor:
+        """The head ``[B, C_out, H, W]``: one planar ``denoiser::AddUpsampled`` node in a fused graph
+        (with OpenVINO's own upsampling its channels-last output made the head's channel split a
+        137 ms reference node at 1080p)."""
+        a, z = pointwise(self.skip_weight, None, self.skip0), self.upsampled_part()
+        if fused_kernels():
+            return AddUpsampledOp.apply(a, z, self.mode, self.align)
+        return a + F.interpolate(z, size=a.shape[-2:], mode=self.mode, align_corners=self.align)
+
+
+def head_channels(head: torch.Tensor | FactoredHead, start: int, stop: int | None = None,
+                  factored: bool = False) -> torch.Tensor | FactoredHead:
+    """Channels ``start:stop`` of a head ``[B, C, H, W]`` or :class:`FactoredHead`: a tensor, or with
+    ``factored`` a factored head stays one (for a filter that reads it: ``PyramidFilter``)."""
+    if isinstance(head, FactoredHead):
+        head = head.select(start, stop)
+        return head if factored else head.tensor()
+    return head[:, start:stop]

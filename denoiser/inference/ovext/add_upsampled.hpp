@@ -50,51 +50,16 @@ public:
         const float* A = inputs[0].data<const float>();
         const float* Z = inputs[1].data<const float>();
         float* O = outputs[0].data<float>();
-        const bool bilinear = m_mode == "bilinear";
-        std::vector<Lerp> ly, lx;
-        if (bilinear) {
-            ly = bilinear_axis(h, H), lx = bilinear_axis(w, W);
-        } else {  // nearest: one tap, weight 1
-            const auto nearest = [](int64_t n_in, int64_t n_out) {
-                std::vector<Lerp> out(static_cast<size_t>(n_out));
-                const float ratio = static_cast<float>(n_in) / static_cast<float>(n_out);
-                for (int64_t d = 0; d < n_out; ++d) {
-                    const int64_t i = std::min<int64_t>(static_cast<int64_t>(std::floor(d * ratio)), n_in - 1);
-                    out[d] = {i, i, 1.0f, 0.0f};
-                }
-                return out;
-            };
-            ly = nearest(h, H), lx = nearest(w, W);
-        }
-        const bool exact2x = bilinear && H == 2 * h && W == 2 * w && w >= 2;
+        const Upsampling up(h, w, H, W, m_mode == "bilinear");
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
-            std::vector<float> t(static_cast<size_t>(w)), even(static_cast<size_t>(w)), odd(static_cast<size_t>(w));
+            std::vector<float> t(static_cast<size_t>(w));
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
-                if (!exact2x) {
-                    for (int64_t c = 0; c < C; ++c)
-                        std::memcpy(O + ((b * C + c) * H + y) * W, A + ((b * C + c) * H + y) * W, W * sizeof(float));
-                    add_upsampled_row(Z + b * C * h * w, h, w, ly[y], lx, W, O + (b * C * H + y) * W, H * W, C);
-                    continue;
-                }
-                // exact 2x bilinear: the two source rows blended, then columns 2m and 2m + 1 at
-                // 1/4 and 3/4 between source columns m - 1, m and m, m + 1 (the ends clamped)
-                const Lerp& l = ly[y];
+                float* o = O + (b * C * H + y) * W;
+                up.row(Z + b * C * h * w, C, y, o, H * W, t.data());
                 for (int64_t c = 0; c < C; ++c) {
-                    const float* z0 = Z + ((b * C + c) * h + l.i0) * w;
-                    const float* z1 = Z + ((b * C + c) * h + l.i1) * w;
-                    for (int64_t m = 0; m < w; ++m) t[m] = l.l0 * z0[m] + l.l1 * z1[m];
-                    even[0] = t[0], odd[w - 1] = t[w - 1];
-                    for (int64_t m = 1; m < w; ++m) {
-                        even[m] = 0.25f * t[m - 1] + 0.75f * t[m];
-                        odd[m - 1] = 0.75f * t[m - 1] + 0.25f * t[m];
-                    }
                     const float* a = A + ((b * C + c) * H + y) * W;
-                    float* o = O + ((b * C + c) * H + y) * W;
-                    for (int64_t m = 0; m < w; ++m) {
-                        o[2 * m] = a[2 * m] + even[m];
-                        o[2 * m + 1] = a[2 * m + 1] + odd[m];
-                    }
+                    for (int64_t px = 0; px < W; ++px) o[c * H * W + px] += a[px];
                 }
             }
         });

@@ -218,6 +218,54 @@ static std::vector<Lerp> bilinear_axis(int64_t n_in, int64_t n_out) {
     return out;
 }
 
+// Lerp tables of torch's nearest upsampling (floor(dst * n_in / n_out)): one tap, weight 1.
+static std::vector<Lerp> nearest_axis(int64_t n_in, int64_t n_out) {
+    std::vector<Lerp> out(static_cast<size_t>(n_out));
+    const float ratio = static_cast<float>(n_in) / static_cast<float>(n_out);
+    for (int64_t d = 0; d < n_out; ++d) {
+        const int64_t i = std::min<int64_t>(static_cast<int64_t>(std::floor(d * ratio)), n_in - 1);
+        out[d] = {i, i, 1.0f, 0.0f};
+    }
+    return out;
+}
+
+// An upsampling of planes hs x ws to H x W (F.interpolate, align_corners=False), row by row.
+struct Upsampling {
+    Upsampling(int64_t hs_, int64_t ws_, int64_t H, int64_t W, bool bilinear)
+        : hs(hs_), ws(ws_), w(W), ly(bilinear ? bilinear_axis(hs_, H) : nearest_axis(hs_, H)),
+          lx(bilinear ? bilinear_axis(ws_, W) : nearest_axis(ws_, W)),
+          exact2x(bilinear && H == 2 * hs_ && W == 2 * ws_ && ws_ >= 2) {}
+    int64_t hs, ws, w;
+    std::vector<Lerp> ly, lx;
+    bool exact2x;
+
+    // dst (channels rows of w, dst_plane apart) = row y of the upsampled src (channels planes of
+    // hs x ws). t: ws floats.
+    void row(const float* src, int64_t channels, int64_t y, float* dst, int64_t dst_plane, float* t) const {
+        const Lerp& l = ly[y];
+        for (int64_t c = 0; c < channels; ++c) {
+            const float* z0 = src + (c * hs + l.i0) * ws;
+            const float* z1 = src + (c * hs + l.i1) * ws;
+            float* o = dst + c * dst_plane;
+            if (!exact2x) {
+                for (int64_t px = 0; px < w; ++px) {
+                    const Lerp& m = lx[px];
+                    o[px] = l.l0 * (m.l0 * z0[m.i0] + m.l1 * z0[m.i1]) + l.l1 * (m.l0 * z1[m.i0] + m.l1 * z1[m.i1]);
+                }
+                continue;
+            }
+            // exact 2x bilinear: the two source rows blended, then columns 2m and 2m + 1 at 1/4
+            // and 3/4 between source columns m - 1, m and m, m + 1 (the ends clamped)
+            for (int64_t m = 0; m < ws; ++m) t[m] = l.l0 * z0[m] + l.l1 * z1[m];
+            o[0] = t[0], o[2 * ws - 1] = t[ws - 1];
+            for (int64_t m = 1; m < ws; ++m) {
+                o[2 * m] = 0.25f * t[m - 1] + 0.75f * t[m];
+                o[2 * m - 1] = 0.75f * t[m - 1] + 0.25f * t[m];
+            }
+        }
+    }
+};
+
 // dst (4 planes h x w) += bilinear upsampling of src (4 planes hs x ws), row y only.
 static void add_upsampled_row(const float* src, int64_t hs, int64_t ws, const Lerp& ly, const std::vector<Lerp>& lx,
                               int64_t w, float* dst_row, int64_t dst_plane, int64_t channels) {

@@ -9,10 +9,12 @@
 #include "kernel_apply.hpp"
 #include "log1p.hpp"
 #include "pyramid_filter.hpp"
+#include "pyramid_filter_head.hpp"
 
 OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::KernelApply>>(),
     std::make_shared<ov::OpExtension<denoiser::PyramidFilter>>(),
+    std::make_shared<ov::OpExtension<denoiser::PyramidFilterHead>>(),
     std::make_shared<ov::OpExtension<denoiser::Log1p>>(),
     std::make_shared<ov::OpExtension<denoiser::AddUpsampled>>(),
     std::make_shared<ov::OpExtension<denoiser::ClampBlend>>(),
@@ -57,5 +59,16 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
             const float scale = ctx.get_attribute<float>("scale", 1.0f);
             const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
             return std::make_shared<denoiser::PyramidFilter>(args, sizes, scale, has_scale != 0)->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "PyramidFilterHead", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            ov::OutputVector args;
+            for (size_t i = 0; i < ctx.get_input_size(); ++i) args.push_back(ctx.get_input(static_cast<int>(i)));
+            const auto sizes = ctx.get_attribute<std::vector<int64_t>>("kernel_sizes");
+            const float scale = ctx.get_attribute<float>("scale", 1.0f);
+            const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
+            const auto mode = ctx.get_attribute<std::string>("mode");
+            return std::make_shared<denoiser::PyramidFilterHead>(args, sizes, scale, has_scale != 0, mode)->outputs();
         }),
 }));

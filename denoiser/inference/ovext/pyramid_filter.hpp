@@ -6,12 +6,163 @@
 //   by the filtered constant channel (x where it is <= 1e-30).
 //
 // Row by row as KernelApply (common.hpp's filter_row), with the parts and sums kept in a scratch
-// buffer reused between calls.
+// buffer reused between calls. run_pyramid_filter reads head 0 through a provider of its rows, so
+// that PyramidFilterHead (pyramid_filter_head.hpp) computes them instead of reading them.
 #pragma once
 
 #include "common.hpp"
 
 namespace denoiser {
+
+// The level-0 head's logits of one image row: channel c's row at data + c * plane.
+struct Head0Rows {
+    const float* data;
+    int64_t plane;
+};
+
+// Head 0 as a planar input [B, L + k0^2, H, W]: rows are read in place.
+struct PlanarHead0 {
+    const float* H0;
+    int64_t N0, H, W;
+    static constexpr bool computes = false;
+    int64_t scratch_floats(int64_t) const { return 0; }
+    // channels c0 .. c0 + n - 1 of row y of image b
+    Head0Rows rows(int64_t b, int64_t y, int64_t c0, int64_t, float*) const {
+        return {H0 + (b * N0 + c0) * H * W + y * W, H * W};
+    }
+};
+
+// The pyramid filter (see the top of this file) of x [B, C, H, W] (shape xs) with head 0 from
+// `head0` (PlanarHead0 or a provider that computes its rows: pyramid_filter_head.hpp) and the
+// coarser heads heads[1 .. L-1] (inputs[first + i - 1] their tensors, for the shape check) -> O.
+// scratch: the parts and sums, kept by the caller between calls (locked by it).
+template <class Head0>
+static void run_pyramid_filter(const float* X, const ov::Shape& xs, const Head0& head0, const ov::TensorVector& inputs,
+                               size_t first, const std::vector<const float*>& heads,
+                               const std::vector<int64_t>& kernel_sizes, float scale, bool has_scale, float* O,
+                               std::vector<float>& scratch) {
+    const int64_t L = static_cast<int64_t>(kernel_sizes.size());
+    const int64_t B = xs[0], C = xs[1], H = xs[2], W = xs[3], C1 = C + 1;
+    std::vector<int64_t> hs(L), ws(L);
+    for (int64_t i = 0; i < L; ++i) {
+        hs[i] = H >> i, ws[i] = W >> i;  // avg_pool2d(2^i) floors
+        const int64_t k = kernel_sizes[i];
+        OPENVINO_ASSERT(k % 2 == 1 && k >= 1, "PyramidFilter: kernel size ", k, " is not odd");
+        if (i == 0) continue;
+        const auto& s = inputs[first + i - 1].get_shape();
+        OPENVINO_ASSERT(s.size() == 4 && s[0] == xs[0] && s[1] == static_cast<size_t>(k * k) &&
+                            s[2] == static_cast<size_t>(hs[i]) && s[3] == static_cast<size_t>(ws[i]),
+                        "PyramidFilter: head ", i, " has shape ", s, " for x ", xs);
+    }
+    const int64_t HW = H * W, K0 = kernel_sizes[0] * kernel_sizes[0];
+    // level i's part: [B, C + 1, hs, ws]; levels >= 1 also keep their filtered sum (acc).
+    // One allocation, kept between calls (fresh pages cost page faults on every frame).
+    std::vector<size_t> offsets{0};
+    for (int64_t i = 0; i < L; ++i) {
+        const size_t n = static_cast<size_t>(B * C1 * hs[i] * ws[i]);
+        offsets.push_back(offsets.back() + n);
+        if (i > 0) offsets.push_back(offsets.back() + n);
+    }
+    if (scratch.size() < offsets.back()) scratch.resize(offsets.back());
+    std::vector<float*> parts(L), accs(L, nullptr);
+    for (int64_t i = 0, o = 0; i < L; ++i) {
+        parts[i] = scratch.data() + offsets[o++];
+        if (i > 0) accs[i] = scratch.data() + offsets[o++];
+    }
+    // 1. the partition weights, level 0's part at full resolution and the coarser parts
+    //    (average pools of w_i * [x, 1] by 2^i), in groups of 2^(L-1) rows: a coarse row's
+    //    source rows all lie in one group, so each is written by one thread
+    const int64_t G = int64_t(1) << (L - 1), groups = (H + G - 1) / G;
+    parallel_rows(B * groups, [&](const tbb::blocked_range<int64_t>& range) {
+        std::vector<float> s(W), tmp(W), m(W), sum(W), e(static_cast<size_t>(L * W));
+        std::vector<float> zbuf(static_cast<size_t>(head0.scratch_floats(L)));
+        for (int64_t group = range.begin(); group != range.end(); ++group) {
+            const int64_t b = group / groups, y_end = std::min(H, (group % groups + 1) * G);
+            for (int64_t y = (group % groups) * G; y < y_end; ++y) {
+                const Head0Rows zr = head0.rows(b, y, 0, L, zbuf.data());
+                const float* z = zr.data;
+                const int64_t zp = zr.plane;
+                logit_scale_row(z, L, zp, W, scale, has_scale, s.data(), tmp.data());
+                for (int64_t px = 0; px < W; ++px) m[px] = z[px] * s[px];
+                for (int64_t l = 1; l < L; ++l)
+                    for (int64_t px = 0; px < W; ++px) m[px] = std::max(m[px], z[l * zp + px] * s[px]);
+                std::fill(sum.begin(), sum.end(), 0.0f);
+                for (int64_t l = 0; l < L; ++l)
+                    for (int64_t px = 0; px < W; ++px) {
+                        e[l * W + px] = exp_bounded(z[l * zp + px] * s[px] - m[px]);
+                        sum[px] += e[l * W + px];
+                    }
+                for (int64_t px = 0; px < W; ++px) sum[px] = 1.0f / sum[px];
+                for (int64_t l = 0; l < L; ++l) {
+                    float* w = e.data() + l * W;
+                    for (int64_t px = 0; px < W; ++px) w[px] *= sum[px];
+                    const int64_t f = int64_t(1) << l, yc = y >> l, wc = ws[l];
+                    if (yc >= hs[l]) continue;  // rows a floor-sized pool leaves out
+                    float* dst = parts[l] + b * C1 * hs[l] * wc + yc * wc;
+                    const int64_t plane = hs[l] * wc;
+                    if (l == 0) {
+                        for (int64_t c = 0; c < C; ++c) {
+                            const float* xr = X + (b * C + c) * HW + y * W;
+                            for (int64_t px = 0; px < W; ++px) dst[c * plane + px] = w[px] * xr[px];
+                        }
+                        std::memcpy(dst + C * plane, w, W * sizeof(float));
+                        continue;
+                    }
+                    if (y % f == 0)
+                        for (int64_t c = 0; c < C1; ++c) std::fill(dst + c * plane, dst + c * plane + wc, 0.0f);
+                    for (int64_t c = 0; c < C1; ++c) {
+                        float* d = dst + c * plane;
+                        if (c < C) {
+                            const float* xr = X + (b * C + c) * HW + y * W;
+                            for (int64_t px = 0; px < wc; ++px)
+                                for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx] * xr[px * f + dx];
+                        } else {  // the constant channel: the pooled weights
+                            for (int64_t px = 0; px < wc; ++px)
+                                for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx];
+                        }
+                        if (y % f == f - 1) {
+                            const float norm = 1.0f / static_cast<float>(f * f);
+                            for (int64_t px = 0; px < wc; ++px) d[px] *= norm;
+                        }
+                    }
+                }
+            }
+        }
+    });
+    // 3. from the coarsest level up: acc_i = filter_i(part_i) + up(acc_{i+1}); level 0 divides
+    for (int64_t i = L - 1; i >= 0; --i) {
+        const int64_t h = hs[i], w = ws[i], k = kernel_sizes[i], plane = h * w;
+        std::vector<Lerp> ly, lx;
+        if (i < L - 1) ly = bilinear_axis(hs[i + 1], h), lx = bilinear_axis(ws[i + 1], w);
+        parallel_rows(B * h, [&](const tbb::blocked_range<int64_t>& rows) {
+            RowScratch t(w, C1);
+            std::vector<float> zbuf(static_cast<size_t>(i == 0 ? head0.scratch_floats(K0) : 0));
+            for (int64_t row = rows.begin(); row != rows.end(); ++row) {
+                const int64_t b = row / h, y = row % h;
+                // this row's kernel logits: head 0's channels L .. L + k0^2 - 1, or head i's
+                const Head0Rows z = i == 0 ? head0.rows(b, y, L, K0, zbuf.data())
+                                           : Head0Rows{heads[i] + b * k * k * plane + y * w, plane};
+                filter_row(parts[i] + b * C1 * plane, C1, h, w, z.data, z.plane, k, y, scale, has_scale, t);
+                if (i < L - 1)
+                    add_upsampled_row(accs[i + 1] + b * C1 * hs[i + 1] * ws[i + 1], hs[i + 1], ws[i + 1],
+                                      ly[y], lx, w, t.acc, w, C1);
+                if (i > 0) {
+                    for (int64_t c = 0; c < C1; ++c)
+                        std::memcpy(accs[i] + (b * C1 + c) * plane + y * w, t.acc + c * w, w * sizeof(float));
+                    continue;
+                }
+                const float* den = t.acc + C * w;
+                for (int64_t c = 0; c < C; ++c) {
+                    const float* a = t.acc + c * w;
+                    const float* xr = X + (b * C + c) * HW + y * W;
+                    float* o = O + (b * C + c) * HW + y * W;
+                    for (int64_t px = 0; px < w; ++px)
+                        o[px] = den[px] > NORM_EPS ? a[px] / std::max(den[px], NORM_EPS) : xr[px];
+                }
+            }
+        });
+    }
+}
 
 class PyramidFilter : public ov::op::Op {
 public:
@@ -51,126 +202,17 @@ public:
     bool evaluate(ov::TensorVector& outputs, const ov::TensorVector& inputs) const override {
         const int64_t L = static_cast<int64_t>(m_kernel_sizes.size());
         const auto& xs = inputs[0].get_shape();
-        const int64_t B = xs[0], C = xs[1], H = xs[2], W = xs[3], C1 = C + 1;
-        std::vector<int64_t> hs(L), ws(L);
-        for (int64_t i = 0; i < L; ++i) {
-            hs[i] = H >> i, ws[i] = W >> i;  // avg_pool2d(2^i) floors
-            const auto& s = inputs[i + 1].get_shape();
-            const int64_t k = m_kernel_sizes[i];
-            OPENVINO_ASSERT(k % 2 == 1 && k >= 1, "PyramidFilter: kernel size ", k, " is not odd");
-            OPENVINO_ASSERT(s[0] == xs[0] && s[1] == static_cast<size_t>(k * k + (i == 0 ? L : 0)) &&
-                                s[2] == static_cast<size_t>(hs[i]) && s[3] == static_cast<size_t>(ws[i]),
-                            "PyramidFilter: head ", i, " has shape ", s, " for x ", xs);
-        }
+        const int64_t H = xs[2], W = xs[3], K0 = m_kernel_sizes[0] * m_kernel_sizes[0];
+        const auto& s0 = inputs[1].get_shape();
+        OPENVINO_ASSERT(s0.size() == 4 && s0[0] == xs[0] && s0[1] == static_cast<size_t>(L + K0) &&
+                            s0[2] == xs[2] && s0[3] == xs[3],
+                        "PyramidFilter: head 0 has shape ", s0, " for x ", xs);
         outputs[0].set_shape(xs);
-        const float* X = inputs[0].data<const float>();
-        const float* H0 = inputs[1].data<const float>();
-        float* O = outputs[0].data<float>();
-        const int64_t HW = H * W, K0 = m_kernel_sizes[0] * m_kernel_sizes[0];
-        // level i's part: [B, C + 1, hs, ws]; levels >= 1 also keep their filtered sum (acc).
-        // One allocation, kept between calls (fresh pages cost page faults on every frame).
+        std::vector<const float*> heads(L, nullptr);
+        for (int64_t i = 1; i < L; ++i) heads[i] = inputs[i + 1].data<const float>();
         std::lock_guard<std::mutex> lock(m_mutex);
-        std::vector<size_t> offsets{0};
-        for (int64_t i = 0; i < L; ++i) {
-            const size_t n = static_cast<size_t>(B * C1 * hs[i] * ws[i]);
-            offsets.push_back(offsets.back() + n);
-            if (i > 0) offsets.push_back(offsets.back() + n);
-        }
-        if (m_scratch.size() < offsets.back()) m_scratch.resize(offsets.back());
-        std::vector<float*> parts(L), accs(L, nullptr);
-        for (int64_t i = 0, o = 0; i < L; ++i) {
-            parts[i] = m_scratch.data() + offsets[o++];
-            if (i > 0) accs[i] = m_scratch.data() + offsets[o++];
-        }
-        // 1. the partition weights, level 0's part at full resolution and the coarser parts
-        //    (average pools of w_i * [x, 1] by 2^i), in groups of 2^(L-1) rows: a coarse row's
-        //    source rows all lie in one group, so each is written by one thread
-        const int64_t G = int64_t(1) << (L - 1), groups = (H + G - 1) / G;
-        parallel_rows(B * groups, [&](const tbb::blocked_range<int64_t>& range) {
-            std::vector<float> s(W), tmp(W), m(W), sum(W), e(static_cast<size_t>(L * W));
-            for (int64_t group = range.begin(); group != range.end(); ++group) {
-                const int64_t b = group / groups, y_end = std::min(H, (group % groups + 1) * G);
-                for (int64_t y = (group % groups) * G; y < y_end; ++y) {
-                    const float* z = H0 + b * (L + K0) * HW + y * W;
-                    logit_scale_row(z, L, HW, W, m_scale, m_has_scale, s.data(), tmp.data());
-                    for (int64_t px = 0; px < W; ++px) m[px] = z[px] * s[px];
-                    for (int64_t l = 1; l < L; ++l)
-                        for (int64_t px = 0; px < W; ++px) m[px] = std::max(m[px], z[l * HW + px] * s[px]);
-                    std::fill(sum.begin(), sum.end(), 0.0f);
-                    for (int64_t l = 0; l < L; ++l)
-                        for (int64_t px = 0; px < W; ++px) {
-                            e[l * W + px] = exp_bounded(z[l * HW + px] * s[px] - m[px]);
-                            sum[px] += e[l * W + px];
-                        }
-                    for (int64_t px = 0; px < W; ++px) sum[px] = 1.0f / sum[px];
-                    for (int64_t l = 0; l < L; ++l) {
-                        float* w = e.data() + l * W;
-                        for (int64_t px = 0; px < W; ++px) w[px] *= sum[px];
-                        const int64_t f = int64_t(1) << l, yc = y >> l, wc = ws[l];
-                        if (yc >= hs[l]) continue;  // rows a floor-sized pool leaves out
-                        float* dst = parts[l] + b * C1 * hs[l] * wc + yc * wc;
-                        const int64_t plane = hs[l] * wc;
-                        if (l == 0) {
-                            for (int64_t c = 0; c < C; ++c) {
-                                const float* xr = X + (b * C + c) * HW + y * W;
-                                for (int64_t px = 0; px < W; ++px) dst[c * plane + px] = w[px] * xr[px];
-                            }
-                            std::memcpy(dst + C * plane, w, W * sizeof(float));
-                            continue;
-                        }
-                        if (y % f == 0)
-                            for (int64_t c = 0; c < C1; ++c) std::fill(dst + c * plane, dst + c * plane + wc, 0.0f);
-                        for (int64_t c = 0; c < C1; ++c) {
-                            float* d = dst + c * plane;
-                            if (c < C) {
-                                const float* xr = X + (b * C + c) * HW + y * W;
-                                for (int64_t px = 0; px < wc; ++px)
-                                    for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx] * xr[px * f + dx];
-                            } else {  // the constant channel: the pooled weights
-                                for (int64_t px = 0; px < wc; ++px)
-                                    for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx];
-                            }
-                            if (y % f == f - 1) {
-                                const float norm = 1.0f / static_cast<float>(f * f);
-                                for (int64_t px = 0; px < wc; ++px) d[px] *= norm;
-                            }
-                        }
-                    }
-                }
-            }
-        });
-        // 3. from the coarsest level up: acc_i = filter_i(part_i) + up(acc_{i+1}); level 0 divides
-        for (int64_t i = L - 1; i >= 0; --i) {
-            const int64_t h = hs[i], w = ws[i], k = m_kernel_sizes[i], plane = h * w;
-            const float* Z = i == 0 ? H0 + L * HW : inputs[i + 1].data<const float>();
-            const int64_t zb = (i == 0 ? L + K0 : k * k) * plane;  // logits per image
-            std::vector<Lerp> ly, lx;
-            if (i < L - 1) ly = bilinear_axis(hs[i + 1], h), lx = bilinear_axis(ws[i + 1], w);
-            parallel_rows(B * h, [&](const tbb::blocked_range<int64_t>& rows) {
-                RowScratch t(w, C1);
-                for (int64_t row = rows.begin(); row != rows.end(); ++row) {
-                    const int64_t b = row / h, y = row % h;
-                    filter_row(parts[i] + b * C1 * plane, C1, h, w, Z + b * zb + y * w, plane, k, y, m_scale,
-                               m_has_scale, t);
-                    if (i < L - 1)
-                        add_upsampled_row(accs[i + 1] + b * C1 * hs[i + 1] * ws[i + 1], hs[i + 1], ws[i + 1],
-                                          ly[y], lx, w, t.acc, w, C1);
-                    if (i > 0) {
-                        for (int64_t c = 0; c < C1; ++c)
-                            std::memcpy(accs[i] + (b * C1 + c) * plane + y * w, t.acc + c * w, w * sizeof(float));
-                        continue;
-                    }
-                    const float* den = t.acc + C * w;
-                    for (int64_t c = 0; c < C; ++c) {
-                        const float* a = t.acc + c * w;
-                        const float* xr = X + (b * C + c) * HW + y * W;
-                        float* o = O + (b * C + c) * HW + y * W;
-                        for (int64_t px = 0; px < w; ++px)
-                            o[px] = den[px] > NORM_EPS ? a[px] / std::max(den[px], NORM_EPS) : xr[px];
-                    }
-                }
-            });
-        }
+        run_pyramid_filter(inputs[0].data<const float>(), xs, PlanarHead0{inputs[1].data<const float>(), L + K0, H, W},
+                           inputs, 2, heads, m_kernel_sizes, m_scale, m_has_scale, outputs[0].data<float>(), m_scratch);
         return true;
     }
 

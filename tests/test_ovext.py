@@ -184,6 +184,8 @@ def test_kernel_apply_in_bf16_inference(tmp_path):
     ([5, 5, 5], None, (21, 30)),  # sizes that are not multiples of 4: floored pools, upsampling to size
     ([3, 1], 5.0, (9, 14)),
     ([7], 2.5, (6, 5)),  # one level, a kernel larger than the image
+    ([5, 5, 5], 2.5, (12, 72)),  # strips with every tap inside (the vector path) on levels 0 and 1
+    ([3, 3], None, (8, 70)),  # the same with the softmax shifted by its maximum
 ])
 def test_pyramid_filter_matches_the_module(tmp_path, sizes, scale, hw):
     """``denoiser::PyramidFilter`` against :class:`~denoiser.nn.pyramid.PyramidFilter` (eager:

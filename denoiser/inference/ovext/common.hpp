@@ -81,6 +81,38 @@ struct RowScratch {
 
 constexpr int64_t S = 16;  // pixels per strip: one AVX-512 register of floats
 
+// S floats (or int32) as one value, a GCC/Clang vector extension: one AVX-512 register, two AVX2
+// ones. For the loop nests the compilers' own vectorisation leaves scalar (a strip's taps, the
+// level-0 head's product in pyramid_filter_head.hpp).
+typedef float Strip __attribute__((vector_size(S * sizeof(float))));
+typedef int32_t IntStrip __attribute__((vector_size(S * sizeof(int32_t))));
+static inline Strip load_strip(const float* p) {
+    Strip v;
+    std::memcpy(&v, p, sizeof(v));
+    return v;
+}
+static inline void store_strip(float* p, Strip v) { std::memcpy(p, &v, sizeof(v)); }
+
+// exp_bounded of a strip (the same reduction and polynomial; the rounding to the nearest integer
+// by adding and subtracting 1.5 * 2^23, exact for these |x log2(e)| < 2^22; products and sums not
+// fused, so within a few ulp of exp_bounded)
+static inline Strip exp_strip(Strip x) {
+    x = x < -87.0f ? Strip{} - 87.0f : x;
+    const Strip n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
+    Strip f = x - n * 0.693359375f;
+    f = f + n * 2.12194440e-4f;
+    Strip p = f * 1.9875691500e-4f + 1.3981999507e-3f;
+    p = p * f + 8.3334519073e-3f;
+    p = p * f + 4.1665795894e-2f;
+    p = p * f + 1.6666665459e-1f;
+    p = p * f + 5.0000001201e-1f;
+    p = (p * f) * f + f + 1.0f;
+    const IntStrip bits = (__builtin_convertvector(n, IntStrip) + 127) << 23;
+    Strip scale;
+    std::memcpy(&scale, &bits, sizeof(scale));
+    return p * scale;
+}
+
 // Whether the softmax may be shifted by the logits' mean instead of their maximum: with the
 // scale-normalised logits every centred, scaled logit lies within scale * sqrt(K) of it
 // (|z_t - mean| <= sqrt(K var)), so exp stays finite and normal for scale * sqrt(K) <= 80.
@@ -133,6 +165,23 @@ static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const
                 }
             }
         }
+    }
+    if constexpr (!EDGE && NC > 0) {  // every tap inside: the strip as vectors (exp_strip)
+        const Strip sv = load_strip(s), shv = load_strip(shift);
+        Strip sumv = {}, accv[NC > 0 ? NC : 1] = {};
+        for (int64_t i = 0; i < k; ++i) {
+            const int64_t yy = y + i - r;
+            if (yy < 0 || yy >= H) continue;
+            for (int64_t j = 0; j < k; ++j) {
+                const Strip e = exp_strip(load_strip(Z + (i * k + j) * plane + px0) * sv - shv);
+                const float* xr = X + yy * W + px0 + j - r;
+                sumv += e;
+                for (int64_t c = 0; c < NC; ++c) accv[c] += e * load_strip(xr + c * HW);
+            }
+        }
+        const Strip inv = 1.0f / sumv;
+        for (int64_t c = 0; c < NC; ++c) store_strip(acc_rows + c * W + px0, accv[c] * inv);
+        return;
     }
     for (int64_t i = 0; i < k; ++i) {
         const int64_t yy = y + i - r;

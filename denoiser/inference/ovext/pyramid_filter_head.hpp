@@ -22,17 +22,6 @@
 
 namespace denoiser {
 
-// S floats as one value (GCC/Clang vector extension: one AVX-512 register, two AVX2 ones): the
-// matrix product below written with it, since the compilers' own vectorisation of that loop nest
-// came out scalar (370 ms a 1080p frame on one thread instead of about 20).
-typedef float Strip __attribute__((vector_size(S * sizeof(float))));
-static inline Strip load_strip(const float* p) {
-    Strip v;
-    std::memcpy(&v, p, sizeof(v));
-    return v;
-}
-static inline void store_strip(float* p, Strip v) { std::memcpy(p, &v, sizeof(v)); }
-
 #if defined(__AVX512F__)
 // dst[c * dst_stride + p] = src[p * src_stride + c] for a block of 16 x 16 floats.
 static inline void transpose16(const float* src, int64_t src_stride, float* dst, int64_t dst_stride) {

@@ -4,6 +4,7 @@ import copy
 
 import pytest
 import torch
+import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -273,6 +274,30 @@ def test_unet_matmul_heads_equal_conv_heads(upsample):
         assert graph_ops.count("aten::upsample_bilinear2d" if upsample == "bilinear" else "aten::upsample_nearest2d") == 2
         for a, b in zip(heads, traced(x)):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("upsample", ["bilinear", "nearest"])
+def test_factored_head_is_the_level0_head(upsample):
+    """``UNet.head0_before_upsampling`` (what graphs exported with matmul heads and the fused
+    operations carry as heads[0]): its channels through :func:`head_channels` are those of the
+    1x1 head of ``[skip0, up(half)]`` (the definition, a concatenation); a tensor head slices."""
+    from denoiser.nn.unet import FactoredHead, UNet, head_channels
+
+    torch.manual_seed(0)
+    unet = UNet(in_channels=7, encoder=[4, 8], bottleneck=8, decoder=[4], head_channels=[6, 2],
+                upsample=upsample).eval()
+    skip0, half = torch.randn(2, 4, 8, 12), torch.randn(2, 4, 4, 6)
+    up = F.interpolate(half, scale_factor=2, mode=upsample, align_corners=False if upsample == "bilinear" else None)
+    want = unet.heads[0](torch.cat([skip0, up], 1))
+    with torch.no_grad():
+        factored = unet.head0_before_upsampling(skip0, half)
+        assert isinstance(factored, FactoredHead)
+        torch.testing.assert_close(head_channels(factored, 0, 6), want, rtol=1e-5, atol=1e-5)
+        part = head_channels(factored, 2, 5, factored=True)
+        assert isinstance(part, FactoredHead) and part.weight.shape == (3, 8)
+        torch.testing.assert_close(part.tensor(), want[:, 2:5], rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(head_channels(want, 4), want[:, 4:])
+        torch.testing.assert_close(head_channels(want, 1, 3, factored=True), want[:, 1:3])
 
 
 def test_embed_input_parts_equal_their_concatenation():

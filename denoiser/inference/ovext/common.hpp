@@ -84,6 +84,9 @@ constexpr int64_t S = 16;  // pixels per strip: one AVX-512 register of floats
 // S floats (or int32) as one value, a GCC/Clang vector extension: one AVX-512 register, two AVX2
 // ones. For the loop nests the compilers' own vectorisation leaves scalar (a strip's taps, the
 // level-0 head's product in pyramid_filter_head.hpp).
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic ignored "-Wpsabi"  // without AVX-512 a Strip is passed differently; none leaves the library
+#endif
 typedef float Strip __attribute__((vector_size(S * sizeof(float))));
 typedef int32_t IntStrip __attribute__((vector_size(S * sizeof(int32_t))));
 static inline Strip load_strip(const float* p) {

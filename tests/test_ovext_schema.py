@@ -35,7 +35,7 @@ def cpp_operations() -> dict[str, dict]:
         assert domain == DOMAIN, (name, domain)
         attrs = {a: CPP_TYPES[t.strip()] for t, a in re.findall(r'get_attribute<([\w:<> ]+)>\("(\w+)"', block)}
         indices = [int(i) for i in re.findall(r"get_input\((\d+)\)", block)]
-        inputs = None if "get_input_size()" in block else max(indices) + 1
+        inputs = None if "all_inputs(ctx)" in block else max(indices) + 1  # all_inputs: any number
         found[name].update(attributes=attrs, inputs=inputs)
     return found
 

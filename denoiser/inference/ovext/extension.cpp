@@ -11,6 +11,13 @@
 #include "pyramid_filter.hpp"
 #include "pyramid_filter_head.hpp"
 
+// every input of a node that takes any number of them (the pyramid filters: one head per level)
+static ov::OutputVector all_inputs(const ov::frontend::NodeContext& ctx) {
+    ov::OutputVector args;
+    for (size_t i = 0; i < ctx.get_input_size(); ++i) args.push_back(ctx.get_input(static_cast<int>(i)));
+    return args;
+}
+
 OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::KernelApply>>(),
     std::make_shared<ov::OpExtension<denoiser::PyramidFilter>>(),
@@ -53,8 +60,7 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "PyramidFilter", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
-            ov::OutputVector args;
-            for (size_t i = 0; i < ctx.get_input_size(); ++i) args.push_back(ctx.get_input(static_cast<int>(i)));
+            const ov::OutputVector args = all_inputs(ctx);
             const auto sizes = ctx.get_attribute<std::vector<int64_t>>("kernel_sizes");
             const float scale = ctx.get_attribute<float>("scale", 1.0f);
             const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);
@@ -63,8 +69,7 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "PyramidFilterHead", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
-            ov::OutputVector args;
-            for (size_t i = 0; i < ctx.get_input_size(); ++i) args.push_back(ctx.get_input(static_cast<int>(i)));
+            const ov::OutputVector args = all_inputs(ctx);
             const auto sizes = ctx.get_attribute<std::vector<int64_t>>("kernel_sizes");
             const float scale = ctx.get_attribute<float>("scale", 1.0f);
             const int64_t has_scale = ctx.get_attribute<int64_t>("has_scale", 0);

@@ -300,6 +300,32 @@ def test_factored_head_is_the_level0_head(upsample):
         torch.testing.assert_close(head_channels(want, 1, 3, factored=True), want[:, 1:3])
 
 
+def test_guide_input_off_leaves_the_guide_out_of_the_unet_input(tmp_path):
+    """``net.temporal.guide_input=false``: the U-Net's first convolution reads 7 channels fewer
+    (the warped history guide), the disocclusion gate still reads the guide (the state keeps it),
+    steps stay finite over a reset, and the step graph exports."""
+    from denoiser.inference.step_graph import export_onnx
+
+    nets = {}
+    for guide_input in (True, False):
+        cfg = compose_net_config("tiny", overrides=["+net.temporal.reject_threshold=0.1"])
+        cfg["temporal"]["guide_input"] = guide_input
+        torch.manual_seed(0)
+        nets[guide_input] = build_net(cfg).eval()
+    first = {k: net.unet.encoder[0][0].in_channels for k, net in nets.items()}
+    assert first[True] - first[False] == 7
+    net = nets[False]
+    assert [part for part, _ in net.temporal.input_layout] == ["output", "color", "features", "valid"]
+    assert "guide" in net.temporal.state_channels()
+    state = None
+    with torch.no_grad():
+        for t, reset in enumerate([True, False, False]):
+            frame = random_frame(1, 20, 28, seed=t, kind="hard")
+            out, state, extras = net.step(frame, state, torch.tensor([reset]))
+            assert torch.isfinite(out).all() and state["guide"].shape[1] == 7
+    export_onnx(net, tmp_path / "g.onnx", trace_size=(32, 32))
+
+
 def test_embed_input_parts_equal_their_concatenation():
     """EmbedNet(parts) (the exported graph's form: first layer per part) equals EmbedNet(cat(parts))."""
     from denoiser.nn.embed import EmbedNet

@@ -13,8 +13,8 @@ also gives the coverage ``c`` in [0, 1]: the fraction of the bilinear footprint 
 0 for an item whose history is discarded). Warped values are divided by ``c`` (where ``c > COVER_MIN``, else 0) so they
 are convex combinations of previous pixels, and ``valid = c`` (0 where the history was reset).
 The network sees, next to the current frame, ``log1p(history output / s)``,
-``log1p(history color / s)`` (``s`` the current color scale), the warped guide and features and
-``valid``. Its level-0 head predicts two logits and the next features:
+``log1p(history color / s)`` (``s`` the current color scale), the warped guide (unless
+``guide_input`` is off) and features and ``valid``. Its level-0 head predicts two logits and the next features:
 
     a = sigmoid(h_in)  * valid;  filter input = color    + a * (history color  - color)
     b = sigmoid(h_out) * valid;  output       = filtered + b * (history output - filtered)
@@ -211,11 +211,17 @@ class TemporalRecurrence(nn.Module):
             and what a stored config without the key means) switches it off.
         history_disagreement: add the history disagreement input (module docstring); False (the
             default, and what a stored config without the key means) leaves the inputs as before.
+        guide_input: the warped history guide (7 channels) is a U-Net input; False leaves it out
+            (the disocclusion gate still reads it): 7 fewer input channels of the first
+            full-resolution convolution. True is the default, and what a stored config without
+            the key means.
     """
 
     def __init__(self, state_features: int = 8, reject_threshold: float | None = None,
-                 history_clamp: float | None = None, history_disagreement: bool = False):
+                 history_clamp: float | None = None, history_disagreement: bool = False,
+                 guide_input: bool = True):
         super().__init__()
+        self.guide_input = bool(guide_input)
         self.history_disagreement = bool(history_disagreement)
         if history_clamp is not None and not float(history_clamp) > 0:
             raise ConfigError(f"net.temporal.history_clamp: must be > 0 or null, got {history_clamp}")
@@ -225,7 +231,8 @@ class TemporalRecurrence(nn.Module):
             raise ConfigError(f"net.temporal.reject_threshold: must be > 0 or null, got {reject_threshold}")
         self.reject_threshold = None if reject_threshold is None else float(reject_threshold)
         #: channels added to the U-Net input, in order: ``(part, channels)`` (see :meth:`inputs`)
-        self.input_layout = (("output", 3), ("color", 3), ("guide", GUIDE_CHANNELS),
+        self.input_layout = (("output", 3), ("color", 3),
+                             *((("guide", GUIDE_CHANNELS),) if self.guide_input else ()),
                              ("features", self.state_features), ("valid", 1),
                              *((("disagreement", 1),) if self.history_disagreement else ()))
         self.input_channels = sum(n for _, n in self.input_layout)

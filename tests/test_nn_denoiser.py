@@ -321,7 +321,7 @@ def test_guide_input_off_leaves_the_guide_out_of_the_unet_input(tmp_path):
     with torch.no_grad():
         for t, reset in enumerate([True, False, False]):
             frame = random_frame(1, 20, 28, seed=t, kind="hard")
-            out, state, extras = net.step(frame, state, torch.tensor([reset]))
+            out, state, _ = net.step(frame, state, torch.tensor([reset]))
             assert torch.isfinite(out).all() and state["guide"].shape[1] == 7
     export_onnx(net, tmp_path / "g.onnx", trace_size=(32, 32))
 

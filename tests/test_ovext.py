@@ -261,6 +261,53 @@ def test_pyramid_filter_head_matches_the_module(tmp_path, skip, hw, mode):
     assert np.array_equal(got[0], got[1])
 
 
+@needs_extension
+@pytest.mark.parametrize(("parts", "hidden", "out", "hw"), [
+    ((3, 7), 16, 16, (5, 37)),  # the demo student's widths (the register path), a partial strip
+    ((3, 7), 16, 16, (3, 32)),  # whole strips: the channels-last store through 16 x 16 blocks
+    ((2, 4), 6, 5, (4, 19)),  # any other widths
+])
+def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw):
+    """``denoiser::EmbedNet`` (the f32 graph's EmbedNet on its input parts, channels-last out)
+    against the eager :class:`~denoiser.nn.embed.EmbedNet` on the parts' concatenation, with
+    negative values through every LeakyReLU; two images; 1 and 2 threads alike."""
+    import openvino as ov
+
+    from denoiser.nn.embed import EmbedNet
+    from denoiser.nn.graph_ops import heads_as_matmul
+
+    torch.manual_seed(len(parts) + hidden)
+    embed = EmbedNet(sum(parts), hidden, out).eval()
+    xs = [torch.randn(2, c, *hw) * 2 for c in parts]
+
+    class Embed(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.embed = embed
+
+        def forward(self, *parts):
+            return self.embed(list(parts))
+
+    want = embed(torch.cat(xs, 1)).detach().numpy()
+    names = [f"p{i}" for i in range(len(xs))]
+    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(Embed(), tuple(xs), str(tmp_path / "e.onnx"), input_names=names, output_names=["y"],
+                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import onnx
+
+    assert [n.op_type for n in onnx.load(str(tmp_path / "e.onnx")).graph.node if n.domain == "denoiser"] == ["EmbedNet"]
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "e.onnx")
+    got = []
+    for threads in (1, 2):
+        compiled = core.compile_model(core.read_model(str(tmp_path / "e.onnx")), "CPU",
+                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
+        got.append(compiled(dict(zip(names, (x.numpy() for x in xs))))[compiled.output(0)])
+    assert (want < 0).any()
+    np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-5)
+    assert np.array_equal(got[0], got[1])
+
+
 def one_hot(taps, k: int = 5) -> torch.Tensor:
     """Logits ``[1, k*k, H, W]``: +1e4 at tap ``taps[y]`` of row y, -1e4 elsewhere (saturated)."""
     logits = torch.full((1, k * k, len(taps), 1), -1e4)

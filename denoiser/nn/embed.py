@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from denoiser.nn.graph_ops import EmbedNetOp, fused_kernels, matmul_heads
 from denoiser.nn.parts import conv_of_parts
 
 
@@ -45,11 +46,18 @@ class EmbedNet(nn.Module):
         or the per-pixel input as a list of parts ``[B, C_i, H, W]`` whose channel concatenation
         it is (``sum C_i == C_in``): the first layer then runs per part with its slice of the
         weights and the results are summed (what the exported graph runs: no full-resolution
-        concatenation of the inputs; the same numbers up to float rounding of the sum).
+        concatenation of the inputs; the same numbers up to float rounding of the sum). In the
+        f32 graph with the fused operations (:func:`~denoiser.nn.graph_ops.matmul_heads` and
+        :func:`~denoiser.nn.graph_ops.fused_kernels`) the three layers are one
+        ``denoiser::EmbedNet`` node.
 
         Returns ``[B, C_out, H, W]`` (for samples: the mean over S of the per-sample output).
         """
         if not isinstance(x, torch.Tensor):
+            if fused_kernels() and matmul_heads():  # the f32 graph: one denoiser::EmbedNet node
+                convs = [self.layers[i] for i in (0, 2, 4)]
+                weights = [t for conv in convs for t in (conv.weight[:, :, 0, 0], conv.bias)]
+                return EmbedNetOp.apply(self.layers[1].negative_slope, *weights, *x).permute(0, 3, 1, 2)
             return self.layers[1:](conv_of_parts(self.layers[0], x))
         if x.dim() == 5:
             b, s, c, h, w = x.shape

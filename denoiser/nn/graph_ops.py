@@ -19,6 +19,7 @@ that record them. Eager training and inference never take these paths.
   the operation's name in snake case, and ``extension.cpp``) against it.
 * The stubs (``torch.autograd.Function``): their value is the plain computation (the tracer
   records the node only); :class:`KernelApplyOp` (:func:`denoiser.nn.kernels.apply_kernels_graph`),
+  :class:`EmbedNetOp` (:class:`denoiser.nn.embed.EmbedNet`, f32 graphs),
   :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`PyramidFilterHeadOp`
   (the same with head 0 as :class:`denoiser.nn.unet.FactoredHead`), :class:`Log1pOp`
   (:func:`denoiser.nn.inputs.log1p`), :class:`AddUpsampledOp`
@@ -58,6 +59,9 @@ OPERATIONS: dict[str, Operation] = {
     # head_1 .. head_{L-1} -> [B, 3, H, W]: PyramidFilter with head 0 = weight @ skip + up(z)
     "PyramidFilterHead": Operation(None, {"kernel_sizes": "INTS", "scale": "FLOAT", "has_scale": "INT",
                                           "mode": "STRING"}),
+    # w0 [M, C], b0 [M], w1 [M, M], b1 [M], w2 [N, M], b2 [N], parts [B, C_i, H, W] -> [B, H, W, N]
+    # (channels-last): EmbedNet's three 1x1 layers per pixel
+    "EmbedNet": Operation(None, {"negative_slope": "FLOAT"}),
     # x -> log1p(x)
     "Log1p": Operation(1, {}),
     # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
@@ -216,6 +220,34 @@ class PyramidFilterHeadOp(torch.autograd.Function):
                           kernel_sizes=list(kernel_sizes), mode=mode, **_scale_attributes(scale))
 
 
+class EmbedNetOp(torch.autograd.Function):
+    """:class:`denoiser.nn.embed.EmbedNet`'s per-pixel path on a list of input parts, recorded as one
+    ``denoiser::EmbedNet`` node (attribute ``negative_slope``): the three 1x1 layers per pixel,
+    the hidden values never written at full resolution.
+
+    forward(negative_slope, w0 ``[M, C]``, b0 ``[M]``, w1 ``[M, M]``, b1, w2 ``[N, M]``, b2 ``[N]``,
+    *parts ``[B, C_i, H, W]`` with ``sum C_i == C``) -> ``[B, H, W, N]`` float32, channels-last
+    (the layout the U-Net's first convolution reads; the caller permutes it to ``[B, N, H, W]``).
+    """
+
+    @staticmethod
+    def forward(ctx, negative_slope, w0, b0, w1, b1, w2, b2, *parts):
+        x = torch.cat(parts, 1).permute(0, 2, 3, 1)
+        for w, b in ((w0, b0), (w1, b1), (w2, b2)):
+            x = F.leaky_relu(x @ w.t() + b, negative_slope)
+        return x.contiguous()
+
+    @staticmethod
+    def symbolic(g, negative_slope, w0, b0, w1, b1, w2, b2, *parts):
+        out = graph_node(g, "EmbedNet", w0, b0, w1, b1, w2, b2, *parts, like=parts[0],
+                         negative_slope=float(negative_slope))
+        sizes = parts[0].type().varyingSizes()  # [B, H, W, N] (None where not known)
+        n = w2.type().varyingSizes()
+        if sizes is not None and len(sizes) == 4 and n is not None:
+            out.setType(parts[0].type().with_sizes([sizes[0], sizes[2], sizes[3], n[0]]))
+        return out
+
+
 class Log1pOp(torch.autograd.Function):
     """:func:`denoiser.nn.inputs.log1p` recorded as one ``denoiser::Log1p`` node (the value: ``torch.log1p``)."""
 
@@ -283,6 +315,6 @@ class GuideGateOp(torch.autograd.Function):
         return out
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
+__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "EmbedNetOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
            "untraced"]

@@ -5,6 +5,7 @@
 // part of the build's cache key.
 #include "add_upsampled.hpp"
 #include "clamp_blend.hpp"
+#include "embed_net.hpp"
 #include "guide_gate.hpp"
 #include "kernel_apply.hpp"
 #include "log1p.hpp"
@@ -26,6 +27,7 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::AddUpsampled>>(),
     std::make_shared<ov::OpExtension<denoiser::ClampBlend>>(),
     std::make_shared<ov::OpExtension<denoiser::GuideGate>>(),
+    std::make_shared<ov::OpExtension<denoiser::EmbedNet>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "AddUpsampled", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
@@ -43,6 +45,12 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
             return std::make_shared<denoiser::GuideGate>(ctx.get_input(0), ctx.get_input(1),
                                                          ctx.get_attribute<float>("threshold"))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "EmbedNet", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::EmbedNet>(all_inputs(ctx), ctx.get_attribute<float>("negative_slope"))
+                ->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "Log1p", "denoiser",

@@ -1,0 +1,164 @@
+// EmbedNet(w0 [M, C], b0 [M], w1 [M, M], b1 [M], w2 [N, M], b2 [N], part_0 .. part_{p-1}
+//   [B, C_i, H, W] with sum C_i = C; attribute negative_slope) -> [B, H, W, N] f32 channels-last:
+//   denoiser.nn.embed.EmbedNet's per-pixel path on the parts' channel concatenation,
+//
+//     y = lrelu(w2 lrelu(w1 lrelu(w0 x + b0) + b1) + b2),  lrelu(v) = v >= 0 ? v : slope v
+//
+//   per pixel, 16 pixels at a time with the hidden values in registers. In the plain graph the
+//   three 1x1 convolutions each wrote and read a full-resolution tensor (M = N = 16 channels for
+//   the demo student: 133 MB at 1080p each, about 55 ms of its f32 step with the reorders of the
+//   inputs into the first one). The output is channels-last, the layout the U-Net's first
+//   convolution reads: the exported graph's transpose back to [B, N, H, W] costs nothing.
+#pragma once
+
+#include "common.hpp"
+
+namespace denoiser {
+
+class EmbedNet : public ov::op::Op {
+public:
+    OPENVINO_OP("EmbedNet", "denoiser");
+
+    EmbedNet() = default;
+    EmbedNet(const ov::OutputVector& args, float negative_slope) : Op(args), m_slope(negative_slope) {
+        constructor_validate_and_infer_types();
+    }
+
+    void validate_and_infer_types() override {
+        const size_t n = get_input_size();
+        NODE_VALIDATION_CHECK(this, n >= 7, "EmbedNet: needs 6 weights and biases and at least one part, got ", n,
+                              " inputs");
+        for (size_t i = 0; i < n; ++i)
+            NODE_VALIDATION_CHECK(this, get_input_element_type(i) == ov::element::f32, "EmbedNet: f32 inputs only");
+        const auto& w2 = get_input_partial_shape(4);
+        auto shape = get_input_partial_shape(6);
+        if (shape.rank().is_static() && w2.rank().is_static()) {
+            shape = ov::PartialShape{shape[0], shape[2], shape[3], w2[0]};
+        } else {
+            shape = ov::PartialShape::dynamic(4);
+        }
+        set_output_type(0, ov::element::f32, shape);
+    }
+
+    std::shared_ptr<ov::Node> clone_with_new_inputs(const ov::OutputVector& args) const override {
+        return std::make_shared<EmbedNet>(args, m_slope);
+    }
+
+    bool visit_attributes(ov::AttributeVisitor& visitor) override {
+        visitor.on_attribute("negative_slope", m_slope);
+        return true;
+    }
+
+    bool has_evaluate() const override { return true; }
+
+    bool evaluate(ov::TensorVector& outputs, const ov::TensorVector& inputs) const override {
+        const auto& w0s = inputs[0].get_shape();
+        const auto& w1s = inputs[2].get_shape();
+        const auto& w2s = inputs[4].get_shape();
+        const auto& ps = inputs[6].get_shape();
+        OPENVINO_ASSERT(w0s.size() == 2 && w1s.size() == 2 && w2s.size() == 2 && w1s[0] == w0s[0] &&
+                            w1s[1] == w0s[0] && w2s[1] == w0s[0] && inputs[1].get_size() == w0s[0] &&
+                            inputs[3].get_size() == w0s[0] && inputs[5].get_size() == w2s[0],
+                        "EmbedNet: weights ", w0s, ", ", w1s, ", ", w2s, " do not chain");
+        const int64_t M = w0s[0], C = w0s[1], N = w2s[0];
+        OPENVINO_ASSERT(ps.size() == 4, "EmbedNet: part 0 has shape ", ps);
+        const int64_t B = ps[0], H = ps[2], W = ps[3], HW = H * W;
+        std::vector<const float*> planes;  // the input channels, in the concatenation's order (image 0)
+        std::vector<int64_t> per_image;    // each plane's distance to the next image's
+        for (size_t i = 6; i < inputs.size(); ++i) {
+            const auto& s = inputs[i].get_shape();
+            OPENVINO_ASSERT(s.size() == 4 && s[0] == ps[0] && s[2] == ps[2] && s[3] == ps[3], "EmbedNet: part ",
+                            i - 6, " has shape ", s, " for part 0 ", ps);
+            for (size_t c = 0; c < s[1]; ++c) {
+                planes.push_back(inputs[i].data<const float>() + c * HW);
+                per_image.push_back(static_cast<int64_t>(s[1]) * HW);
+            }
+        }
+        OPENVINO_ASSERT(static_cast<int64_t>(planes.size()) == C, "EmbedNet: the parts have ", planes.size(),
+                        " channels, the first layer reads ", C);
+        outputs[0].set_shape({ps[0], ps[2], ps[3], w2s[0]});
+        const float* w[3] = {inputs[0].data<const float>(), inputs[2].data<const float>(),
+                             inputs[4].data<const float>()};
+        const float* b[3] = {inputs[1].data<const float>(), inputs[3].data<const float>(),
+                             inputs[5].data<const float>()};
+        float* O = outputs[0].data<float>();
+        const int64_t strips = (W + S - 1) / S;
+        parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
+            std::vector<Strip> x(C), h1(M), h2(M), y(N);
+            std::vector<const float*> src(C);
+            float tile[S * 64];  // one strip's output, channels-last (N <= 64 here; else in pieces)
+            for (int64_t row = rows.begin(); row != rows.end(); ++row) {
+                const int64_t bi = row / H, yy = row % H;
+                for (int64_t c = 0; c < C; ++c) src[c] = planes[c] + bi * per_image[c] + yy * W;
+                float* orow = O + (bi * HW + yy * W) * N;
+                for (int64_t s = 0; s < strips; ++s) {
+                    const int64_t px0 = s * S, m = std::min<int64_t>(S, W - px0);
+                    for (int64_t c = 0; c < C; ++c) {
+                        if (m == S) {
+                            x[c] = load_strip(src[c] + px0);
+                        } else {
+                            float t[S] = {};
+                            std::memcpy(t, src[c] + px0, m * sizeof(float));
+                            x[c] = load_strip(t);
+                        }
+                    }
+                    if (C == 10 && M == 16 && N == 16) {  // the demo student's widths: values in registers
+                        mlp<10, 16, 16>(w, b, x.data(), y.data());
+                    } else {
+                        layer(w[0], b[0], x.data(), C, h1.data(), M);
+                        layer(w[1], b[1], h1.data(), M, h2.data(), M);
+                        layer(w[2], b[2], h2.data(), M, y.data(), N);
+                    }
+                    for (int64_t o0 = 0; o0 < N; o0 += 64) {  // channels-last: pixel p's N values together
+                        const int64_t no = std::min<int64_t>(64, N - o0);
+                        for (int64_t o = 0; o < no; ++o) store_strip(tile + o * S, y[o0 + o]);
+#if defined(__AVX512F__)
+                        if (m == S && no % 16 == 0) {  // 16 x 16 blocks transposed in registers
+                            for (int64_t o = 0; o < no; o += 16)
+                                transpose16(tile + o * S, S, orow + px0 * N + o0 + o, N);
+                            continue;
+                        }
+#endif
+                        for (int64_t p = 0; p < m; ++p)
+                            for (int64_t o = 0; o < no; ++o) orow[(px0 + p) * N + o0 + o] = tile[o * S + p];
+                    }
+                }
+            }
+        });
+        return true;
+    }
+
+private:
+    // the three layers at compile-time widths (C inputs, M hidden, N outputs)
+    template <int C, int M, int N>
+    void mlp(const float* const* w, const float* const* b, const Strip* x_in, Strip* y) const {
+        Strip x[C], h1[M], h2[M];
+        for (int c = 0; c < C; ++c) x[c] = x_in[c];
+        dense<C, M>(w[0], b[0], x, h1);
+        dense<M, M>(w[1], b[1], h1, h2);
+        dense<M, N>(w[2], b[2], h2, y);
+    }
+
+    template <int NIN, int NOUT>
+    void dense(const float* w, const float* b, const Strip* in, Strip* out) const {
+        for (int j = 0; j < NOUT; ++j) {
+            Strip acc = Strip{} + b[j];
+            for (int k = 0; k < NIN; ++k) acc += w[j * NIN + k] * in[k];
+            out[j] = acc >= 0.0f ? acc : acc * m_slope;
+        }
+    }
+
+    // out[j] = lrelu(b[j] + sum_k w[j, k] in[k]) for j < n_out (w: [n_out, n_in])
+    void layer(const float* w, const float* b, const Strip* in, int64_t n_in, Strip* out, int64_t n_out) const {
+        for (int64_t j = 0; j < n_out; ++j) {
+            Strip acc = Strip{} + b[j];
+            const float* wj = w + j * n_in;
+            for (int64_t k = 0; k < n_in; ++k) acc += wj[k] * in[k];
+            out[j] = acc >= 0.0f ? acc : acc * m_slope;
+        }
+    }
+
+    float m_slope = 0.1f;
+};
+
+}  // namespace denoiser

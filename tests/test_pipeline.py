@@ -18,8 +18,8 @@ from conftest import STUB_HEADER, compose_command, stub_calls
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = ["denoiser-train", "denoiser-eval", "denoiser-bench", "denoiser-render", "denoiser-pareto", "python"]
 
-# A stub of every command: logs its call; a training run (hydra.run.dir=...) leaves DONE and a
-# last.ckpt (skip_done=true with DONE there: nothing written, as the trainer's own skip); STUB_FAIL
+# A stub of every command: logs its call; a training run (hydra.run.dir=...) leaves DONE, a best.ckpt
+# and a last.ckpt, as the trainer does (skip_done=true with DONE there: nothing written, as the trainer's own skip); STUB_FAIL
 # (a run name) fails that run; STUB_SLEEP sleeps first (STUB_SIDE: a file the job's start and end go to).
 STUB = STUB_HEADER + r"""
 dir=""
@@ -30,7 +30,7 @@ for a in "$@"; do case $a in hydra.run.dir=*) dir=${a#hydra.run.dir=} ;; out_dir
 if [ -n "${STUB_FAIL:-}" ] && [ "${dir##*/}" = "$STUB_FAIL" ]; then echo "stub: $STUB_FAIL fails" >&2; exit 1; fi
 if [ -n "$dir" ]; then
     [ -f "$dir/DONE" ] && exit 0
-    mkdir -p "$dir/checkpoints" && touch "$dir/checkpoints/last.ckpt" "$dir/DONE"
+    mkdir -p "$dir/checkpoints" && touch "$dir/checkpoints/best.ckpt" "$dir/checkpoints/last.ckpt" "$dir/DONE"
 fi
 if [ -n "${out:-}" ]; then mkdir -p "$out/images" && echo "| a |" > "$out/metrics.md" && echo "| b |" > "$out/report.md"; fi
 for a in "$@"; do case $a in out=*) mkdir -p "$(dirname "${a#out=}")" && touch "${a#out=}" ;; esac; done
@@ -91,7 +91,7 @@ def test_matrix_jobs_are_every_combination_in_order_with_their_extra_args():
     assert [j.name for j in jobs] == [f"student_{k}_s{s}" for s, k in expected]
     for job, (seed, kind) in zip(jobs, expected):
         assert job.args == [f"seed={seed}", "ckpt={a: b}", "experiment=" + kind[0]]  # other braces kept
-        assert job.run_dir == f"runs/student_{kind}_s{seed}" and job.ckpt == f"runs/student_{kind}_s{seed}/checkpoints/last.ckpt"
+        assert job.run_dir == f"runs/student_{kind}_s{seed}" and job.checkpoint() == f"runs/student_{kind}_s{seed}/checkpoints/last.ckpt"
     assert [j.name for j in expand("teacher", {"run_dir": "t"})] == ["teacher"]
 
 
@@ -136,7 +136,7 @@ def test_demo_renders_trains_the_recipe_evaluates_and_writes_the_table(tree):
     assert arg(by_dir["reports/demo/runs/teacher"], "experiment") == "demo_teacher"
     distilled = by_dir["reports/demo/runs/student_distilled_s2"]
     assert arg(distilled, "experiment") == "demo_distill" and arg(distilled, "model.teacher_ckpt") == \
-        "reports/demo/runs/teacher/checkpoints/last.ckpt"  # resolved when the stage started: the teacher's file
+        "reports/demo/runs/teacher/checkpoints/best.ckpt"  # resolved when the stage started: the teacher's best
     assert arg(distilled, "threads") == "1" and arg(distilled, "seed") == "2"
     assert "skip_done=true" in distilled and "ckpt_path=auto" in distilled
     no_kd = by_dir["reports/demo/runs/student_no_kd_s2"]
@@ -145,8 +145,10 @@ def test_demo_renders_trains_the_recipe_evaluates_and_writes_the_table(tree):
     evaluations = [c for c in calls if c[0] == "denoiser-eval"]
     assert len(evaluations) == 1  # no data/blender/test: no Cycles evaluation
     ckpt = arg(evaluations[0], "ckpt")
-    assert ckpt.startswith("{teacher: reports/demo/runs/teacher/checkpoints/last.ckpt, student_distilled_s0: "
-                           "reports/demo/runs/student_distilled_s0/checkpoints/last.ckpt")
+    # every run's best.ckpt, looked up when the evaluation starts (not when its run was planned, before it trained)
+    assert ckpt.startswith("{teacher: reports/demo/runs/teacher/checkpoints/best.ckpt, student_distilled_s0: "
+                           "reports/demo/runs/student_distilled_s0/checkpoints/best.ckpt")
+    assert ckpt.count("/checkpoints/best.ckpt") == 7 and "last.ckpt" not in ckpt
     assert ckpt.count("reports/demo/runs/student_") == 6 and arg(evaluations[0], "purpose")
     bench = next(c for c in calls if c[0] == "denoiser-bench")
     assert arg(bench, "ckpt").count("_s0:") == 2 and "_s1" not in arg(bench, "ckpt")  # the first seed only
@@ -235,8 +237,8 @@ def test_an_evaluation_of_the_same_checkpoints_is_not_redone_and_a_newer_checkpo
     ckpt = arg(next(c for c in first if c[0] == "denoiser-eval"), "ckpt")
     assert ckpt == ("{none_s0: reports/demo/runs/student_distilled_s0/checkpoints/last.ckpt, no_kd_s0: "
                     "reports/demo/runs/student_no_kd_s0/checkpoints/last.ckpt, no_pyramid_s0: "
-                    "reports/ablations/runs/no_pyramid_s0/checkpoints/last.ckpt, direct_s0: "
-                    "reports/ablations/runs/direct_s0/checkpoints/last.ckpt}")
+                    "reports/ablations/runs/no_pyramid_s0/checkpoints/best.ckpt, direct_s0: "
+                    "reports/ablations/runs/direct_s0/checkpoints/best.ckpt}")  # trained here: their best
     bench = next(c for c in first if c[0] == "denoiser-bench")
     assert arg(bench, "ckpt").count(": ") == 3 and "no_kd" not in arg(bench, "ckpt")
     (tree / "calls.log").unlink()
@@ -244,7 +246,7 @@ def test_an_evaluation_of_the_same_checkpoints_is_not_redone_and_a_newer_checkpo
     assert not any(c[0] in ("denoiser-eval", "denoiser-bench") for c in stub_calls(tree / "calls.log"))
     assert rows(tree / "reports" / "ablations" / "timings.md")["eval"][1].startswith("run ")  # the first run's row
     time.sleep(0.05)
-    (tree / "reports" / "ablations" / "runs" / "direct_s0" / "checkpoints" / "last.ckpt").touch()  # retrained
+    (tree / "reports" / "ablations" / "runs" / "direct_s0" / "checkpoints" / "best.ckpt").touch()  # retrained
     (tree / "calls.log").unlink()
     pipeline(tree, *ablate)
     assert [c[0] for c in stub_calls(tree / "calls.log") if c[0] in ("denoiser-eval", "denoiser-bench")] == \
@@ -360,9 +362,9 @@ def test_compare_renders_its_data_and_evaluates_nppd_ws_and_make_demos_networks_
     assert arg(evaluation, "baselines") == "compare" and arg(evaluation, "ckpt") == (
         "{teacher: reports/demo/runs/teacher/checkpoints/best.ckpt, student_s0: reports/demo/runs/student_distilled_s0/"
         "checkpoints/best.ckpt, student_s1: reports/demo/runs/student_distilled_s1/checkpoints/best.ckpt, nppd_s0: "
-        "reports/compare/runs/nppd_demo_s0/checkpoints/last.ckpt, ws_s0: reports/compare/runs/ws_demo_s0/checkpoints/"
-        "last.ckpt, nppd_s1: reports/compare/runs/nppd_demo_s1/checkpoints/last.ckpt, ws_s1: reports/compare/runs/"
-        "ws_demo_s1/checkpoints/last.ckpt}")
+        "reports/compare/runs/nppd_demo_s0/checkpoints/best.ckpt, ws_s0: reports/compare/runs/ws_demo_s0/checkpoints/"
+        "best.ckpt, nppd_s1: reports/compare/runs/nppd_demo_s1/checkpoints/best.ckpt, ws_s1: reports/compare/runs/"
+        "ws_demo_s1/checkpoints/best.ckpt}")  # make demo's runs and the ones trained here alike: each run's best
     summary = next(c for c in calls if c[0] == "python")
     assert summary[1:5] == ["-m", "denoiser.commands.demo_summary", "--config-name", "compare_summary"]
 

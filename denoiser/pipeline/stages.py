@@ -17,7 +17,8 @@ stage is a mapping with these keys (all optional but one of ``command``, ``modul
 - ``name``: the job name's template (default: the stage's name);
 - ``run_dir``: a training run's directory: ``denoiser-train`` gets ``skip_done=true
   ckpt_path=auto hydra.run.dir=<run_dir>`` (a finished run is skipped, an interrupted one resumed);
-- ``ckpt``: the checkpoint a job leaves (default for a training job: :func:`best` of its run);
+- ``ckpt``: the checkpoint a job leaves (default for a training job: :func:`best` of its run,
+  looked up when a later stage chooses it);
 - ``checkpoints``: ``{stages: [...], where: {variable: value or [values]}}``: adds ``ckpt={name:
   path, ...}``, the checkpoints the jobs of those stages left (a job with such a variable only when
   its value is one of ``where``'s);
@@ -91,6 +92,11 @@ class Job:
     ckpt: str | None = None
     extra: list[str] = field(default_factory=list)
 
+    def checkpoint(self) -> str | None:
+        """The checkpoint this job leaves, looked up now: ``ckpt`` as given, else :func:`best` of its
+        run directory. A job is planned before its run trains; its ``best.ckpt`` exists only after."""
+        return self.ckpt or (best(self.run_dir) if self.run_dir else None)
+
 
 _FIELD = re.compile(r"\{(\w+)\}")
 
@@ -151,11 +157,11 @@ def expand(name: str, stage: Mapping) -> list[Job]:
 
 def _job(stage: Mapping, variables: dict[str, str], args: list[str], run_dir=None, ckpt=None) -> Job:
     """A job of ``stage``: its run directory and checkpoint as given, else from the stage's
-    templates (a training run's checkpoint: :func:`best` of its directory)."""
+    templates (a training run's: none here, :meth:`Job.checkpoint` looks it up when it is chosen)."""
     if run_dir is None and stage.get("run_dir"):
         run_dir = fill(str(stage["run_dir"]), variables)
-    if ckpt is None:
-        ckpt = fill(str(stage["ckpt"]), variables) if stage.get("ckpt") else (best(run_dir) if run_dir else None)
+    if ckpt is None and stage.get("ckpt"):
+        ckpt = fill(str(stage["ckpt"]), variables)
     return Job(variables["name"], variables, args, str(run_dir) if run_dir else None, str(ckpt) if ckpt else None)
 
 
@@ -186,8 +192,9 @@ def choose_checkpoints(selection: Mapping, stages: Mapping[str, list[Job]]) -> d
             raise ConfigError(f"checkpoints.stages: {stage_name!r} is not a stage of this pipeline "
                               f"(stages: {', '.join(stages)})")
         for job in stages[stage_name]:
-            if job.ckpt and all(k not in job.variables or job.variables[k] in v for k, v in where.items()):
-                chosen[job.name] = job.ckpt
+            ckpt = job.checkpoint()
+            if ckpt and all(k not in job.variables or job.variables[k] in v for k, v in where.items()):
+                chosen[job.name] = ckpt
     return chosen
 
 

@@ -308,6 +308,54 @@ def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw):
     assert np.array_equal(got[0], got[1])
 
 
+@needs_extension
+@pytest.mark.parametrize(("channels", "hw"), [
+    (3, (3, 40)),  # the history's colour parts: two whole 16-pixel blocks interleaved in registers, and a rest
+    (3, (2, 16)),  # exactly one block per row
+    (2, (4, 7)),  # any other channel count: the plain loop
+])
+def test_color_feature_matches_torch_channels_last(tmp_path, channels, hw):
+    """``denoiser::ColorFeature`` (the f32 graph's colour feature of a U-Net input part, written
+    channels-last and permuted back) within 1 ulp of ``log(1 + max(x, 0) / scale)`` (the quotient
+    and ``1 +`` in float32, as the graph's Log1p), and of the eager ``log1p``, per image
+    scale, with negative values (clamped to 0), a NaN (kept: clamp_min keeps it), +inf and zero;
+    1 and 2 threads alike; the exported graph holds one such node per part and no Log1p."""
+    import openvino as ov
+
+    from denoiser.nn.graph_ops import heads_as_matmul
+    from denoiser.nn.inputs import color_feature_part
+
+    class Part(torch.nn.Module):
+        def forward(self, x, scale):
+            return color_feature_part(x, scale)
+
+    torch.manual_seed(channels)
+    x = torch.randn(2, channels, *hw) * 3
+    x[0, 0, 0, :4] = torch.tensor([float("nan"), float("inf"), 0.0, -5.0])
+    scale = torch.tensor([0.7, 3.0]).view(2, 1, 1, 1)
+    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(Part(), (x, scale), str(tmp_path / "c.onnx"), input_names=["x", "scale"],
+                          output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import onnx
+
+    assert [n.op_type for n in onnx.load(str(tmp_path / "c.onnx")).graph.node if n.domain == "denoiser"] == \
+        ["ColorFeature"]
+    u = x.clamp_min(0) / scale  # float32, then log(1 + u) with 1 + u in float32 (as denoiser::Log1p)
+    want = torch.log((1.0 + u).double()).float().numpy()
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "c.onnx")
+    got = []
+    for threads in (1, 2):
+        compiled = core.compile_model(core.read_model(str(tmp_path / "c.onnx")), "CPU",
+                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
+        got.append(compiled({"x": x.numpy(), "scale": scale.numpy()})[compiled.output(0)])
+    assert got[0].shape == want.shape
+    assert np.isnan(got[0][0, 0, 0, 0]) and got[0][0, 0, 0, 1] == np.inf and got[0][0, 0, 0, 2:4].tolist() == [0, 0]
+    np.testing.assert_allclose(got[0], want, rtol=1.2e-7, atol=0)
+    np.testing.assert_allclose(got[0], torch.log1p(u).numpy(), rtol=2.4e-7, atol=1.2e-7)  # the eager feature
+    np.testing.assert_array_equal(got[0], got[1])
+
+
 def one_hot(taps, k: int = 5) -> torch.Tensor:
     """Logits ``[1, k*k, H, W]``: +1e4 at tap ``taps[y]`` of row y, -1e4 elsewhere (saturated)."""
     logits = torch.full((1, k * k, len(taps), 1), -1e4)

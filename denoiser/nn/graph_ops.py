@@ -22,7 +22,8 @@ that record them. Eager training and inference never take these paths.
   :class:`EmbedNetOp` (:class:`denoiser.nn.embed.EmbedNet`, f32 graphs),
   :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`PyramidFilterHeadOp`
   (the same with head 0 as :class:`denoiser.nn.unet.FactoredHead`), :class:`Log1pOp`
-  (:func:`denoiser.nn.inputs.log1p`), :class:`AddUpsampledOp`
+  (:func:`denoiser.nn.inputs.log1p`), :class:`ColorFeatureOp`
+  (:func:`denoiser.nn.inputs.color_feature_part`, f32 graphs), :class:`AddUpsampledOp`
   (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`), :class:`ClampBlendOp`
   (:func:`denoiser.nn.temporal.clamp_blend`), :class:`GuideGateOp`
   (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
@@ -64,6 +65,8 @@ OPERATIONS: dict[str, Operation] = {
     "EmbedNet": Operation(None, {"negative_slope": "FLOAT"}),
     # x -> log1p(x)
     "Log1p": Operation(1, {}),
+    # x [B, C, H, W], scale [B, 1, 1, 1] -> log1p(max(x, 0) / scale) as [B, H, W, C] (channels-last)
+    "ColorFeature": Operation(2, {}),
     # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
     "AddUpsampled": Operation(2, {"mode": "STRING"}),
     # base [B, C, H, W], previous [B, C, H, W], weight [B, 1, H, W] -> [B, C, H, W]
@@ -248,6 +251,25 @@ class EmbedNetOp(torch.autograd.Function):
         return out
 
 
+class ColorFeatureOp(torch.autograd.Function):
+    """:func:`denoiser.nn.inputs.color_feature` of a U-Net input part recorded as one
+    ``denoiser::ColorFeature`` node: forward(x ``[B, C, H, W]``, scale ``[B, 1, 1, 1]``) ->
+    ``[B, H, W, C]`` float32 channels-last (the layout the U-Net's first convolution reads; the
+    caller permutes it to ``[B, C, H, W]``)."""
+
+    @staticmethod
+    def forward(ctx, x, scale):
+        return torch.log1p(x.float().clamp_min(0) / scale).permute(0, 2, 3, 1).contiguous()
+
+    @staticmethod
+    def symbolic(g, x, scale):
+        out = graph_node(g, "ColorFeature", x, scale, like=x)
+        sizes = x.type().varyingSizes()  # [B, C, H, W] (None where not known)
+        if sizes is not None and len(sizes) == 4:
+            out.setType(x.type().with_sizes([sizes[0], sizes[2], sizes[3], sizes[1]]))
+        return out
+
+
 class Log1pOp(torch.autograd.Function):
     """:func:`denoiser.nn.inputs.log1p` recorded as one ``denoiser::Log1p`` node (the value: ``torch.log1p``)."""
 
@@ -315,6 +337,6 @@ class GuideGateOp(torch.autograd.Function):
         return out
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "EmbedNetOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
+__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
            "untraced"]

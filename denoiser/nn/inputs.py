@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import torch
 
-from denoiser.nn.graph_ops import Log1pOp, fused_kernels
+from denoiser.nn.graph_ops import ColorFeatureOp, Log1pOp, fused_kernels, matmul_heads
 from denoiser.nonfinite import POSINF, replace_tensor  # noqa: F401 - POSINF is used through this module
 
 COLOR_EPS = 1e-3
@@ -67,6 +67,17 @@ def color_feature(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     by the caller) -> same shape as x, float32, >= 0.
     """
     return log1p(x.float().clamp_min(0) / scale)
+
+
+def color_feature_part(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """:func:`color_feature` of an input part of the U-Net's first convolution: x ``[B, C, H,
+    W]``, scale ``[B, 1, 1, 1]`` -> ``[B, C, H, W]`` float32. In the f32 graph with the fused
+    operations (:func:`~denoiser.nn.graph_ops.matmul_heads` and
+    :func:`~denoiser.nn.graph_ops.fused_kernels`) one ``denoiser::ColorFeature`` node that writes
+    it channels-last, as the convolution reads it, permuted back here (no reorder between them)."""
+    if fused_kernels() and matmul_heads():
+        return ColorFeatureOp.apply(x, scale).permute(0, 3, 1, 2)
+    return color_feature(x, scale)
 
 
 def albedo_feature(albedo: torch.Tensor) -> torch.Tensor:

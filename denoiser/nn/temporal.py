@@ -80,7 +80,7 @@ from torch import nn
 
 from denoiser.errors import ConfigError
 from denoiser.nn.graph_ops import ClampBlendOp, GuideGateOp, fused_kernels
-from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature
+from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature_part
 from denoiser.nn.warp import warp_all
 
 #: minimum bilinear coverage for a warped history value to count
@@ -308,7 +308,8 @@ class TemporalRecurrence(nn.Module):
         entry of ``input_layout``, in its order (what an exported graph feeds the U-Net's first
         convolution part by part). scale: ``[B, 1, 1, 1]`` current color scale.
         """
-        parts = {"output": color_feature(history["output"], scale), "color": color_feature(history["color"], scale),
+        parts = {"output": color_feature_part(history["output"], scale),
+                 "color": color_feature_part(history["color"], scale),
                  "guide": history["guide"], "features": history["features"], "valid": history["valid"],
                  "disagreement": history.get("disagreement")}
         return [parts[part] for part, _ in self.input_layout]

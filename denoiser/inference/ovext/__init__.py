@@ -1,6 +1,7 @@
 """The project's OpenVINO CPU extension: the kernel filters as single operations, one C++
 header per operation (``kernel_apply.hpp``, ``pyramid_filter.hpp``, ``pyramid_filter_head.hpp``,
-``embed_net.hpp``, ``log1p.hpp``, ``add_upsampled.hpp``, ``clamp_blend.hpp``, ``guide_gate.hpp``, with ``common.hpp``), registered
+``embed_net.hpp``, ``log1p.hpp``, ``color_feature.hpp``, ``add_upsampled.hpp``, ``clamp_blend.hpp``, ``guide_gate.hpp``, with
+``common.hpp``), registered
 in ``extension.cpp``, the one file
 compiled; their names, inputs and attributes are :data:`denoiser.nn.graph_ops.OPERATIONS`. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
@@ -9,7 +10,9 @@ upsampling, normalisation), ``denoiser::PyramidFilterHead`` the same with the le
 computed row by row inside it from its factors (:class:`denoiser.nn.unet.FactoredHead`: the
 graphs with matmul heads), ``denoiser::EmbedNet`` the EmbedNet's three 1x1 layers per pixel
 (the same f32 graphs), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``
-is a reference implementation on the CPU), ``denoiser::AddUpsampled`` the level-0 head's sum
+is a reference implementation on the CPU), ``denoiser::ColorFeature`` the history's colour parts
+of the U-Net input, written channels-last as its first convolution reads them (the f32 graphs),
+``denoiser::AddUpsampled`` the level-0 head's sum
 with its upsampled half-resolution part (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`),
 ``denoiser::ClampBlend`` the history clamp and blend (:func:`denoiser.nn.temporal.clamp_blend`) and
 ``denoiser::GuideGate`` the disocclusion gate (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).

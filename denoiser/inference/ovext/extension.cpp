@@ -5,6 +5,7 @@
 // part of the build's cache key.
 #include "add_upsampled.hpp"
 #include "clamp_blend.hpp"
+#include "color_feature.hpp"
 #include "embed_net.hpp"
 #include "guide_gate.hpp"
 #include "kernel_apply.hpp"
@@ -28,6 +29,7 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::ClampBlend>>(),
     std::make_shared<ov::OpExtension<denoiser::GuideGate>>(),
     std::make_shared<ov::OpExtension<denoiser::EmbedNet>>(),
+    std::make_shared<ov::OpExtension<denoiser::ColorFeature>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "AddUpsampled", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
@@ -51,6 +53,11 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
             return std::make_shared<denoiser::EmbedNet>(all_inputs(ctx), ctx.get_attribute<float>("negative_slope"))
                 ->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "ColorFeature", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::ColorFeature>(ctx.get_input(0), ctx.get_input(1))->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "Log1p", "denoiser",

@@ -9,7 +9,7 @@ namespace denoiser {
 // log(1 + x) elementwise, as ONNX's Log(Add(x, 1)) computes it (the exported form of
 // torch.log1p): Cephes' logf on u = 1 + x (at most 0.8 ulp on every 97th positive normal float),
 // branch-free so the loop vectorises; u outside the normal positive finite floats (0, negative,
-// subnormal, +inf, NaN) is redone by std::log in a second pass.
+// subnormal, +inf, NaN) is redone by std::log in a second pass (only over a range that has one).
 static inline float log_normal(float u) {
     int32_t bits;
     std::memcpy(&bits, &u, sizeof(bits));
@@ -38,9 +38,27 @@ static inline float log_normal(float u) {
 
 static void log1p_range(const float* x, float* y, int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) y[i] = log_normal(1.0f + x[i]);
-    for (int64_t i = begin; i < end; ++i) {
+    // the second pass only where some u lies outside the normal positive finite floats
+    const float lo = std::numeric_limits<float>::min(), hi = std::numeric_limits<float>::max();
+    bool outside = false;
+    int64_t i = begin;
+#if defined(__AVX512F__)
+    __mmask16 bad = 0;
+    for (; i + 16 <= end; i += 16) {  // ordered compares: false for NaN
+        const __m512 u = _mm512_add_ps(_mm512_set1_ps(1.0f), _mm512_loadu_ps(x + i));
+        bad |= static_cast<__mmask16>(~(_mm512_cmp_ps_mask(u, _mm512_set1_ps(lo), _CMP_GE_OQ) &
+                                        _mm512_cmp_ps_mask(u, _mm512_set1_ps(hi), _CMP_LE_OQ)));
+    }
+    outside = bad != 0;
+#endif
+    for (; i < end; ++i) {
         const float u = 1.0f + x[i];
-        if (!(u >= std::numeric_limits<float>::min() && u <= std::numeric_limits<float>::max())) y[i] = std::log(u);
+        outside = outside || !(u >= lo && u <= hi);
+    }
+    if (!outside) return;
+    for (i = begin; i < end; ++i) {
+        const float u = 1.0f + x[i];
+        if (!(u >= lo && u <= hi)) y[i] = std::log(u);
     }
 }
 

@@ -111,14 +111,22 @@ static void run_pyramid_filter(const float* X, const ov::Shape& xs, const Head0&
                     if (y % f == 0)
                         for (int64_t c = 0; c < C1; ++c) std::fill(dst + c * plane, dst + c * plane + wc, 0.0f);
                     for (int64_t c = 0; c < C1; ++c) {
-                        float* d = dst + c * plane;
+                        float* __restrict d = dst + c * plane;
+                        const float* __restrict wr = w;
+                        // one sum per pooled pixel, stored once (not through memory per source pixel)
                         if (c < C) {
-                            const float* xr = X + (b * C + c) * HW + y * W;
-                            for (int64_t px = 0; px < wc; ++px)
-                                for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx] * xr[px * f + dx];
+                            const float* __restrict xr = X + (b * C + c) * HW + y * W;
+                            for (int64_t px = 0; px < wc; ++px) {
+                                float a = 0.0f;
+                                for (int64_t dx = 0; dx < f; ++dx) a += wr[px * f + dx] * xr[px * f + dx];
+                                d[px] += a;
+                            }
                         } else {  // the constant channel: the pooled weights
-                            for (int64_t px = 0; px < wc; ++px)
-                                for (int64_t dx = 0; dx < f; ++dx) d[px] += w[px * f + dx];
+                            for (int64_t px = 0; px < wc; ++px) {
+                                float a = 0.0f;
+                                for (int64_t dx = 0; dx < f; ++dx) a += wr[px * f + dx];
+                                d[px] += a;
+                            }
                         }
                         if (y % f == f - 1) {
                             const float norm = 1.0f / static_cast<float>(f * f);

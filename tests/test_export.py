@@ -98,8 +98,10 @@ def export_command(tmp_path, ckpt, out, *overrides) -> subprocess.CompletedProce
 
 
 def test_matmul_heads_export(tiny, tmp_path):
-    """``heads=matmul``: every U-Net head becomes matrix products (the level-0 head one per
-    part, no 1x1 convolution left for a head), with the same numbers as PyTorch."""
+    """``heads=matmul`` (the f32 graph's form): every U-Net head becomes matrix products (the
+    level-0 head one per part, no 1x1 convolution left for a head) and each decoder block's first
+    convolution runs per part, the skip and the upsampled features (no concatenation feeds a
+    convolution), with the same numbers as PyTorch."""
     _, net, ckpt, conv_path, _ = tiny
     out = tmp_path / "mm.onnx"
     proc = export_command(tmp_path, ckpt, out, "heads=matmul")
@@ -110,7 +112,14 @@ def test_matmul_heads_export(tiny, tmp_path):
     def count(nodes, op):
         return sum(n.op_type == op for n in nodes)
 
-    assert count(mm_nodes, "Conv") == count(conv_nodes, "Conv") - heads
+    decoders = len(net.unet.decoder)
+    assert count(mm_nodes, "Conv") == count(conv_nodes, "Conv") - heads + decoders
+
+    def concat_into_conv(nodes) -> bool:
+        made_by = {o: n for n in nodes for o in n.output}
+        return any(made_by[i].op_type == "Concat" for n in nodes if n.op_type == "Conv" for i in n.input if i in made_by)
+
+    assert not concat_into_conv(mm_nodes) and concat_into_conv(conv_nodes)  # the other form concatenates
     assert count(mm_nodes, "MatMul") == count(conv_nodes, "MatMul") + heads + 1  # level 0: two parts
     errors = check_export(net, out, size=(33, 17), steps=3)
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors

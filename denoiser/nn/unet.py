@@ -128,9 +128,15 @@ class UNet(nn.Module):
         half = self.bottleneck(x)  # the input of the last 2x upsampling, at 1/2 resolution
         x = self._up(half)
         features: list[torch.Tensor] = [None] * self.levels  # type: ignore[list-item]
+        # exported for OpenVINO f32 (matmul_heads): each decoder block's first convolution per
+        # part (the skip and the upsampled features), without their concatenation (conv_of_parts)
+        decoder_parts = matmul_heads() and in_graph()
         for j, block in enumerate(self.decoder):
             scale = self.levels - 1 - j
-            x = block(torch.cat([skips[scale], x], dim=1))
+            if decoder_parts:
+                x = block[1:](conv_of_parts(block[0], [skips[scale], x]))
+            else:
+                x = block(torch.cat([skips[scale], x], dim=1))
             features[scale] = x
             half, x = x, self._up(x)
         features[0] = torch.cat([skips[0], x], dim=1)

@@ -153,6 +153,25 @@ def test_fused_kernels_export(tiny, tmp_path):
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
 
 
+@pytest.mark.parametrize("graph", ["onnxruntime", "openvino_f32"])
+def test_the_direct_ablation_exports(tmp_path, graph):
+    """``ablation=direct`` (the U-Net predicts the colour, :class:`~denoiser.nn.filters.DirectColor`)
+    exports, in ONNX Runtime's graph and in the OpenVINO f32 graph that make ablations times, and
+    equals PyTorch over three recurrent steps: its ``expm1`` is written ``exp - 1`` in a graph
+    (ONNX has no Expm1; make ablations could not time the variant)."""
+    from denoiser.inference.step_graph import export_onnx
+
+    fused = graph == "openvino_f32"
+    if fused:
+        extension_or_skip()
+    torch.manual_seed(0)
+    net = build_net(compose_net_config("tiny", "student", ablation="direct")).eval()
+    path = export_onnx(net, tmp_path / "direct.onnx", matmul_heads=fused, fused_kernels=fused)
+    assert uses_extension(path) == fused
+    errors = check_export(net, path, size=(33, 17), steps=3)
+    assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
+
+
 def test_export_command(tiny):
     *_, out, proc = tiny
     assert proc.returncode == 0, proc.stderr[-2000:]

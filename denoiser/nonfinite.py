@@ -44,16 +44,16 @@ def replace_array(array: np.ndarray) -> int:
 def nan_to_num(x: torch.Tensor, nan: float, posinf: float, neginf: float) -> torch.Tensor:
     """``x.nan_to_num(nan, posinf, neginf)`` (any shape; finite values kept, however large).
 
-    Traced or exported, the same values through comparisons and selects: ``x > -inf`` is false
-    exactly for NaN and -Inf, ``x < inf`` exactly for NaN and +Inf.
+    Traced or exported, the same values through an explicit NaN test and selects: ``x < inf`` is
+    false exactly for NaN and +Inf, ``x > -inf`` exactly for NaN and -Inf. NaN is always told by
+    ``IsNaN``, never by a comparison alone: OpenVINO's CPU plugin took ``x > -inf`` as true for NaN
+    (NaN became ``posinf``).
     """
     import torch
 
     if not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
         return x.nan_to_num(nan=nan, posinf=posinf, neginf=neginf)
     inf = float("inf")
-    if nan == neginf:
-        return torch.where(x > -inf, torch.where(x < inf, x, posinf), nan)
     return torch.where(torch.isnan(x), nan, torch.where(x < inf, torch.where(x > -inf, x, neginf), posinf))
 
 

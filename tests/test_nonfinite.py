@@ -94,12 +94,25 @@ def test_frame_read_from_exr_equals_raw_frame(net, tmp_path):
         assert torch.equal(net.step(read)[0], net.step(bad)[0])
 
 
-def test_onnx_export_applies_the_rule(net, tmp_path):
-    pytest.importorskip("onnxruntime")
-    from denoiser.inference.step_graph import OnnxStep, export_onnx
+@pytest.mark.parametrize("engine", ["onnxruntime", "openvino", "openvino_fused_f32"])
+def test_onnx_export_applies_the_rule(net, tmp_path, engine):
+    """The exported step applies the rule in every engine: ONNX Runtime, OpenVINO on the plain
+    graph and on the f32 graph with the extension's operations (OpenVINO once read NaN as +Inf in
+    the traced selects: NaN -> 65504, a firefly where PyTorch has 0)."""
+    from denoiser.inference.step_graph import OnnxStep, OpenVinoStep, export_onnx
 
-    path = export_onnx(net, tmp_path / "tiny.onnx")
-    runner = OnnxStep(path, threads=1)
+    if engine == "onnxruntime":
+        pytest.importorskip("onnxruntime")
+        runner = OnnxStep(export_onnx(net, tmp_path / "tiny.onnx"), threads=1)
+    else:
+        pytest.importorskip("openvino")
+        fused = engine == "openvino_fused_f32"
+        if fused:
+            from conftest import extension_or_skip
+
+            extension_or_skip()
+        runner = OpenVinoStep(export_onnx(net, tmp_path / "tiny.onnx", matmul_heads=fused, fused_kernels=fused),
+                              1, precision="f32")
     state_torch = state_bad = state_fixed = None
     with torch.no_grad():
         for t in range(2):

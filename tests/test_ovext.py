@@ -356,6 +356,52 @@ def test_color_feature_matches_torch_channels_last(tmp_path, channels, hw):
     np.testing.assert_array_equal(got[0], got[1])
 
 
+@needs_extension
+@pytest.mark.parametrize("hw", [(3, 37), (2, 5)])
+def test_guide_features_match_the_plain_features(tmp_path, hw):
+    """``denoiser::GuideFeatures`` (the f32 graph's auxiliary-buffer features in one pass) against
+    :func:`~denoiser.nn.inputs.guide_features` in PyTorch: NaN, +-inf and out-of-range values in
+    every buffer (sanitised, then clamped), depth beyond the far plane, an image without a hit (its
+    mean depth 1); two images; 1 and 2 threads alike."""
+    import openvino as ov
+
+    from denoiser.nn.graph_ops import heads_as_matmul
+    from denoiser.nn.inputs import DEPTH_FAR, guide_features
+
+    class Guide(torch.nn.Module):
+        def forward(self, albedo, normal, depth):
+            return guide_features({"albedo": albedo, "normal": normal, "depth": depth})
+
+    torch.manual_seed(hw[1])
+    albedo = torch.rand(2, 3, *hw) * 3 - 0.5
+    normal = torch.randn(2, 3, *hw) * 1.5
+    depth = torch.rand(2, 1, *hw) * 20
+    hard = torch.tensor([float("nan"), float("inf"), -float("inf"), 1e6, -3.0])
+    for x in (albedo, normal, depth):
+        x[0, 0, 0, :5] = hard
+    depth[1] = DEPTH_FAR * 10  # no hit in the second image
+    names = ["albedo", "normal", "depth"]
+    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(Guide(), (albedo, normal, depth), str(tmp_path / "g.onnx"), input_names=names,
+                          output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    import onnx
+
+    assert [n.op_type for n in onnx.load(str(tmp_path / "g.onnx")).graph.node if n.domain == "denoiser"] == \
+        ["GuideFeatures"]
+    want = guide_features({"albedo": albedo, "normal": normal, "depth": depth}).numpy()
+    assert np.isfinite(want).all()
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "g.onnx")
+    got = []
+    for threads in (1, 2):
+        compiled = core.compile_model(core.read_model(str(tmp_path / "g.onnx")), "CPU",
+                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
+        got.append(compiled(dict(zip(names, (x.numpy() for x in (albedo, normal, depth)))))[compiled.output(0)])
+    assert got[0].shape == want.shape == (2, 7, *hw)
+    np.testing.assert_allclose(got[0], want, rtol=2.4e-7, atol=1.2e-7)
+    np.testing.assert_array_equal(got[0], got[1])
+
+
 def one_hot(taps, k: int = 5) -> torch.Tensor:
     """Logits ``[1, k*k, H, W]``: +1e4 at tap ``taps[y]`` of row y, -1e4 elsewhere (saturated)."""
     logits = torch.full((1, k * k, len(taps), 1), -1e4)

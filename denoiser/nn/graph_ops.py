@@ -23,7 +23,8 @@ that record them. Eager training and inference never take these paths.
   :class:`PyramidFilterOp` (:class:`denoiser.nn.pyramid.PyramidFilter`), :class:`PyramidFilterHeadOp`
   (the same with head 0 as :class:`denoiser.nn.unet.FactoredHead`), :class:`Log1pOp`
   (:func:`denoiser.nn.inputs.log1p`), :class:`ColorFeatureOp`
-  (:func:`denoiser.nn.inputs.color_feature_part`, f32 graphs), :class:`AddUpsampledOp`
+  (:func:`denoiser.nn.inputs.color_feature_part`, f32 graphs), :class:`GuideFeaturesOp`
+  (:func:`denoiser.nn.inputs.guide_features`, f32 graphs), :class:`AddUpsampledOp`
   (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`), :class:`ClampBlendOp`
   (:func:`denoiser.nn.temporal.clamp_blend`), :class:`GuideGateOp`
   (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
@@ -67,6 +68,8 @@ OPERATIONS: dict[str, Operation] = {
     "Log1p": Operation(1, {}),
     # x [B, C, H, W], scale [B, 1, 1, 1] -> log1p(max(x, 0) / scale) as [B, H, W, C] (channels-last)
     "ColorFeature": Operation(2, {}),
+    # albedo [B, 3, H, W], normal [B, 3, H, W], depth [B, 1, H, W], mean [B, 1, 1, 1] -> [B, 7, H, W]
+    "GuideFeatures": Operation(4, {"albedo_max": "FLOAT", "depth_far": "FLOAT", "posinf": "FLOAT"}),
     # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
     "AddUpsampled": Operation(2, {"mode": "STRING"}),
     # base [B, C, H, W], previous [B, C, H, W], weight [B, 1, H, W] -> [B, C, H, W]
@@ -270,6 +273,28 @@ class ColorFeatureOp(torch.autograd.Function):
         return out
 
 
+class GuideFeaturesOp(torch.autograd.Function):
+    """:func:`denoiser.nn.inputs.guide_features` recorded as one ``denoiser::GuideFeatures`` node:
+    forward(albedo ``[B, 3, H, W]``, normal ``[B, 3, H, W]``, depth ``[B, 1, H, W]`` (as given:
+    the node sanitises them), mean ``[B, 1, 1, 1]`` (:func:`~denoiser.nn.inputs.depth_mean`),
+    albedo_max, depth_far, posinf) -> ``[B, 7, H, W]`` float32 (the value: the plain features)."""
+
+    @staticmethod
+    def forward(ctx, albedo, normal, depth, mean, albedo_max, depth_far, posinf):
+        from denoiser.nn import inputs  # a late import: that module imports this one
+
+        return inputs.plain_guide_features(*(inputs.sanitize(x) for x in (albedo, normal, depth)))
+
+    @staticmethod
+    def symbolic(g, albedo, normal, depth, mean, albedo_max, depth_far, posinf):
+        out = graph_node(g, "GuideFeatures", albedo, normal, depth, mean, like=albedo, albedo_max=float(albedo_max),
+                         depth_far=float(depth_far), posinf=float(posinf))
+        sizes = albedo.type().varyingSizes()
+        if sizes is not None and len(sizes) == 4:
+            out.setType(albedo.type().with_sizes([sizes[0], 7, sizes[2], sizes[3]]))
+        return out
+
+
 class Log1pOp(torch.autograd.Function):
     """:func:`denoiser.nn.inputs.log1p` recorded as one ``denoiser::Log1p`` node (the value: ``torch.log1p``)."""
 
@@ -337,6 +362,6 @@ class GuideGateOp(torch.autograd.Function):
         return out
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
+__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "GuideFeaturesOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
            "untraced"]

@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import torch
 
-from denoiser.nn.graph_ops import ColorFeatureOp, Log1pOp, fused_kernels, matmul_heads
-from denoiser.nonfinite import POSINF, replace_tensor  # noqa: F401 - POSINF is used through this module
+from denoiser.nn.graph_ops import ColorFeatureOp, GuideFeaturesOp, Log1pOp, fused_kernels, matmul_heads
+from denoiser.nonfinite import POSINF, replace_tensor
 
 COLOR_EPS = 1e-3
 ALBEDO_MAX = 100.0
@@ -113,11 +113,16 @@ def depth_feature(depth: torch.Tensor) -> torch.Tensor:
     depth: ``[B, 1, H, W]`` planar depth (no hit = large) -> ``[B, 1, H, W]`` in [0, 1).
     """
     d = depth.float().clamp(0, DEPTH_FAR)
+    return d / (d + depth_mean(d))
+
+
+def depth_mean(d: torch.Tensor) -> torch.Tensor:
+    """The mean depth of an image's hits (``d < DEPTH_HIT``; 1 without any) plus ``DEPTH_EPS``:
+    d ``[B, 1, H, W]`` clamped to ``[0, DEPTH_FAR]`` -> ``[B, 1, 1, 1]``."""
     hit = (d < DEPTH_HIT).float()
     count = hit.sum(dim=(1, 2, 3), keepdim=True)
     mean = (d * hit).sum(dim=(1, 2, 3), keepdim=True) / count.clamp_min(1)
-    mean = torch.where(count > 0, mean, torch.ones_like(mean)) + DEPTH_EPS
-    return d / (d + mean)
+    return torch.where(count > 0, mean, torch.ones_like(mean)) + DEPTH_EPS
 
 
 def guide_features(frame: dict) -> torch.Tensor:
@@ -126,11 +131,14 @@ def guide_features(frame: dict) -> torch.Tensor:
     frame: dict with ``albedo [B, 3, H, W]``, ``normal [B, 3, H, W]``, ``depth [B, 1, H, W]``
     (sanitised or not). Order: albedo feature, normal feature, depth feature.
     """
-    return torch.cat(
-        [
-            albedo_feature(sanitize(frame["albedo"])),
-            normal_feature(sanitize(frame["normal"])),
-            depth_feature(sanitize(frame["depth"])),
-        ],
-        dim=1,
-    )
+    if fused_kernels() and matmul_heads():  # the f32 graph: one denoiser::GuideFeatures node
+        depth = sanitize(frame["depth"]).clamp(0, DEPTH_FAR)
+        return GuideFeaturesOp.apply(frame["albedo"].float(), frame["normal"].float(), frame["depth"].float(),
+                                     depth_mean(depth), ALBEDO_MAX, DEPTH_FAR, POSINF)
+    return plain_guide_features(sanitize(frame["albedo"]), sanitize(frame["normal"]), sanitize(frame["depth"]))
+
+
+def plain_guide_features(albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """:func:`guide_features` of sanitised buffers (``albedo``, ``normal`` ``[B, 3, H, W]``,
+    ``depth`` ``[B, 1, H, W]``) -> ``[B, 7, H, W]``."""
+    return torch.cat([albedo_feature(albedo), normal_feature(normal), depth_feature(depth)], dim=1)

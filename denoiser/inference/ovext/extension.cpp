@@ -7,6 +7,7 @@
 #include "clamp_blend.hpp"
 #include "color_feature.hpp"
 #include "embed_net.hpp"
+#include "guide_features.hpp"
 #include "guide_gate.hpp"
 #include "kernel_apply.hpp"
 #include "log1p.hpp"
@@ -30,6 +31,7 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::GuideGate>>(),
     std::make_shared<ov::OpExtension<denoiser::EmbedNet>>(),
     std::make_shared<ov::OpExtension<denoiser::ColorFeature>>(),
+    std::make_shared<ov::OpExtension<denoiser::GuideFeatures>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "AddUpsampled", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
@@ -58,6 +60,14 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
         "ColorFeature", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
             return std::make_shared<denoiser::ColorFeature>(ctx.get_input(0), ctx.get_input(1))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "GuideFeatures", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            const ov::OutputVector args{ctx.get_input(0), ctx.get_input(1), ctx.get_input(2), ctx.get_input(3)};
+            return std::make_shared<denoiser::GuideFeatures>(args, ctx.get_attribute<float>("albedo_max"),
+                                                             ctx.get_attribute<float>("depth_far"),
+                                                             ctx.get_attribute<float>("posinf"))->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "Log1p", "denoiser",

@@ -77,6 +77,31 @@ def run_openvino(path, x, logits, threads=1, precision="f32"):
     return compiled(feed)[compiled.output(0)]
 
 
+def f32_graph_outputs(path, module, inputs: dict, op: str) -> list[np.ndarray]:
+    """``module`` exported to ``path`` as the f32 graph (matmul heads, the fused operations) with
+    ``inputs`` (name -> tensor) as its inputs; checks that its only extension node is ``op`` and
+    returns its output run by OpenVINO f32 on 1 and on 2 threads."""
+    import onnx
+    import openvino as ov
+
+    from denoiser.nn.graph_ops import heads_as_matmul
+
+    names = list(inputs)
+    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
+        torch.onnx.export(module, tuple(inputs.values()), str(path), input_names=names, output_names=["y"],
+                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    assert [n.op_type for n in onnx.load(str(path)).graph.node if n.domain == "denoiser"] == [op]
+    core = ov.Core()
+    ovext.load_into(core, path)
+    feed = {name: t.numpy() for name, t in inputs.items()}
+    got = []
+    for threads in (1, 2):
+        compiled = core.compile_model(core.read_model(str(path)), "CPU",
+                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
+        got.append(compiled(feed)[compiled.output(0)])
+    return got
+
+
 class Pyramid(torch.nn.Module):
     def __init__(self, sizes, scale):
         super().__init__()
@@ -271,10 +296,7 @@ def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw):
     """``denoiser::EmbedNet`` (the f32 graph's EmbedNet on its input parts, channels-last out)
     against the eager :class:`~denoiser.nn.embed.EmbedNet` on the parts' concatenation, with
     negative values through every LeakyReLU; two images; 1 and 2 threads alike."""
-    import openvino as ov
-
     from denoiser.nn.embed import EmbedNet
-    from denoiser.nn.graph_ops import heads_as_matmul
 
     torch.manual_seed(len(parts) + hidden)
     embed = EmbedNet(sum(parts), hidden, out).eval()
@@ -289,20 +311,7 @@ def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw):
             return self.embed(list(parts))
 
     want = embed(torch.cat(xs, 1)).detach().numpy()
-    names = [f"p{i}" for i in range(len(xs))]
-    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
-        torch.onnx.export(Embed(), tuple(xs), str(tmp_path / "e.onnx"), input_names=names, output_names=["y"],
-                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
-    import onnx
-
-    assert [n.op_type for n in onnx.load(str(tmp_path / "e.onnx")).graph.node if n.domain == "denoiser"] == ["EmbedNet"]
-    core = ov.Core()
-    ovext.load_into(core, tmp_path / "e.onnx")
-    got = []
-    for threads in (1, 2):
-        compiled = core.compile_model(core.read_model(str(tmp_path / "e.onnx")), "CPU",
-                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
-        got.append(compiled(dict(zip(names, (x.numpy() for x in xs))))[compiled.output(0)])
+    got = f32_graph_outputs(tmp_path / "e.onnx", Embed(), {f"p{i}": x for i, x in enumerate(xs)}, "EmbedNet")
     assert (want < 0).any()
     np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-5)
     assert np.array_equal(got[0], got[1])
@@ -320,9 +329,7 @@ def test_color_feature_matches_torch_channels_last(tmp_path, channels, hw):
     and ``1 +`` in float32, as the graph's Log1p), and of the eager ``log1p``, per image
     scale, with negative values (clamped to 0), a NaN (kept: clamp_min keeps it), +inf and zero;
     1 and 2 threads alike; the exported graph holds one such node per part and no Log1p."""
-    import openvino as ov
 
-    from denoiser.nn.graph_ops import heads_as_matmul
     from denoiser.nn.inputs import color_feature_part
 
     class Part(torch.nn.Module):
@@ -333,22 +340,9 @@ def test_color_feature_matches_torch_channels_last(tmp_path, channels, hw):
     x = torch.randn(2, channels, *hw) * 3
     x[0, 0, 0, :4] = torch.tensor([float("nan"), float("inf"), 0.0, -5.0])
     scale = torch.tensor([0.7, 3.0]).view(2, 1, 1, 1)
-    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
-        torch.onnx.export(Part(), (x, scale), str(tmp_path / "c.onnx"), input_names=["x", "scale"],
-                          output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
-    import onnx
-
-    assert [n.op_type for n in onnx.load(str(tmp_path / "c.onnx")).graph.node if n.domain == "denoiser"] == \
-        ["ColorFeature"]
+    got = f32_graph_outputs(tmp_path / "c.onnx", Part(), {"x": x, "scale": scale}, "ColorFeature")
     u = x.clamp_min(0) / scale  # float32, then log(1 + u) with 1 + u in float32 (as denoiser::Log1p)
     want = torch.log((1.0 + u).double()).float().numpy()
-    core = ov.Core()
-    ovext.load_into(core, tmp_path / "c.onnx")
-    got = []
-    for threads in (1, 2):
-        compiled = core.compile_model(core.read_model(str(tmp_path / "c.onnx")), "CPU",
-                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
-        got.append(compiled({"x": x.numpy(), "scale": scale.numpy()})[compiled.output(0)])
     assert got[0].shape == want.shape
     assert np.isnan(got[0][0, 0, 0, 0]) and got[0][0, 0, 0, 1] == np.inf and got[0][0, 0, 0, 2:4].tolist() == [0, 0]
     np.testing.assert_allclose(got[0], want, rtol=1.2e-7, atol=0)
@@ -363,9 +357,7 @@ def test_guide_features_match_the_plain_features(tmp_path, hw):
     :func:`~denoiser.nn.inputs.guide_features` in PyTorch: NaN, +-inf and out-of-range values in
     every buffer (sanitised, then clamped), depth beyond the far plane, an image without a hit (its
     mean depth 1); two images; 1 and 2 threads alike."""
-    import openvino as ov
 
-    from denoiser.nn.graph_ops import heads_as_matmul
     from denoiser.nn.inputs import DEPTH_FAR, guide_features
 
     class Guide(torch.nn.Module):
@@ -380,23 +372,10 @@ def test_guide_features_match_the_plain_features(tmp_path, hw):
     for x in (albedo, normal, depth):
         x[0, 0, 0, :5] = hard
     depth[1] = DEPTH_FAR * 10  # no hit in the second image
-    names = ["albedo", "normal", "depth"]
-    with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
-        torch.onnx.export(Guide(), (albedo, normal, depth), str(tmp_path / "g.onnx"), input_names=names,
-                          output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
-    import onnx
-
-    assert [n.op_type for n in onnx.load(str(tmp_path / "g.onnx")).graph.node if n.domain == "denoiser"] == \
-        ["GuideFeatures"]
+    got = f32_graph_outputs(tmp_path / "g.onnx", Guide(), {"albedo": albedo, "normal": normal, "depth": depth},
+                            "GuideFeatures")
     want = guide_features({"albedo": albedo, "normal": normal, "depth": depth}).numpy()
     assert np.isfinite(want).all()
-    core = ov.Core()
-    ovext.load_into(core, tmp_path / "g.onnx")
-    got = []
-    for threads in (1, 2):
-        compiled = core.compile_model(core.read_model(str(tmp_path / "g.onnx")), "CPU",
-                                      {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
-        got.append(compiled(dict(zip(names, (x.numpy() for x in (albedo, normal, depth)))))[compiled.output(0)])
     assert got[0].shape == want.shape == (2, 7, *hw)
     np.testing.assert_allclose(got[0], want, rtol=2.4e-7, atol=1.2e-7)
     np.testing.assert_array_equal(got[0], got[1])

@@ -93,12 +93,12 @@ def f32_graph_outputs(path, module, inputs: dict, op: str) -> list[np.ndarray]:
     assert [n.op_type for n in onnx.load(str(path)).graph.node if n.domain == "denoiser"] == [op]
     core = ov.Core()
     ovext.load_into(core, path)
-    feed = {name: t.numpy() for name, t in inputs.items()}
     got = []
     for threads in (1, 2):
         compiled = core.compile_model(core.read_model(str(path)), "CPU",
                                       {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
-        got.append(compiled(feed)[compiled.output(0)])
+        read = set().union(*(port.get_names() for port in compiled.inputs))  # an unread input is not one
+        got.append(compiled({name: t.numpy() for name, t in inputs.items() if name in read})[compiled.output(0)])
     return got
 
 
@@ -287,34 +287,43 @@ def test_pyramid_filter_head_matches_the_module(tmp_path, skip, hw, mode):
 
 
 @needs_extension
-@pytest.mark.parametrize(("parts", "hidden", "out", "hw"), [
-    ((3, 7), 16, 16, (5, 37)),  # the demo student's widths (the register path), a partial strip
-    ((3, 7), 16, 16, (3, 32)),  # whole strips: the channels-last store through 16 x 16 blocks
-    ((2, 4), 6, 5, (4, 19)),  # any other widths
+@pytest.mark.parametrize(("parts", "hidden", "out", "hw", "color"), [
+    ((3, 7), 16, 16, (5, 37), True),  # the demo student's widths (the register path), a partial strip
+    ((3, 7), 16, 16, (3, 32), True),  # whole strips: the channels-last store through 16 x 16 blocks
+    ((3, 7), 16, 16, (3, 32), False),  # the parts as given
+    ((2, 4), 6, 5, (4, 19), False),  # any other widths
 ])
-def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw):
+def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw, color):
     """``denoiser::EmbedNet`` (the f32 graph's EmbedNet on its input parts, channels-last out)
     against the eager :class:`~denoiser.nn.embed.EmbedNet` on the parts' concatenation, with
-    negative values through every LeakyReLU; two images; 1 and 2 threads alike."""
+    negative values through every LeakyReLU; with ``color`` the first part is linear colour whose
+    feature the node takes (per image scale; negative values, a NaN kept as clamp_min keeps it
+    would poison the pixel, so none here); two images; 1 and 2 threads alike."""
     from denoiser.nn.embed import EmbedNet
+    from denoiser.nn.inputs import color_feature
 
     torch.manual_seed(len(parts) + hidden)
     embed = EmbedNet(sum(parts), hidden, out).eval()
     xs = [torch.randn(2, c, *hw) * 2 for c in parts]
+    scale = torch.tensor([0.5, 4.0]).view(2, 1, 1, 1)
 
     class Embed(torch.nn.Module):
         def __init__(self):
             super().__init__()
             self.embed = embed
 
-        def forward(self, *parts):
-            return self.embed(list(parts))
+        def forward(self, scale, *parts):
+            return self.embed(list(parts), color_scale=scale if color else None)
 
-    want = embed(torch.cat(xs, 1)).detach().numpy()
-    got = f32_graph_outputs(tmp_path / "e.onnx", Embed(), {f"p{i}": x for i, x in enumerate(xs)}, "EmbedNet")
+    first = color_feature(xs[0], scale) if color else xs[0]
+    want = embed(torch.cat([first, *xs[1:]], 1)).detach().numpy()
+    got = f32_graph_outputs(tmp_path / "e.onnx", Embed(), {"scale": scale, **{f"p{i}": x for i, x in enumerate(xs)}},
+                            "EmbedNet")
     assert (want < 0).any()
     np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-5)
     assert np.array_equal(got[0], got[1])
+    eager = Embed()(scale, *xs).detach().numpy()  # the module's own path on parts, outside a graph
+    np.testing.assert_allclose(eager, want, rtol=1e-5, atol=1e-5)
 
 
 @needs_extension

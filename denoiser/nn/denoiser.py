@@ -227,8 +227,9 @@ class Denoiser(nn.Module):
         net_dtype = self.embed.layers[0].weight.dtype
         graph = in_graph()  # traced or exported
         if graph and frame.get("samples") is None:
-            # exported: the EmbedNet's first layer runs per input part (no concatenation)
-            net_in = self.embed([color_feature(color, scale).to(net_dtype), guide.to(net_dtype)])
+            # exported: the EmbedNet's first layer runs per input part (no concatenation), the
+            # colour feature taken by the EmbedNet (inside its node in the f32 graph)
+            net_in = self.embed([color, guide.to(net_dtype)], color_scale=scale)
         else:
             net_in = self.embed(self.embed_inputs(frame, color, scale, guide, albedo).to(net_dtype))
         history = None

@@ -13,7 +13,9 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from denoiser.buffers import CHANNELS
 from denoiser.nn.graph_ops import EmbedNetOp, fused_kernels, matmul_heads
+from denoiser.nn.inputs import color_feature
 from denoiser.nn.parts import conv_of_parts
 
 
@@ -41,7 +43,7 @@ class EmbedNet(nn.Module):
             nn.LeakyReLU(negative_slope, inplace=True),
         )
 
-    def forward(self, x: torch.Tensor | Sequence[torch.Tensor]) -> torch.Tensor:
+    def forward(self, x: torch.Tensor | Sequence[torch.Tensor], color_scale: torch.Tensor | None = None) -> torch.Tensor:
         """Per-pixel path ``x: [B, C_in, H, W]`` or per-sample path ``x: [B, S, C_in, H, W]``,
         or the per-pixel input as a list of parts ``[B, C_i, H, W]`` whose channel concatenation
         it is (``sum C_i == C_in``): the first layer then runs per part with its slice of the
@@ -49,15 +51,22 @@ class EmbedNet(nn.Module):
         concatenation of the inputs; the same numbers up to float rounding of the sum). In the
         f32 graph with the fused operations (:func:`~denoiser.nn.graph_ops.matmul_heads` and
         :func:`~denoiser.nn.graph_ops.fused_kernels`) the three layers are one
-        ``denoiser::EmbedNet`` node.
+        ``denoiser::EmbedNet`` node. color_scale (parts only): ``[B, 1, 1, 1]``: the first part is
+        the linear colour buffer ``[B, 3, H, W]`` float32, whose :func:`~denoiser.nn.inputs.color_feature`
+        with this scale is the input (taken inside that node in the f32 graph).
 
         Returns ``[B, C_out, H, W]`` (for samples: the mean over S of the per-sample output).
         """
         if not isinstance(x, torch.Tensor):
+            x = list(x)
             if fused_kernels() and matmul_heads():  # the f32 graph: one denoiser::EmbedNet node
                 convs = [self.layers[i] for i in (0, 2, 4)]
                 weights = [t for conv in convs for t in (conv.weight[:, :, 0, 0], conv.bias)]
-                return EmbedNetOp.apply(self.layers[1].negative_slope, *weights, *x).permute(0, 3, 1, 2)
+                color = 0 if color_scale is None else CHANNELS["color"]  # the first part: the colour
+                scale = torch.ones_like(x[0][:, :1, :1, :1]) if color_scale is None else color_scale
+                return EmbedNetOp.apply(self.layers[1].negative_slope, color, *weights, scale, *x).permute(0, 3, 1, 2)
+            if color_scale is not None:
+                x[0] = color_feature(x[0], color_scale).to(self.layers[0].weight.dtype)
             return self.layers[1:](conv_of_parts(self.layers[0], x))
         if x.dim() == 5:
             b, s, c, h, w = x.shape

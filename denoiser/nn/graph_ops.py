@@ -62,8 +62,10 @@ OPERATIONS: dict[str, Operation] = {
     "PyramidFilterHead": Operation(None, {"kernel_sizes": "INTS", "scale": "FLOAT", "has_scale": "INT",
                                           "mode": "STRING"}),
     # w0 [M, C], b0 [M], w1 [M, M], b1 [M], w2 [N, M], b2 [N], parts [B, C_i, H, W] -> [B, H, W, N]
-    # (channels-last): EmbedNet's three 1x1 layers per pixel
-    "EmbedNet": Operation(None, {"negative_slope": "FLOAT"}),
+    # (channels-last): EmbedNet's three 1x1 layers per pixel; with scale [B, 1, 1, 1] after b2 and
+    # color_channels > 0, the first color_channels input channels are linear colour, their
+    # log1p(max(x, 0) / scale) taken in the node
+    "EmbedNet": Operation(None, {"negative_slope": "FLOAT", "color_channels": "INT"}),
     # x -> log1p(x)
     "Log1p": Operation(1, {}),
     # x [B, C, H, W], scale [B, 1, 1, 1] -> log1p(max(x, 0) / scale) as [B, H, W, C] (channels-last)
@@ -228,25 +230,31 @@ class PyramidFilterHeadOp(torch.autograd.Function):
 
 class EmbedNetOp(torch.autograd.Function):
     """:class:`denoiser.nn.embed.EmbedNet`'s per-pixel path on a list of input parts, recorded as one
-    ``denoiser::EmbedNet`` node (attribute ``negative_slope``): the three 1x1 layers per pixel,
-    the hidden values never written at full resolution.
+    ``denoiser::EmbedNet`` node (attributes ``negative_slope``, ``color_channels``): the three 1x1
+    layers per pixel, the hidden values never written at full resolution.
 
-    forward(negative_slope, w0 ``[M, C]``, b0 ``[M]``, w1 ``[M, M]``, b1, w2 ``[N, M]``, b2 ``[N]``,
-    *parts ``[B, C_i, H, W]`` with ``sum C_i == C``) -> ``[B, H, W, N]`` float32, channels-last
-    (the layout the U-Net's first convolution reads; the caller permutes it to ``[B, N, H, W]``).
+    forward(negative_slope, color_channels, w0 ``[M, C]``, b0 ``[M]``, w1 ``[M, M]``, b1, w2 ``[N,
+    M]``, b2 ``[N]``, scale ``[B, 1, 1, 1]``, *parts ``[B, C_i, H, W]`` with ``sum C_i == C``) ->
+    ``[B, H, W, N]`` float32, channels-last (the layout the U-Net's first convolution reads; the
+    caller permutes it to ``[B, N, H, W]``). The first ``color_channels`` input channels are
+    linear colour: the node takes their :func:`denoiser.nn.inputs.color_feature` with ``scale``
+    first (0: none, ``scale`` unread).
     """
 
     @staticmethod
-    def forward(ctx, negative_slope, w0, b0, w1, b1, w2, b2, *parts):
-        x = torch.cat(parts, 1).permute(0, 2, 3, 1)
+    def forward(ctx, negative_slope, color_channels, w0, b0, w1, b1, w2, b2, scale, *parts):
+        x = torch.cat(parts, 1)
+        if color_channels:
+            x = torch.cat([torch.log1p(x[:, :color_channels].clamp_min(0) / scale), x[:, color_channels:]], 1)
+        x = x.permute(0, 2, 3, 1)
         for w, b in ((w0, b0), (w1, b1), (w2, b2)):
             x = F.leaky_relu(x @ w.t() + b, negative_slope)
         return x.contiguous()
 
     @staticmethod
-    def symbolic(g, negative_slope, w0, b0, w1, b1, w2, b2, *parts):
-        out = graph_node(g, "EmbedNet", w0, b0, w1, b1, w2, b2, *parts, like=parts[0],
-                         negative_slope=float(negative_slope))
+    def symbolic(g, negative_slope, color_channels, w0, b0, w1, b1, w2, b2, scale, *parts):
+        out = graph_node(g, "EmbedNet", w0, b0, w1, b1, w2, b2, scale, *parts, like=parts[0],
+                         negative_slope=float(negative_slope), color_channels=int(color_channels))
         sizes = parts[0].type().varyingSizes()  # [B, H, W, N] (None where not known)
         n = w2.type().varyingSizes()
         if sizes is not None and len(sizes) == 4 and n is not None:

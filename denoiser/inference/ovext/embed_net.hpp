@@ -1,8 +1,13 @@
-// EmbedNet(w0 [M, C], b0 [M], w1 [M, M], b1 [M], w2 [N, M], b2 [N], part_0 .. part_{p-1}
-//   [B, C_i, H, W] with sum C_i = C; attribute negative_slope) -> [B, H, W, N] f32 channels-last:
-//   denoiser.nn.embed.EmbedNet's per-pixel path on the parts' channel concatenation,
+// EmbedNet(w0 [M, C], b0 [M], w1 [M, M], b1 [M], w2 [N, M], b2 [N], scale [B, 1, 1, 1],
+//   part_0 .. part_{p-1} [B, C_i, H, W] with sum C_i = C; attributes negative_slope,
+//   color_channels) -> [B, H, W, N] f32 channels-last: denoiser.nn.embed.EmbedNet's per-pixel
+//   path on the parts' channel concatenation x,
 //
 //     y = lrelu(w2 lrelu(w1 lrelu(w0 x + b0) + b1) + b2),  lrelu(v) = v >= 0 ? v : slope v
+//
+//   where the first color_channels channels of x are linear colour, taken as their colour feature
+//   log1p(max(x, 0) / scale) first (denoiser.nn.inputs.color_feature; the log1p as
+//   denoiser::Log1p computes it: log1p.hpp); color_channels 0: x as given, scale unread.
 //
 //   per pixel, 16 pixels at a time with the hidden values in registers. In the plain graph the
 //   three 1x1 convolutions each wrote and read a full-resolution tensor (M = N = 16 channels for
@@ -12,6 +17,7 @@
 #pragma once
 
 #include "common.hpp"
+#include "log1p.hpp"
 
 namespace denoiser {
 
@@ -20,18 +26,19 @@ public:
     OPENVINO_OP("EmbedNet", "denoiser");
 
     EmbedNet() = default;
-    EmbedNet(const ov::OutputVector& args, float negative_slope) : Op(args), m_slope(negative_slope) {
+    EmbedNet(const ov::OutputVector& args, float negative_slope, int64_t color_channels)
+        : Op(args), m_slope(negative_slope), m_color(color_channels) {
         constructor_validate_and_infer_types();
     }
 
     void validate_and_infer_types() override {
         const size_t n = get_input_size();
-        NODE_VALIDATION_CHECK(this, n >= 7, "EmbedNet: needs 6 weights and biases and at least one part, got ", n,
-                              " inputs");
+        NODE_VALIDATION_CHECK(this, n >= 8, "EmbedNet: needs 6 weights and biases, the scale and at least one part, got ",
+                              n, " inputs");
         for (size_t i = 0; i < n; ++i)
             NODE_VALIDATION_CHECK(this, get_input_element_type(i) == ov::element::f32, "EmbedNet: f32 inputs only");
         const auto& w2 = get_input_partial_shape(4);
-        auto shape = get_input_partial_shape(6);
+        auto shape = get_input_partial_shape(7);
         if (shape.rank().is_static() && w2.rank().is_static()) {
             shape = ov::PartialShape{shape[0], shape[2], shape[3], w2[0]};
         } else {
@@ -41,11 +48,12 @@ public:
     }
 
     std::shared_ptr<ov::Node> clone_with_new_inputs(const ov::OutputVector& args) const override {
-        return std::make_shared<EmbedNet>(args, m_slope);
+        return std::make_shared<EmbedNet>(args, m_slope, m_color);
     }
 
     bool visit_attributes(ov::AttributeVisitor& visitor) override {
         visitor.on_attribute("negative_slope", m_slope);
+        visitor.on_attribute("color_channels", m_color);
         return true;
     }
 
@@ -55,7 +63,7 @@ public:
         const auto& w0s = inputs[0].get_shape();
         const auto& w1s = inputs[2].get_shape();
         const auto& w2s = inputs[4].get_shape();
-        const auto& ps = inputs[6].get_shape();
+        const auto& ps = inputs[7].get_shape();
         OPENVINO_ASSERT(w0s.size() == 2 && w1s.size() == 2 && w2s.size() == 2 && w1s[0] == w0s[0] &&
                             w1s[1] == w0s[0] && w2s[1] == w0s[0] && inputs[1].get_size() == w0s[0] &&
                             inputs[3].get_size() == w0s[0] && inputs[5].get_size() == w2s[0],
@@ -65,10 +73,10 @@ public:
         const int64_t B = ps[0], H = ps[2], W = ps[3], HW = H * W;
         std::vector<const float*> planes;  // the input channels, in the concatenation's order (image 0)
         std::vector<int64_t> per_image;    // each plane's distance to the next image's
-        for (size_t i = 6; i < inputs.size(); ++i) {
+        for (size_t i = 7; i < inputs.size(); ++i) {
             const auto& s = inputs[i].get_shape();
             OPENVINO_ASSERT(s.size() == 4 && s[0] == ps[0] && s[2] == ps[2] && s[3] == ps[3], "EmbedNet: part ",
-                            i - 6, " has shape ", s, " for part 0 ", ps);
+                            i - 7, " has shape ", s, " for part 0 ", ps);
             for (size_t c = 0; c < s[1]; ++c) {
                 planes.push_back(inputs[i].data<const float>() + c * HW);
                 per_image.push_back(static_cast<int64_t>(s[1]) * HW);
@@ -76,6 +84,9 @@ public:
         }
         OPENVINO_ASSERT(static_cast<int64_t>(planes.size()) == C, "EmbedNet: the parts have ", planes.size(),
                         " channels, the first layer reads ", C);
+        OPENVINO_ASSERT(m_color >= 0 && m_color <= C && (m_color == 0 || inputs[6].get_size() == ps[0]),
+                        "EmbedNet: ", m_color, " colour channels of ", C, ", scale ", inputs[6].get_shape());
+        const float* scale = inputs[6].data<const float>();
         outputs[0].set_shape({ps[0], ps[2], ps[3], w2s[0]});
         const float* w[3] = {inputs[0].data<const float>(), inputs[2].data<const float>(),
                              inputs[4].data<const float>()};
@@ -94,7 +105,12 @@ public:
                 for (int64_t s = 0; s < strips; ++s) {
                     const int64_t px0 = s * S, m = std::min<int64_t>(S, W - px0);
                     for (int64_t c = 0; c < C; ++c) {
-                        if (m == S) {
+                        if (c < m_color) {  // the colour feature of the strip (a partial strip's rest is 0)
+                            float u[S] = {}, f[S];
+                            for (int64_t p = 0; p < m; ++p) u[p] = std::max(src[c][px0 + p], 0.0f) / scale[bi];
+                            log1p_range(u, f, 0, S);
+                            x[c] = load_strip(f);
+                        } else if (m == S) {
                             x[c] = load_strip(src[c] + px0);
                         } else {
                             float t[S] = {};
@@ -159,6 +175,7 @@ private:
     }
 
     float m_slope = 0.1f;
+    int64_t m_color = 0;
 };
 
 }  // namespace denoiser

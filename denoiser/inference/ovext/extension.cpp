@@ -53,7 +53,8 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "EmbedNet", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
-            return std::make_shared<denoiser::EmbedNet>(all_inputs(ctx), ctx.get_attribute<float>("negative_slope"))
+            return std::make_shared<denoiser::EmbedNet>(all_inputs(ctx), ctx.get_attribute<float>("negative_slope"),
+                                                        ctx.get_attribute<int64_t>("color_channels"))
                 ->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(

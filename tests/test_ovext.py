@@ -4,7 +4,8 @@
 ``denoiser/nn/kernels.py``) and eager :func:`~denoiser.nn.kernels.apply_kernels`, at odd sizes,
 kernels larger than the image, extreme logits and fireflies; ``denoiser::PyramidFilter`` against
 :class:`~denoiser.nn.pyramid.PyramidFilter`; ``denoiser::Log1p`` against the exact log;
-``denoiser::AddUpsampled`` against ``F.interpolate``: these need the built extension and skip,
+``denoiser::FactoredHead`` against its product and ``F.interpolate``, and the f32 graph's input
+operations against PyTorch: these need the built extension and skip,
 naming why, without it (they fail instead under ``DENOISER_REQUIRE_OVEXT=1``, tests/conftest.py).
 Then the build's failure modes and the cache's trust rules, with fake compilers (shell scripts):
 these need the ``openvino`` package only. Whole exported networks run the fused graph's parity
@@ -460,33 +461,31 @@ def test_log1p_matches_torch(tmp_path):
 
 
 @needs_extension
-@pytest.mark.parametrize(("mode", "hw", "half"), [
-    ("bilinear", (12, 20), (6, 10)),  # the exact 2x of the level-0 head
-    ("bilinear", (9, 14), (4, 7)),  # any other size: the general path
-    ("nearest", (12, 20), (6, 10)),
+@pytest.mark.parametrize(("mode", "hw", "half", "skip"), [
+    ("bilinear", (12, 20), (6, 10), 16),  # the exact 2x of the level-0 head, the unrolled width (16 x 16 blocks)
+    ("bilinear", (9, 14), (4, 7), 16),  # any other size: the general upsampling, a partial block
+    ("nearest", (12, 20), (6, 10), 5),  # any other width
 ])
-def test_add_upsampled_matches_interpolate(tmp_path, mode, hw, half):
-    """``denoiser::AddUpsampled`` against ``a + F.interpolate(z, size, mode)`` (align_corners False)."""
-    from denoiser.nn.graph_ops import AddUpsampledOp
+def test_factored_head_matches_its_product(tmp_path, mode, hw, half, skip):
+    """``denoiser::FactoredHead`` (the level-0 head's channels from its factors: ``weight @ skip +
+    F.interpolate(z)``, align_corners False, planar out) against that computation in PyTorch; two
+    images; 1 and 2 threads alike."""
+    from denoiser.nn.graph_ops import FactoredHeadOp
 
-    class Add(torch.nn.Module):
-        def forward(self, a, z):
-            return AddUpsampledOp.apply(a, z, mode, False if mode == "bilinear" else None)
+    align = False if mode == "bilinear" else None
+
+    class Head(torch.nn.Module):
+        def forward(self, skip, weight, z):
+            return FactoredHeadOp.apply(skip, weight, z, mode, align)
 
     g = torch.Generator().manual_seed(5)
-    a, z = torch.randn(2, 5, *hw, generator=g), torch.randn(2, 5, *half, generator=g) * 100
-    with torch.no_grad():
-        torch.onnx.export(Add(), (a, z), str(tmp_path / "u.onnx"), input_names=["x", "z"], output_names=["y"],
-                          opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
-    import openvino as ov
-
-    core = ov.Core()
-    ovext.load_into(core, tmp_path / "u.onnx")
-    compiled = core.compile_model(core.read_model(str(tmp_path / "u.onnx")), "CPU", {"INFERENCE_NUM_THREADS": 2})
-    got = compiled({"x": a.numpy(), "z": z.numpy()})[compiled.output(0)]
-    want = (a + torch.nn.functional.interpolate(z, size=hw, mode=mode,
-                                                align_corners=False if mode == "bilinear" else None)).numpy()
-    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-4)
+    s = torch.randn(2, *hw, skip, generator=g)  # channels-last
+    weight, z = torch.randn(6, skip, generator=g), torch.randn(2, 6, *half, generator=g) * 100
+    got = f32_graph_outputs(tmp_path / "h.onnx", Head(), {"skip": s, "weight": weight, "z": z}, "FactoredHead")
+    want = (torch.einsum("bhwc,tc->bthw", s, weight) + torch.nn.functional.interpolate(
+        z, size=hw, mode=mode, align_corners=align)).numpy()
+    np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-4)
+    np.testing.assert_array_equal(got[0], got[1])
 
 
 def clamp_blend_loop(base, previous, weight, k: float) -> np.ndarray:

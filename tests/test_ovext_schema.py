@@ -59,7 +59,7 @@ def test_the_cpp_source_registers_the_schema():
 
 def exported_operations(tmp_path: Path) -> dict[str, list[tuple[int, dict[str, str]]]]:
     """Every ``denoiser`` node of graphs exported with the fused operations: the pyramid student,
-    the single-kernel ablation (KernelApply), the matmul heads (AddUpsampled) and the history
+    the single-kernel ablation (KernelApply), the matmul heads (FactoredHead, the f32 graph's input operations) and the history
     clamp with the disocclusion gate (ClampBlend, GuideGate: demo_student's temporal options)."""
     onnx = pytest.importorskip("onnx")
     from denoiser.configs import build_net, compose_net_config

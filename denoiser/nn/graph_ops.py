@@ -24,8 +24,8 @@ that record them. Eager training and inference never take these paths.
   (the same with head 0 as :class:`denoiser.nn.unet.FactoredHead`), :class:`Log1pOp`
   (:func:`denoiser.nn.inputs.log1p`), :class:`ColorFeatureOp`
   (:func:`denoiser.nn.inputs.color_feature_part`, f32 graphs), :class:`GuideFeaturesOp`
-  (:func:`denoiser.nn.inputs.guide_features`, f32 graphs), :class:`AddUpsampledOp`
-  (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`), :class:`ClampBlendOp`
+  (:func:`denoiser.nn.inputs.guide_features`, f32 graphs), :class:`FactoredHeadOp`
+  (:meth:`denoiser.nn.unet.FactoredHead.tensor`, f32 graphs), :class:`ClampBlendOp`
   (:func:`denoiser.nn.temporal.clamp_blend`), :class:`GuideGateOp`
   (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
 """
@@ -72,8 +72,9 @@ OPERATIONS: dict[str, Operation] = {
     "ColorFeature": Operation(2, {}),
     # albedo [B, 3, H, W], normal [B, 3, H, W], depth [B, 1, H, W], mean [B, 1, 1, 1] -> [B, 7, H, W]
     "GuideFeatures": Operation(4, {"albedo_max": "FLOAT", "depth_far": "FLOAT", "posinf": "FLOAT"}),
-    # a [B, C, H, W], z [B, C, h, w] -> a + interpolate(z, (H, W), mode)
-    "AddUpsampled": Operation(2, {"mode": "STRING"}),
+    # skip [B, H, W, C_s] (channels-last), weight [C, C_s], z [B, C, h, w] -> [B, C, H, W]:
+    # weight @ skip + interpolate(z, (H, W), mode)
+    "FactoredHead": Operation(3, {"mode": "STRING"}),
     # base [B, C, H, W], previous [B, C, H, W], weight [B, 1, H, W] -> [B, C, H, W]
     "ClampBlend": Operation(3, {"k": "FLOAT"}),
     # previous [B, 7, H, W], current [B, 7, H, W] -> [B, 1, H, W]
@@ -98,8 +99,9 @@ def kernels_as_op(enabled: bool = True) -> Iterator[None]:
     :func:`denoiser.nn.kernels.apply_kernels_graph` as one ``denoiser::KernelApply`` node instead
     of slices, a softmax and k*k multiply-adds, a :class:`~denoiser.nn.pyramid.PyramidFilter` as
     one ``denoiser::PyramidFilter``, :func:`denoiser.nn.inputs.log1p` as one ``denoiser::Log1p``
-    and, with :func:`heads_as_matmul`, the level-0 head's upsampled sum as one
-    ``denoiser::AddUpsampled``."""
+    and, with :func:`heads_as_matmul`, the level-0 head from its factors as one
+    ``denoiser::PyramidFilterHead`` (the filter's channels) and ``denoiser::FactoredHead`` (the
+    others), and the f32 graph's input transforms and embedding as their operations."""
     token = _KERNEL_OP.set(bool(enabled))
     try:
         yield
@@ -315,17 +317,26 @@ class Log1pOp(torch.autograd.Function):
         return graph_node(g, "Log1p", x, like=x)
 
 
-class AddUpsampledOp(torch.autograd.Function):
-    """``a + interpolate(z, a's size)`` recorded as one ``denoiser::AddUpsampled`` node (attribute
-    ``mode``); the value is the plain computation."""
+class FactoredHeadOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.unet.FactoredHead.tensor` recorded as one ``denoiser::FactoredHead`` node
+    (attribute ``mode``): forward(skip ``[B, H, W, C_s]`` channels-last, weight ``[C, C_s]``, z
+    ``[B, C, h, w]``, mode, align) -> ``[B, C, H, W]`` float32, ``weight @ skip +
+    interpolate(z)`` (the value: the plain computation)."""
 
     @staticmethod
-    def forward(ctx, a, z, mode, align):
+    def forward(ctx, skip, weight, z, mode, align):
+        from denoiser.nn.parts import pointwise
+
+        a = pointwise(weight, None, skip.permute(0, 3, 1, 2))
         return a + F.interpolate(z, size=a.shape[-2:], mode=mode, align_corners=align)
 
     @staticmethod
-    def symbolic(g, a, z, mode, align):
-        return graph_node(g, "AddUpsampled", a, z, like=a, mode=mode)
+    def symbolic(g, skip, weight, z, mode, align):
+        out = graph_node(g, "FactoredHead", skip, weight, z, like=z, mode=mode)
+        s, zs = skip.type().varyingSizes(), z.type().varyingSizes()  # [B, H, W, C_s], [B, C, h, w]
+        if s is not None and zs is not None and len(s) == 4 and len(zs) == 4:
+            out.setType(z.type().with_sizes([s[0], zs[1], s[1], s[2]]))
+        return out
 
 
 class ClampBlendOp(torch.autograd.Function):
@@ -370,6 +381,6 @@ class GuideGateOp(torch.autograd.Function):
         return out
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "AddUpsampledOp", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "GuideFeaturesOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
+__all__ = ["DOMAIN", "OPERATIONS", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "FactoredHeadOp", "GuideFeaturesOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
            "untraced"]

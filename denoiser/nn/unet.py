@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import AddUpsampledOp, fused_kernels, in_graph, matmul_heads
+from denoiser.nn.graph_ops import FactoredHeadOp, fused_kernels, in_graph, matmul_heads
 from denoiser.nn.parts import conv_of_parts, pointwise, pointwise_of_parts
 
 
@@ -197,12 +197,15 @@ class FactoredHead:
         return pointwise(self.weight[:, self.skip0.shape[1]:], self.bias, self.half)
 
     def tensor(self) -> torch.Tensor:
-        """The head ``[B, C_out, H, W]``: one planar ``denoiser::AddUpsampled`` node in a fused graph
-        (with OpenVINO's own upsampling its channels-last output made the head's channel split a
+        """The head ``[B, C_out, H, W]``: in the f32 graph with the fused operations one
+        ``denoiser::FactoredHead`` node (skip0 read channels-last, the product and the upsampled
+        part's sum row by row, written planar: no full-resolution product written and read again;
+        with OpenVINO's own upsampling its channels-last output made the head's channel split a
         137 ms reference node at 1080p)."""
-        a, z = pointwise(self.skip_weight, None, self.skip0), self.upsampled_part()
+        z = self.upsampled_part()
         if fused_kernels():
-            return AddUpsampledOp.apply(a, z, self.mode, self.align)
+            return FactoredHeadOp.apply(self.skip0.permute(0, 2, 3, 1), self.skip_weight, z, self.mode, self.align)
+        a = pointwise(self.skip_weight, None, self.skip0)
         return a + F.interpolate(z, size=a.shape[-2:], mode=self.mode, align_corners=self.align)
 
 

@@ -1,7 +1,7 @@
 """The project's OpenVINO CPU extension: the kernel filters as single operations, one C++
 header per operation (``kernel_apply.hpp``, ``pyramid_filter.hpp``, ``pyramid_filter_head.hpp``,
-``embed_net.hpp``, ``log1p.hpp``, ``color_feature.hpp``, ``add_upsampled.hpp``, ``clamp_blend.hpp``, ``guide_gate.hpp``, with
-``common.hpp``), registered
+``embed_net.hpp``, ``log1p.hpp``, ``color_feature.hpp``, ``guide_features.hpp``, ``factored_head.hpp``,
+``clamp_blend.hpp``, ``guide_gate.hpp``, with ``common.hpp``), registered
 in ``extension.cpp``, the one file
 compiled; their names, inputs and attributes are :data:`denoiser.nn.graph_ops.OPERATIONS`. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole
@@ -12,8 +12,9 @@ graphs with matmul heads), ``denoiser::EmbedNet`` the EmbedNet's three 1x1 layer
 (the same f32 graphs), ``denoiser::Log1p`` the input transforms' ``log1p`` (OpenVINO's ``Log``
 is a reference implementation on the CPU), ``denoiser::ColorFeature`` the history's colour parts
 of the U-Net input, written channels-last as its first convolution reads them (the f32 graphs),
-``denoiser::AddUpsampled`` the level-0 head's sum
-with its upsampled half-resolution part (:meth:`denoiser.nn.unet.UNet.head0_before_upsampling`),
+``denoiser::GuideFeatures`` the auxiliary buffers' features (the f32 graphs),
+``denoiser::FactoredHead`` the level-0 head's other channels from the same factors as
+``PyramidFilterHead`` (:meth:`denoiser.nn.unet.FactoredHead.tensor`),
 ``denoiser::ClampBlend`` the history clamp and blend (:func:`denoiser.nn.temporal.clamp_blend`) and
 ``denoiser::GuideGate`` the disocclusion gate (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
 

@@ -3,10 +3,10 @@
 // with the ONNX front end's conversions (the attributes of denoiser.nn.graph_ops.OPERATIONS;
 // tests/test_ovext_schema.py checks both against it). The one file compiled; the headers are
 // part of the build's cache key.
-#include "add_upsampled.hpp"
 #include "clamp_blend.hpp"
 #include "color_feature.hpp"
 #include "embed_net.hpp"
+#include "factored_head.hpp"
 #include "guide_features.hpp"
 #include "guide_gate.hpp"
 #include "kernel_apply.hpp"
@@ -26,18 +26,12 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::PyramidFilter>>(),
     std::make_shared<ov::OpExtension<denoiser::PyramidFilterHead>>(),
     std::make_shared<ov::OpExtension<denoiser::Log1p>>(),
-    std::make_shared<ov::OpExtension<denoiser::AddUpsampled>>(),
     std::make_shared<ov::OpExtension<denoiser::ClampBlend>>(),
     std::make_shared<ov::OpExtension<denoiser::GuideGate>>(),
     std::make_shared<ov::OpExtension<denoiser::EmbedNet>>(),
     std::make_shared<ov::OpExtension<denoiser::ColorFeature>>(),
     std::make_shared<ov::OpExtension<denoiser::GuideFeatures>>(),
-    std::make_shared<ov::frontend::onnx::ConversionExtension>(
-        "AddUpsampled", "denoiser",
-        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
-            return std::make_shared<denoiser::AddUpsampled>(ctx.get_input(0), ctx.get_input(1),
-                                                            ctx.get_attribute<std::string>("mode"))->outputs();
-        }),
+    std::make_shared<ov::OpExtension<denoiser::FactoredHead>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "ClampBlend", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
@@ -61,6 +55,12 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
         "ColorFeature", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
             return std::make_shared<denoiser::ColorFeature>(ctx.get_input(0), ctx.get_input(1))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "FactoredHead", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::FactoredHead>(ctx.get_input(0), ctx.get_input(1), ctx.get_input(2),
+                                                            ctx.get_attribute<std::string>("mode"))->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "GuideFeatures", "denoiser",

@@ -409,3 +409,19 @@ def test_a_dry_run_read_by_head_ends_without_a_traceback(tree):
     proc = subprocess.run(f"{' '.join(argv)} | head -2", shell=True, cwd=tree, capture_output=True, text=True, check=False,
                           env={**os.environ, "DENOISER_DATA": str(tree / "data")})
     assert len(proc.stdout.splitlines()) == 2 and "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr
+
+
+def test_paper_summary_stage_reads_the_table_of_the_run_it_is_part_of(tree):
+    """make paper's last stage sums the stages' work from make paper's own table, which is still
+    ``timings.md.tmp`` while the pipeline runs (a real summary here, each pipeline a stub that writes its table)."""
+    (tree / "bin" / "denoiser-pipeline").write_text(STUB_HEADER + r"""
+for a in "$@"; do case $a in pipeline=*) name=${a#pipeline=} ;; esac; done
+mkdir -p "reports/$name" && printf '| stage | seconds | run |\n|---|---:|---|\n| a | 7 | run x |\n| total | 7 | x |\n| work | 7 | x |\n' > "reports/$name/timings.md"
+""")
+    (tree / "bin" / "denoiser-pipeline").chmod(0o755)
+    (tree / "reports" / "demo" / "runs" / "teacher").mkdir(parents=True)
+    (tree / "reports" / "demo" / "runs" / "teacher" / "DONE").touch()
+    pipeline(tree, "pipeline=paper", f"python={sys.executable}")
+    block = (tree / "reports" / "paper" / "summary.md").read_text().split("<!-- paper:begin -->")[1]
+    assert "| all | 21 | 0.01 h |" in block and "within the budget of 6.00 h" in block
+    assert set(rows(tree / "reports" / "paper" / "timings.md")) >= {"ablations", "compare", "pareto", "summary", "work"}

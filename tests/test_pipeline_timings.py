@@ -3,6 +3,7 @@ the seconds of the run that did a reused step, and the budget adds up the stages
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -102,3 +103,18 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
     assert proc.stderr.startswith("error: ") and "no row for stage(s) compare, pareto" in proc.stderr
     proc = paper_summary(tmp_path, "budget_hours=lots")   # key=value, a bad value: one line too
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "budget-hours" in proc.stderr
+
+
+def test_a_reader_takes_the_running_table_only_when_it_is_newer_than_the_last_complete_one(tmp_path):
+    from denoiser.pipeline.timings import TimingTable, newest
+
+    assert newest(tmp_path / "timings.md") is None
+    table = TimingTable(tmp_path / "timings.md", clock=Clock())
+    assert newest(tmp_path / "timings.md") == tmp_path / "timings.md.tmp"     # a run going: its table
+    table.add("a", 3)
+    table.end()
+    assert newest(tmp_path / "timings.md") == tmp_path / "timings.md"         # ended: the complete one
+    stale = tmp_path / "timings.md.tmp"
+    stale.write_text("| stage | seconds | run |\n|---|---:|---|\n")
+    os.utime(stale, ns=(1, 1))                                                 # an interrupted run's, older
+    assert newest(tmp_path / "timings.md") == tmp_path / "timings.md"

@@ -83,9 +83,9 @@ def stage_times(report: Path) -> list[str]:
     """The lines (a blank one, then the line) of the pipeline's stage-time table (``<report>/timings.md``, or ``timings.md.tmp`` while
     the pipeline that runs this summary is still going: the stages before it): every stage's seconds and
     their sum, the wall time of a run that reused nothing. None without a table (the block as before)."""
-    from denoiser.pipeline.timings import read_rows
+    from denoiser.pipeline.timings import newest, read_rows
 
-    table = next((p for p in (report / "timings.md.tmp", report / "timings.md") if p.is_file()), None)
+    table = newest(report / "timings.md")
     rows = read_rows(table) if table is not None else {}
     if not rows:
         return []

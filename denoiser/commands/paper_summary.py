@@ -7,7 +7,8 @@ seconds, the steps that an earlier run did included, with the seconds of that ru
 or its ``total`` row when the table has no ``work`` row (a table from before the row existed, whose
 run did the work: its rows, runs side by side, add up to more than its wall time);
 a stage without a table counts its wall time in ``make paper``'s own table
-(``reports/paper/timings.md``). So a ``make paper`` that resumed work done earlier still states
+(``reports/paper/timings.md``, or ``timings.md.tmp`` when newer: the table of the make paper whose
+last stage this summary is). So a ``make paper`` that resumed work done earlier still states
 what the whole work costs, and how long this run took beside it.
 
 Usage::
@@ -30,6 +31,7 @@ from denoiser.atomic import atomic_write_text
 from denoiser.commands.app import CommandParser, report_user_error
 from denoiser.errors import UserError
 from denoiser.measure import cpu_model
+from denoiser.pipeline.timings import newest
 from denoiser.report.summary import git_commit
 
 BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
@@ -61,12 +63,13 @@ def hours(seconds: int) -> str:
 
 def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) -> str:
     """The summary's text (module docstring)."""
-    if not paper.is_file():
+    table = newest(paper)
+    if table is None:
         raise UserError(f"{paper}: not found (run make paper first)")
-    walls = read_table(paper)
+    walls = read_table(table)
     missing = [s for s in stages if s not in walls]
     if missing:
-        raise UserError(f"{paper}: no row for stage(s) {', '.join(missing)}")
+        raise UserError(f"{table}: no row for stage(s) {', '.join(missing)}")
     rows, total_work = [], 0
     for name in stages:
         own = reports / name / "timings.md"

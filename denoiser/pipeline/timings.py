@@ -35,6 +35,15 @@ def read_rows(path: Path) -> dict[str, tuple[int, str]]:
     return rows
 
 
+def newest(path: Path) -> Path | None:
+    """The table a reader should take: ``<path>.tmp`` (a run writing it: a stage of that very run,
+    a summary, reads the stages before it) when it is newer than ``path`` (the last complete table),
+    else ``path``; None when neither exists."""
+    path = Path(path)
+    found = [p for p in (path.with_name(path.name + ".tmp"), path) if p.is_file()]
+    return max(found, key=lambda p: p.stat().st_mtime_ns) if found else None
+
+
 @dataclass
 class TimingTable:
     """The table of one pipeline run at ``path`` (begun on construction, written by :meth:`end`)."""

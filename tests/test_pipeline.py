@@ -422,6 +422,8 @@ def test_paper_summary_stage_reads_the_table_of_the_run_it_is_part_of(tree):
     (tree / "bin" / "denoiser-pipeline").write_text(STUB_HEADER + r"""
 for a in "$@"; do case $a in pipeline=*) name=${a#pipeline=} ;; esac; done
 mkdir -p "reports/$name" && printf '| stage | seconds | run |\n|---|---:|---|\n| a | 7 | run x |\n| total | 7 | x |\n| work | 7 | x |\n' > "reports/$name/timings.md"
+file=summary.md; [ "$name" = pareto ] && file=pareto.md
+printf '<!-- %s:begin -->\n%s results\n<!-- %s:end -->\n' "$name" "$name" "$name" > "reports/$name/$file"
 """)
     (tree / "bin" / "denoiser-pipeline").chmod(0o755)
     (tree / "reports" / "demo" / "runs" / "teacher").mkdir(parents=True)
@@ -429,4 +431,5 @@ mkdir -p "reports/$name" && printf '| stage | seconds | run |\n|---|---:|---|\n|
     pipeline(tree, "pipeline=paper", f"python={sys.executable}")
     block = (tree / "reports" / "paper" / "summary.md").read_text().split("<!-- paper:begin -->")[1]
     assert "| all | 21 | 0.01 h |" in block and "within the budget of 6.00 h" in block
+    assert all(f"{name} results" in block for name in ("ablations", "compare", "pareto"))
     assert set(rows(tree / "reports" / "paper" / "timings.md")) >= {"ablations", "compare", "pareto", "summary", "work"}

@@ -86,8 +86,22 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
         "| stage | seconds | run |\n|---|---:|---|\n| sweep | 2000 | run y |\n| total | 2100 | run y: wall time |\n"
         "| work | 2900 | every stage's seconds |\n")
     proc = paper_summary(tmp_path)
+    assert proc.returncode == 2 and proc.stderr == (   # the stages' results are part of the summary
+        f"error: {tmp_path / 'reports' / 'ablations' / 'summary.md'}: not found (the ablations stage's results; run make paper)\n")
+    for name, file in (("ablations", "summary.md"), ("compare", "summary.md"), ("pareto", "pareto.md")):
+        (tmp_path / "reports" / name).mkdir(exist_ok=True)
+        (tmp_path / "reports" / name / file).write_text(
+            f"# {name}\n\n- run id: R-{name}\n- commit: C-{name}\n\n<!-- {name}:begin -->\n| {name} table |\n"
+            f"<!-- {name}:end -->\n\n![{name} picture]({name}.png)\n")
+    (tmp_path / "reports" / "pareto" / "pareto.csv").write_text("job,kind\n0,network\n1,network\noidn,baseline\n")
+    proc = paper_summary(tmp_path)
     assert proc.returncode == 0, proc.stderr
     text = (tmp_path / "summary.md").read_text()
+    for name, file in (("ablations", "summary.md"), ("compare", "summary.md"), ("pareto", "pareto.md")):
+        section = text.split(f"## {name}: ")[1]
+        assert f"- run id: R-{name}\n- commit: C-{name}\n\n| {name} table |" in section
+        assert f"![{name} picture](reports/{name}/{name}.png)" in section.split("## ")[0]   # linked from where summary.md is
+    assert "Trained points of the front's sweep: 2" in text
     block = text.split("<!-- paper:begin -->")[1].split("<!-- paper:end -->")[0]
     table = rows("\n".join(line for line in block.splitlines() if line.startswith("|")))
     assert table["ablations"][:3] == ["650", "0.18 h", "95"]      # an old table: its total row

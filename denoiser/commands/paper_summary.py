@@ -11,6 +11,12 @@ a stage without a table counts its wall time in ``make paper``'s own table
 last stage this summary is). So a ``make paper`` that resumed work done earlier still states
 what the whole work costs, and how long this run took beside it.
 
+Below the budget's block, the summary holds each stage's own results block (the text between
+``<!-- <stage>:begin -->`` and ``<!-- <stage>:end -->`` of ``reports/<stage>/summary.md``, the Pareto
+front's ``reports/pareto/pareto.md``), with that file's run id and commit and its pictures linked, so
+one file covers Fig. A.1 and the ablations, A.2/A.3 and the front; ``make readme`` copies each block
+into ``docs/results.md`` from its own file.
+
 Usage::
 
     python -m denoiser.commands.paper_summary [--paper reports/paper/timings.md] [--reports reports] \\
@@ -22,8 +28,10 @@ table or a stage without a row in it is one line ``error: ...`` on stderr and ex
 
 from __future__ import annotations
 
+import csv
 import datetime
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -57,12 +65,39 @@ def stage_work(table: dict[str, int]) -> int:
     return sum(table.values())
 
 
+REPORT_FILES = {"pareto": "pareto.md"}  # a stage's results file in reports/<stage>/ (default summary.md)
+IMAGE = re.compile(r"!\[([^\]]*)\]\(([^)\s]+)\)")
+
+
+def stage_section(name: str, reports: Path, out_dir: Path) -> list[str]:
+    """The lines of stage ``name``'s section: its results file's run id and commit, its block
+    (between the ``name`` markers) and its pictures, linked from ``out_dir``."""
+    path = reports / name / REPORT_FILES.get(name, "summary.md")
+    if not path.is_file():
+        raise UserError(f"{path}: not found (the {name} stage's results; run make paper)")
+    text = path.read_text()
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    if begin not in text or end not in text.split(begin, 1)[1]:
+        raise UserError(f"{path}: no {begin} ... {end} block")
+    block = text.split(begin, 1)[1].split(end, 1)[0].strip("\n")
+    header = [line for line in text.splitlines() if line.startswith(("- run id:", "- commit:"))][:2]
+    rel = Path(os.path.relpath(path.parent, out_dir)).as_posix()
+    pictures = [f"![{m.group(1)}]({rel}/{m.group(2)})" for m in IMAGE.finditer(text)
+                if "://" not in m.group(2) and not m.group(2).startswith("/")]
+    lines = ["", f"## {name}: `{path.as_posix()}`", "", *header, "", block]
+    if name == "pareto" and (path.parent / "pareto.csv").is_file():
+        with open(path.parent / "pareto.csv", newline="") as f:
+            trained = sum(row.get("kind") == "network" for row in csv.DictReader(f))
+        lines += ["", f"Trained points of the front's sweep: {trained} (`{(path.parent / 'pareto.csv').as_posix()}`)."]
+    return lines + ([""] + pictures if pictures else [])
+
+
 def hours(seconds: int) -> str:
     return f"{seconds / 3600:.2f} h"
 
 
-def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) -> str:
-    """The summary's text (module docstring)."""
+def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float, out_dir: Path = Path(".")) -> str:
+    """The summary's text (module docstring); pictures linked from ``out_dir``."""
     table = newest(paper)
     if table is None:
         raise UserError(f"{paper}: not found (run make paper first)")
@@ -97,7 +132,8 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float) 
         (f"Work: every step's wall time in the run that did it (a step a later run reused keeps that "
          f"run's seconds; denoiser/pipeline/timings.py). All of it takes {hours(total_work)} on this machine "
          f"({cpu_model()}, {os.cpu_count()} cores), {verdict}."),
-        END, ""])
+        END,
+        *[line for name in stages for line in stage_section(name, reports, out_dir)], ""])
 
 
 def main(argv=None) -> int:
@@ -118,7 +154,7 @@ def main(argv=None) -> int:
             raise UserError("stages: empty (e.g. stages=ablations,compare,pareto)")
         if not args.budget_hours > 0:
             raise UserError(f"budget_hours: {args.budget_hours} is not a positive number of hours")
-        text = summary(args.paper, stages, args.reports, args.budget_hours)
+        text = summary(args.paper, stages, args.reports, args.budget_hours, args.out.parent)
         try:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(args.out, text)

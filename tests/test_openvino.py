@@ -121,6 +121,47 @@ def test_compiles_once_per_size_and_resets(tiny):
     assert np.isfinite(after).all() and np.array_equal(after, fresh)
 
 
+@pytest.mark.parametrize("heads", ["conv", "matmul-fused"])
+def test_the_state_is_not_copied_and_a_held_state_is_never_written(tiny, heads):
+    """OpenVinoStep returns its slots' arrays as the state (no copy): a sequence stepped alone
+    runs on two slots, and a state that is still held (stepped from again, two sequences in
+    turn) keeps its values while other steps run; every output equals a fresh runner's."""
+    _, path, frames, _ = tiny
+    path = graph(path, heads)
+    step = OpenVinoStep(path, threads=1)
+
+    def alone(frames_resets):  # a fresh runner per sequence: the reference
+        runner = RecurrentRunner(OpenVinoStep(path, threads=1).step)
+        return [(runner(f, r), {k: v.copy() for k, v in runner.state.items()}) for f, r in frames_resets]
+
+    sequence = list(zip(frames, RESETS)) * 2
+    runner = RecurrentRunner(step.step)
+    got = [runner(f, r) for f, r in sequence]
+    assert all(np.array_equal(a, b) for a, (b, _) in zip(got, alone(sequence)))
+    assert len(step._compiled[(1, 20, 28)][1]) == 2                         # one sequence: two slots, in turn
+    held = OpenVinoStep(path, threads=1)
+    _, state = held.step(frames[0], None, reset=True)                       # slot 0
+    slots = held._compiled[(1, 20, 28)][1]
+    assert all(state[k] is slots[0].arrays[f"next_state_{k}"] for k in state)   # not a copy
+    kept = {k: v.copy() for k, v in state.items()}
+    held.step(frames[1], state)                                             # slot 1, reading slot 0
+    held.step(frames[2], None, reset=True)                                  # slot 0 is held by `state`: slot 1
+    held.step(frames[3], held.step(frames[1], state)[1])
+    assert all(np.array_equal(state[k], kept[k]) for k in state)            # held: never written
+    del state
+    held.step(frames[2], None, reset=True)
+    assert len(slots) == 3 and not any(s.held(slots) for s in slots)        # a slot no one holds is reused
+    a_state = b_state = None                                                # two sequences in turn
+    reference_a, reference_b = alone(list(zip(frames, RESETS))), alone(list(zip(frames[::-1], RESETS)))
+    for t, (fa, fb, reset) in enumerate(zip(frames, frames[::-1], RESETS)):
+        out_a, a_state = step.step(fa, None if reset else a_state, reset)
+        out_b, b_state = step.step(fb, None if reset else b_state, reset)
+        assert np.array_equal(out_a, reference_a[t][0]) and np.array_equal(out_b, reference_b[t][0]), t
+        assert all(np.array_equal(a_state[k], reference_a[t][1][k]) for k in a_state), t
+    step.close()
+    assert all(np.isfinite(v).all() for v in a_state.values())              # the arrays outlive the runner
+
+
 def test_backend_steps_like_the_eager_backend(tiny):
     net, _, frames, _ = tiny
     backend = OpenVinoBackend("openvino f32", precision="f32")

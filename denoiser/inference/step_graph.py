@@ -35,6 +35,7 @@ different operator order scales with them).
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 from collections import OrderedDict
 from pathlib import Path
@@ -187,6 +188,46 @@ class OnnxStep:
         return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
 
 
+class _Slot:
+    """An infer request of a compiled step graph that writes its outputs into arrays of its own
+    (``arrays``: ``{output name: [B, C, H, W] float32}``, OpenVINO tensors sharing their memory,
+    so the arrays outlive the request and a state needs no copy).
+
+    ``fed``: the ids of the state arrays the request read at its last infer. OpenVINO keeps a
+    reference to each array it was fed (``share_inputs=True``) until the request infers again,
+    so an array read by ``n`` requests carries ``n`` references more than the slot's own."""
+
+    def __init__(self, request, arrays: dict[str, np.ndarray], state_names: list[str]):
+        self.request, self.arrays, self.state_names = request, arrays, state_names
+        self.fed: frozenset[int] = frozenset()
+        self._probe = {"unheld": np.empty(0, np.float32)}  # an array nothing else refers to
+
+    @classmethod
+    def make(cls, compiled, names: list[str], keys: list[str]) -> _Slot:
+        import openvino as ov
+
+        request = compiled.create_infer_request()
+        arrays = {name: np.empty(tuple(out.get_shape()), np.float32) for name, out in zip(names, compiled.outputs)}
+        for index, name in enumerate(names):
+            request.set_output_tensor(index, ov.Tensor(arrays[name], shared_memory=True))
+        return cls(request, arrays, [f"next_state_{k}" for k in keys])
+
+    def infer(self, feed: dict) -> None:
+        self.request.infer(feed, share_inputs=True)
+        self.fed = frozenset(id(v) for k, v in feed.items() if k.startswith("state_"))
+
+    def held(self, slots: list[_Slot]) -> bool:
+        """Whether anything but the runner refers to one of this slot's state arrays (a caller's
+        state, the feed of the step about to run): more references than an array only the slot
+        holds (counted by the same expression) plus one per request of ``slots`` that read it last."""
+        own = sys.getrefcount(self._probe["unheld"])
+        for name in self.state_names:
+            readers = sum(id(self.arrays[name]) in s.fed for s in slots)
+            if sys.getrefcount(self.arrays[name]) > own + readers:
+                return True
+        return False
+
+
 #: OpenVINO ``INFERENCE_PRECISION_HINT`` per ``precision`` of :class:`OpenVinoStep`
 OPENVINO_PRECISIONS = {"f32": "f32", "bf16": "bf16"}
 
@@ -233,7 +274,8 @@ class OpenVinoStep:
                          for i in self.model.inputs if i.get_any_name().startswith("state_")}
 
     def compiled(self, batch: int, height: int, width: int):
-        """``(compiled model, infer request)`` for frames of ``[batch, *, height, width]`` (cached)."""
+        """``(compiled model, its slots)`` for frames of ``[batch, *, height, width]`` (cached);
+        the slots (:class:`_Slot`) are made by :meth:`step` as it needs them."""
         key = (batch, height, width)
         if key not in self._compiled:
             model = self.model.clone()
@@ -245,7 +287,7 @@ class OpenVinoStep:
             model.reshape(shapes)
             with sigstack.kept():
                 compiled = self.core.compile_model(model, self.device, self.config)
-                self._compiled[key] = (compiled, compiled.create_infer_request())
+                self._compiled[key] = (compiled, [])
                 del compiled, model
         return self._compiled[key]
 
@@ -255,18 +297,26 @@ class OpenVinoStep:
         return compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name()
 
     def step(self, frame: dict, state: dict | None, reset: bool = False) -> tuple[np.ndarray, dict]:
-        """Same contract as :meth:`OnnxStep.step` (arrays out; the state is copied out of
-        OpenVINO's buffers, so the next call may overwrite them)."""
+        """Same contract as :meth:`OnnxStep.step`: arrays out, the output a copy of its own.
+
+        The state's arrays are not copied (20 planes at 1080p, about 20 ms a step): they are the
+        arrays a slot's infer request wrote (:class:`_Slot`), and a slot is written again only
+        when nothing outside this runner refers to its state arrays. So a state stays as it was
+        for as long as it is held (kept to step from again, two sequences stepped in turn): a
+        held slot is passed over and another one made."""
         feed = graph_feed(frame, state, reset, self.keys, self.channels, self.inputs)
         b, _, h, w = feed["color"].shape
-        _, request = self.compiled(b, h, w)
+        compiled, slots = self.compiled(b, h, w)
+        slot = next((s for s in slots if not s.held(slots)), None)
+        if slot is None:
+            slot = _Slot.make(compiled, self.outputs, self.keys)
+            slots.append(slot)
         # the inputs are read in place (no copy into OpenVINO's buffers: about 20 ms of a 1080p
         # step); the infer call is synchronous and never writes them
         with sigstack.kept():
-            request.infer(feed, share_inputs=True)
-        self._last = request
-        named = {name: np.array(request.get_tensor(name).data, copy=True) for name in self.outputs}
-        return named["output"], {k: named[f"next_state_{k}"] for k in self.keys}
+            slot.infer(feed)
+        self._last = slot.request
+        return slot.arrays["output"].copy(), {k: slot.arrays[f"next_state_{k}"] for k in self.keys}
 
     def close(self) -> None:
         """Free the compiled models, the model and the core (OpenVINO's destructors run here, with the

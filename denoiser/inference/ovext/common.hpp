@@ -316,6 +316,20 @@ static std::vector<Lerp> nearest_axis(int64_t n_in, int64_t n_out) {
     return out;
 }
 
+// The exact 2x bilinear upsampling (align_corners=False) of one row t[0 .. ws), ws >= 2, into
+// o[0 .. 2 ws) (ADD: added to it): columns 2m and 2m + 1 at 1/4 and 3/4 between source columns
+// m - 1, m and m, m + 1, the ends clamped (bilinear_axis(ws, 2 ws) in closed form; the loops
+// vectorise, where the Lerp tables' gathers do not).
+template <bool ADD>
+static inline void upsample2x_row(const float* __restrict t, int64_t ws, float* __restrict o) {
+    o[0] = (ADD ? o[0] : 0.0f) + t[0];
+    o[2 * ws - 1] = (ADD ? o[2 * ws - 1] : 0.0f) + t[ws - 1];
+    for (int64_t m = 1; m < ws; ++m) {
+        o[2 * m] = (ADD ? o[2 * m] : 0.0f) + (0.25f * t[m - 1] + 0.75f * t[m]);
+        o[2 * m - 1] = (ADD ? o[2 * m - 1] : 0.0f) + (0.75f * t[m - 1] + 0.25f * t[m]);
+    }
+}
+
 // An upsampling of planes hs x ws to H x W (F.interpolate, align_corners=False), row by row.
 struct Upsampling {
     Upsampling(int64_t hs_, int64_t ws_, int64_t H, int64_t W, bool bilinear)
@@ -341,25 +355,26 @@ struct Upsampling {
                 }
                 continue;
             }
-            // exact 2x bilinear: the two source rows blended, then columns 2m and 2m + 1 at 1/4
-            // and 3/4 between source columns m - 1, m and m, m + 1 (the ends clamped)
+            // exact 2x bilinear: the two source rows blended, then the row upsampled
             for (int64_t m = 0; m < ws; ++m) t[m] = l.l0 * z0[m] + l.l1 * z1[m];
-            o[0] = t[0], o[2 * ws - 1] = t[ws - 1];
-            for (int64_t m = 1; m < ws; ++m) {
-                o[2 * m] = 0.25f * t[m - 1] + 0.75f * t[m];
-                o[2 * m - 1] = 0.75f * t[m - 1] + 0.25f * t[m];
-            }
+            upsample2x_row<false>(t, ws, o);
         }
     }
 };
 
-// dst (4 planes h x w) += bilinear upsampling of src (4 planes hs x ws), row y only.
+// dst (channels planes h x w) += bilinear upsampling of src (channels planes hs x ws), row y
+// only (ly: its row's Lerp). t: ws floats, used where w == 2 ws (the exact 2x columns).
 static void add_upsampled_row(const float* src, int64_t hs, int64_t ws, const Lerp& ly, const std::vector<Lerp>& lx,
-                              int64_t w, float* dst_row, int64_t dst_plane, int64_t channels) {
+                              int64_t w, float* dst_row, int64_t dst_plane, int64_t channels, float* t) {
     for (int64_t c = 0; c < channels; ++c) {
         const float* r0 = src + (c * hs + ly.i0) * ws;
         const float* r1 = src + (c * hs + ly.i1) * ws;
         float* o = dst_row + c * dst_plane;
+        if (w == 2 * ws && ws >= 2) {
+            for (int64_t m = 0; m < ws; ++m) t[m] = ly.l0 * r0[m] + ly.l1 * r1[m];
+            upsample2x_row<true>(t, ws, o);
+            continue;
+        }
         for (int64_t px = 0; px < w; ++px) {
             const Lerp& l = lx[px];
             o[px] += ly.l0 * (l.l0 * r0[l.i0] + l.l1 * r0[l.i1]) + ly.l1 * (l.l0 * r1[l.i0] + l.l1 * r1[l.i1]);

@@ -32,6 +32,28 @@ struct PlanarHead0 {
     }
 };
 
+// d[px] += sum over dx < f of w[px f + dx] * x[px f + dx] (x null: of w alone), px < wc: one
+// row's share of an average pool by f, one sum per pooled pixel stored once. F: f at compile time
+// (0: f at run time); the sums run in the same order either way.
+template <int F>
+static inline void pool_add_row(const float* __restrict w, const float* __restrict x, float* __restrict d, int64_t wc,
+                                int64_t f_) {
+    const int64_t f = F > 0 ? F : f_;
+    if (x == nullptr) {
+        for (int64_t px = 0; px < wc; ++px) {
+            float a = 0.0f;
+            for (int64_t dx = 0; dx < f; ++dx) a += w[px * f + dx];
+            d[px] += a;
+        }
+        return;
+    }
+    for (int64_t px = 0; px < wc; ++px) {
+        float a = 0.0f;
+        for (int64_t dx = 0; dx < f; ++dx) a += w[px * f + dx] * x[px * f + dx];
+        d[px] += a;
+    }
+}
+
 // The pyramid filter (see the top of this file) of x [B, C, H, W] (shape xs) with head 0 from
 // `head0` (PlanarHead0 or a provider that computes its rows: pyramid_filter_head.hpp) and the
 // coarser heads heads[1 .. L-1] (inputs[first + i - 1] their tensors, for the shape check) -> O.
@@ -111,22 +133,13 @@ static void run_pyramid_filter(const float* X, const ov::Shape& xs, const Head0&
                     if (y % f == 0)
                         for (int64_t c = 0; c < C1; ++c) std::fill(dst + c * plane, dst + c * plane + wc, 0.0f);
                     for (int64_t c = 0; c < C1; ++c) {
-                        float* __restrict d = dst + c * plane;
-                        const float* __restrict wr = w;
-                        // one sum per pooled pixel, stored once (not through memory per source pixel)
-                        if (c < C) {
-                            const float* __restrict xr = X + (b * C + c) * HW + y * W;
-                            for (int64_t px = 0; px < wc; ++px) {
-                                float a = 0.0f;
-                                for (int64_t dx = 0; dx < f; ++dx) a += wr[px * f + dx] * xr[px * f + dx];
-                                d[px] += a;
-                            }
-                        } else {  // the constant channel: the pooled weights
-                            for (int64_t px = 0; px < wc; ++px) {
-                                float a = 0.0f;
-                                for (int64_t dx = 0; dx < f; ++dx) a += wr[px * f + dx];
-                                d[px] += a;
-                            }
+                        float* d = dst + c * plane;
+                        // c < C: w * x; the constant channel: the pooled weights
+                        const float* xr = c < C ? X + (b * C + c) * HW + y * W : nullptr;
+                        switch (f) {  // the pool's width known to the compiler (the loops vectorise)
+                            case 2: pool_add_row<2>(w, xr, d, wc, f); break;
+                            case 4: pool_add_row<4>(w, xr, d, wc, f); break;
+                            default: pool_add_row<0>(w, xr, d, wc, f);
                         }
                         if (y % f == f - 1) {
                             const float norm = 1.0f / static_cast<float>(f * f);
@@ -144,6 +157,7 @@ static void run_pyramid_filter(const float* X, const ov::Shape& xs, const Head0&
         if (i < L - 1) ly = bilinear_axis(hs[i + 1], h), lx = bilinear_axis(ws[i + 1], w);
         parallel_rows(B * h, [&](const tbb::blocked_range<int64_t>& rows) {
             RowScratch t(w, C1);
+            std::vector<float> up_row(static_cast<size_t>(i < L - 1 ? ws[i + 1] : 0));
             const bool computed = i == 0 && Head0::computes;
             std::vector<float> zbuf(static_cast<size_t>(computed ? head0.scratch_floats(K0) : k * k * w));
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
@@ -161,7 +175,7 @@ static void run_pyramid_filter(const float* X, const ov::Shape& xs, const Head0&
                 filter_row(parts[i] + b * C1 * plane, C1, h, w, z.data, z.plane, k, y, scale, has_scale, t);
                 if (i < L - 1)
                     add_upsampled_row(accs[i + 1] + b * C1 * hs[i + 1] * ws[i + 1], hs[i + 1], ws[i + 1],
-                                      ly[y], lx, w, t.acc, w, C1);
+                                      ly[y], lx, w, t.acc, w, C1, up_row.data());
                 if (i > 0) {
                     for (int64_t c = 0; c < C1; ++c)
                         std::memcpy(accs[i] + (b * C1 + c) * plane + y * w, t.acc + c * w, w * sizeof(float));

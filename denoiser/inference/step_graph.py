@@ -207,7 +207,9 @@ class _Slot:
         import openvino as ov
 
         request = compiled.create_infer_request()
-        arrays = {name: np.empty(tuple(out.get_shape()), np.float32) for name, out in zip(names, compiled.outputs)}
+        arrays = {name: np.zeros(tuple(out.get_shape()), np.float32) for name, out in zip(names, compiled.outputs)}
+        for array in arrays.values():
+            array.fill(0.0)  # the pages mapped now, not in the first step that writes them
         for index, name in enumerate(names):
             request.set_output_tensor(index, ov.Tensor(arrays[name], shared_memory=True))
         return cls(request, arrays, [f"next_state_{k}" for k in keys])
@@ -274,8 +276,10 @@ class OpenVinoStep:
                          for i in self.model.inputs if i.get_any_name().startswith("state_")}
 
     def compiled(self, batch: int, height: int, width: int):
-        """``(compiled model, its slots)`` for frames of ``[batch, *, height, width]`` (cached);
-        the slots (:class:`_Slot`) are made by :meth:`step` as it needs them."""
+        """``(compiled model, its slots)`` for frames of ``[batch, *, height, width]`` (cached).
+        A graph with state gets the two slots (:class:`_Slot`) a sequence steps on in turn with
+        it, their arrays written once (so a first step's timing and memory hold them); :meth:`step`
+        makes more where states are held."""
         key = (batch, height, width)
         if key not in self._compiled:
             model = self.model.clone()
@@ -287,7 +291,8 @@ class OpenVinoStep:
             model.reshape(shapes)
             with sigstack.kept():
                 compiled = self.core.compile_model(model, self.device, self.config)
-                self._compiled[key] = (compiled, [])
+                self._compiled[key] = (compiled, [_Slot.make(compiled, self.outputs, self.keys)
+                                                  for _ in range(2 if self.keys else 1)])
                 del compiled, model
         return self._compiled[key]
 

@@ -108,7 +108,7 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
     assert table["compare"][:3] == ["3600", "1.00 h", "3600"]     # no table: make paper's row
     assert table["pareto"][:3] == ["2900", "0.81 h", "3000"]      # its work row
     assert table["all"][:3] == ["7150", "1.99 h", "6700"]
-    assert "within the budget of 2.00 h" in block and "- commit: " in text and "- run id: " in text
+    assert "within the budget of 6.00 h" in block and "- commit: " in text and "- run id: " in text  # the default budget
     proc = paper_summary(tmp_path, "--budget-hours", "1")
     assert "over the budget of 1.00 h by 0.99 h (2.0x)" in (tmp_path / "summary.md").read_text()
     (tmp_path / "paper.md").write_text("| stage | seconds |\n|---|---|\n| ablations | 95 |\n")

@@ -207,7 +207,7 @@ class _Slot:
         import openvino as ov
 
         request = compiled.create_infer_request()
-        arrays = {name: np.zeros(tuple(out.get_shape()), np.float32) for name, out in zip(names, compiled.outputs)}
+        arrays = {name: np.empty(tuple(out.get_shape()), np.float32) for name, out in zip(names, compiled.outputs)}
         for array in arrays.values():
             array.fill(0.0)  # the pages mapped now, not in the first step that writes them
         for index, name in enumerate(names):

@@ -433,3 +433,46 @@ printf '<!-- %s:begin -->\n%s results\n<!-- %s:end -->\n' "$name" "$name" "$name
     assert "| all | 21 | 0.01 h |" in block and "within the budget of 6.00 h" in block
     assert all(f"{name} results" in block for name in ("ablations", "compare", "pareto"))
     assert set(rows(tree / "reports" / "paper" / "timings.md")) >= {"ablations", "compare", "pareto", "summary", "work"}
+
+
+def test_recipe_check_evaluates_both_recipes_students_on_each_split_once(tree):
+    """make demo's students and another recipe's (its runs, its own checkpoint file) in one evaluation per
+    split, each a declared look; the summary's claims pair the two recipes; a second run looks at nothing."""
+    other = tree / "old" / "runs"
+    for root, ckpt in ((tree / "reports" / "demo" / "runs", "best.ckpt"), (other, "interpolated_a0.75.ckpt")):
+        for name in ["student_distilled_s0", "student_no_kd_s0"]:
+            (root / name / "checkpoints").mkdir(parents=True)
+            (root / name / "DONE").touch()
+            (root / name / "checkpoints" / ckpt).touch()
+    keys = ["pipeline=recipe_check", "seeds=[0]", f"other_runs={other}", "other_ckpt=checkpoints/interpolated_a0.75.ckpt",
+            "purpose=against refine"]
+    proc = pipeline(tree, *keys[:-1], check=False)  # the purpose is required: a look at a test split says why
+    assert proc.returncode != 0 and "purpose" in proc.stderr and "Traceback" not in proc.stderr
+    (tree / "data" / "blender" / "test").mkdir(parents=True)
+    pipeline(tree, *keys)
+    calls = stub_calls(tree / "calls.log")
+    assert [c[0] for c in calls] == ["denoiser-eval", "denoiser-eval", "python"]  # nothing trained
+    demo_split, cycles = calls[0], calls[1]
+    assert arg(demo_split, "data") == "demo" and arg(cycles, "layout") == "blender"
+    assert arg(demo_split, "purpose") == "'against refine'" and arg(cycles, "purpose") == "'against refine (Cycles)'"
+    for call in (demo_split, cycles):
+        assert arg(call, "ckpt") == (
+            "{student_distilled_s0: reports/demo/runs/student_distilled_s0/checkpoints/best.ckpt, student_no_kd_s0: "
+            f"reports/demo/runs/student_no_kd_s0/checkpoints/best.ckpt, refine_distilled_s0: {other}/student_distilled_s0/"
+            f"checkpoints/interpolated_a0.75.ckpt, refine_no_kd_s0: {other}/student_no_kd_s0/checkpoints/interpolated_a0.75.ckpt}}")
+        assert "~baselines.oidn_high" in call and "~baselines.oidn_balanced" in call  # the noisy input and OIDN-fast
+    summary = calls[2]
+    assert summary[1:5] == ["-m", "denoiser.commands.demo_summary", "--config-name", "recipe_check_summary"]
+    from denoiser.configs import compose_config
+
+    cfg = compose_config(summary[5:], "recipe_check_summary")
+    assert [(c.network, c.baseline) for c in cfg.claims][:2] == [("student_distilled", "refine_distilled"),
+                                                                  ("student_no_kd", "refine_no_kd")]
+    assert "tpsnr" in cfg.claims[0].metrics and cfg.title.endswith("the refine recipe's")
+    (tree / "calls.log").unlink()
+    pipeline(tree, *keys)  # again: the same checkpoints, no second look at either split
+    assert [c[0] for c in stub_calls(tree / "calls.log")] == ["python"]
+    (other / "student_no_kd_s0" / "DONE").unlink()
+    proc = pipeline(tree, *keys, check=False)
+    assert proc.returncode == 2 and proc.stderr == (
+        f"error: {other}/student_no_kd_s0: the other recipe's student missing (other_runs)\n")

@@ -125,10 +125,15 @@ def test_matmul_heads_export(tiny, tmp_path):
     assert all(err <= 1e-4 * max(1.0, scale) for err, scale in errors.values()), errors
 
 
+def count_of(model, op: str) -> int:
+    return sum(n.op_type == op for n in model.graph.node)
+
+
 def test_fused_kernels_export(tiny, tmp_path):
     """``kernels=fused``: one ``denoiser::PyramidFilter`` node instead of the partition, the
-    kernel softmaxes, the k*k multiply-adds per level and the upsampling, and ``denoiser::Log1p``
-    for the input transforms' ``log1p``; checked by the command
+    kernel softmaxes, the k*k multiply-adds per level and the upsampling, ``denoiser::Log1p``
+    for the input transforms' ``log1p`` and ``denoiser::WarpHistory`` for the history's sampling (no
+    ``GridSample``); checked by the command
     with OpenVINO (ONNX Runtime cannot run it), and equal to PyTorch at another size over three
     recurrent steps."""
     pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
@@ -141,11 +146,10 @@ def test_fused_kernels_export(tiny, tmp_path):
     plain, fused = onnx.load(str(conv_path)), onnx.load(str(out))
     levels = len(net.filter.kernel_sizes)
     ours = [n.op_type for n in fused.graph.node if n.domain == "denoiser"]
-    assert ours.count("PyramidFilter") == 1 and set(ours) == {"PyramidFilter", "Log1p"}  # the whole filter, one node
+    assert ours.count("PyramidFilter") == 1 and set(ours) == {"PyramidFilter", "Log1p", "WarpHistory"}  # the whole filter, one node
+    assert ours.count("WarpHistory") == 1 and count_of(fused, "GridSample") == 0  # the history's sampling, one node
 
-    def count(model, op):
-        return sum(n.op_type == op for n in model.graph.node)
-
+    count = count_of
     assert count(plain, "Log") - count(fused, "Log") == ours.count("Log1p") >= 2  # the color and albedo features
     assert count(fused, "Softmax") == count(plain, "Softmax") - levels - 1  # the kernels' and the partition's
     assert uses_extension(out) and not uses_extension(conv_path)

@@ -830,3 +830,101 @@ def test_march_native_only_where_the_cpu_flags_are_known(fake, monkeypatch, cpui
     monkeypatch.setattr(ovext, "CPUINFO", fake.tmp / "other")
     (fake.tmp / "other").write_text("flags\t\t: fpu sse2\n")
     assert fake.status()[0].parent != path.parent  # another CPU: another key
+
+
+def warp_history_loop(motion, keep, buffers, cover_min=1e-4):
+    """The history's sampling, a plain loop over pixels (float64): motion sanitised (NaN, -Inf -> 0,
+    +Inf -> 65504) and clamped to 4 frame sizes, the position p + motion (x off the image at -2 where
+    the item is not kept), each buffer read bilinearly with zeros outside (every in-image corner read,
+    whatever its weight), divided by the in-image share of the footprint (the coverage) where that
+    exceeds cover_min, else 0; and valid, the coverage there."""
+    m = np.nan_to_num(motion.double().numpy(), nan=0.0, posinf=65504.0, neginf=0.0)
+    xs = [b.double().numpy() for b in buffers]
+    n, _, h, w = m.shape
+    limit = 4.0 * max(h, w)
+    outs = [np.zeros_like(x) for x in xs]
+    valid = np.zeros((n, 1, h, w))
+    for b in range(n):
+        for y in range(h):
+            for px in range(w):
+                sx = px + min(max(m[b, 0, y, px], -limit), limit) if keep[b] else -2.0
+                sy = y + min(max(m[b, 1, y, px], -limit), limit)
+                x0, y0 = math.floor(sx), math.floor(sy)
+                fx, fy = sx - x0, sy - y0
+                corners = [(y0, x0, (1 - fx) * (1 - fy)), (y0, x0 + 1, fx * (1 - fy)),
+                           (y0 + 1, x0, (1 - fx) * fy), (y0 + 1, x0 + 1, fx * fy)]
+                inside = [(yy, xx, wt) for yy, xx, wt in corners if 0 <= yy < h and 0 <= xx < w]
+                cover = sum(wt for _, _, wt in inside)
+                if cover <= cover_min:
+                    continue
+                valid[b, 0, y, px] = cover
+                for x, out in zip(xs, outs):
+                    out[b, :, y, px] = sum(wt * x[b, :, yy, xx] for yy, xx, wt in inside) / cover
+    return outs, valid
+
+
+def warp_inputs(b: int, h: int, w: int, seed: int, channels=(3, 3, 4, 7)):
+    """Motion ``[B, 2, H, W]`` of a few pixels, random in the upper half (whole-pixel steps: half the
+    footprint off the image) and smooth in the lower, with huge values (clamped), NaN and infinities;
+    the state buffers; keep: the last item reset."""
+    g = torch.Generator().manual_seed(seed)
+    motion = torch.randn(b, 2, h, w, generator=g) * 3.0
+    motion[:, :, ::3, ::2] = motion[:, :, ::3, ::2].round()  # whole pixels: one footprint column on the edge
+    xs = torch.arange(w, dtype=torch.float32)
+    motion[:, 0, h // 2:] = 0.7 + 2.0 * torch.sin(xs / 5.0)   # smooth in the lower half, as rendered motion is:
+    motion[:, 1, h // 2:] = -0.4                              # a row's corners lie close together
+    motion[:, 0, ::5, 1::4] = 1e7                             # clamped to 4 frame widths: off the image
+    motion[:, 1, 1::6, ::3] = float("nan")                    # no motion
+    motion[:, 0, 2::7, 2::5] = float("inf")
+    motion[:, 1, 3::7, ::4] = float("-inf")
+    buffers = [torch.rand(b, c, h, w, generator=g) * 4.0 - 1.0 for c in channels]
+    keep = torch.ones(b, dtype=torch.bool)
+    keep[-1] = False
+    return motion, keep, buffers
+
+
+@needs_extension
+@pytest.mark.parametrize("hw", [(7, 11), (1, 6), (5, 1), (29, 41)])
+def test_warp_history_matches_the_loop_over_pixels(tmp_path, hw):
+    """``denoiser::WarpHistory`` (the sampling of :meth:`~denoiser.nn.temporal.TemporalRecurrence.warp`)
+    against a loop over pixels and against eager, at odd sizes (a single row or column; 41 columns:
+    the 16-pixel gathers and the rest), with huge, NaN and infinite motion and a reset item (whose
+    NaN state is never read); the same bits with 1 and 2 threads."""
+    import openvino as ov
+
+    from denoiser.nn.graph_ops import WarpHistoryOp
+
+    class Warp(torch.nn.Module):
+        def forward(self, motion, keep, a, b, c, d):
+            return WarpHistoryOp.apply(motion, keep.view(-1, 1, 1, 1), 1e-4, a, b, c, d)
+
+    motion, keep, buffers = warp_inputs(2, *hw, seed=hw[1])
+    buffers[2][-1] = float("nan")  # the reset item's state
+    names = ["motion", "keep", "a", "b", "c", "d"]
+    with torch.no_grad(), kernels_as_op(True):
+        torch.onnx.export(Warp(), (motion, keep, *buffers), str(tmp_path / "w.onnx"), input_names=names,
+                          output_names=["oa", "ob", "oc", "od", "valid"], opset_version=17, dynamo=False,
+                          custom_opsets={"denoiser": 1})
+    core = ov.Core()
+    ovext.load_into(core, tmp_path / "w.onnx")
+
+    def run(threads):
+        compiled = core.compile_model(core.read_model(str(tmp_path / "w.onnx")), "CPU", {"INFERENCE_NUM_THREADS": threads})
+        result = compiled(dict(zip(names, [t.numpy() for t in (motion, keep, *buffers)])))
+        return [result[compiled.output(i)] for i in range(5)]
+
+    got = run(2)
+    assert [g.shape for g in got] == [(2, c, *hw) for c in (3, 3, 4, 7, 1)]
+    outs, valid = warp_history_loop(motion, keep, buffers)
+    assert (valid[-1] == 0).all()  # the reset item reads nothing
+    if min(hw) > 1:  # not a single row or column, which motion of a few pixels leaves: the comparison sees samples
+        assert (valid[0] > 0).mean() > 0.3 and ((valid[0] > 0) & (valid[0] < 1)).any()
+    np.testing.assert_allclose(got[-1], valid, atol=2e-6)
+    for g, want in zip(got, outs):  # the samples before the division: a small coverage magnifies float32 rounding
+        assert np.isfinite(g).all()
+        np.testing.assert_allclose(g * got[-1], want * valid, atol=2e-5)
+    with torch.no_grad():
+        eager = Warp()(motion, keep, *buffers)
+    for g, want in zip(got, eager):
+        np.testing.assert_allclose(g, want.numpy(), atol=2e-5)
+    assert all(np.array_equal(a, b) for a, b in zip(run(1), got))

@@ -27,7 +27,8 @@ that record them. Eager training and inference never take these paths.
   (:func:`denoiser.nn.inputs.guide_features`, f32 graphs), :class:`FactoredHeadOp`
   (:meth:`denoiser.nn.unet.FactoredHead.tensor`, f32 graphs), :class:`ClampBlendOp`
   (:func:`denoiser.nn.temporal.clamp_blend`), :class:`GuideGateOp`
-  (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`).
+  (:meth:`denoiser.nn.temporal.TemporalRecurrence.gate`), :class:`WarpHistoryOp` (the sampling of
+  :meth:`denoiser.nn.temporal.TemporalRecurrence.warp`).
 """
 
 from __future__ import annotations
@@ -79,6 +80,10 @@ OPERATIONS: dict[str, Operation] = {
     "ClampBlend": Operation(3, {"k": "FLOAT"}),
     # previous [B, 7, H, W], current [B, 7, H, W] -> [B, 1, H, W]
     "GuideGate": Operation(2, {"threshold": "FLOAT"}),
+    # motion [B, 2, H, W], keep [B, 1, 1, 1], buffer_0 [B, C_0, H, W], ... -> buffer_i warped [B, C_i, H, W]
+    # (coverage-normalised), ..., valid [B, 1, H, W]: one output per buffer, then valid
+    "WarpHistory": Operation(None, {"motion_limit": "FLOAT", "posinf": "FLOAT", "outside": "FLOAT",
+                                    "cover_min": "FLOAT"}),
 }
 #: the suffix torch.onnx's ``g.op`` takes for each attribute type
 _SUFFIX = {"FLOAT": "f", "INT": "i", "INTS": "i", "STRING": "s"}
@@ -151,15 +156,18 @@ def matmul_heads() -> bool:
     return _MATMUL_HEADS.get()
 
 
-def graph_node(g, name: str, *inputs, like, **attributes):
+def graph_node(g, name: str, *inputs, like, outputs: int = 1, **attributes):
     """One node of the extension's operation ``name`` in the graph ``g`` (a ``symbolic``'s first
-    argument), with the type of ``like``; the inputs and attributes must be :data:`OPERATIONS`'."""
+    argument), with the type of ``like`` (its first output's, with ``outputs`` > 1: a tuple of
+    outputs, their types the caller's to set); the inputs and attributes must be :data:`OPERATIONS`'."""
     op = OPERATIONS[name]
     if op.inputs is not None and len(inputs) != op.inputs:
         raise ValueError(f"{DOMAIN}::{name}: {len(inputs)} inputs, the schema has {op.inputs}")
     if set(attributes) != set(op.attributes):
         raise ValueError(f"{DOMAIN}::{name}: attributes {sorted(attributes)}, the schema has {sorted(op.attributes)}")
     typed = {f"{key}_{_SUFFIX[op.attributes[key]]}": value for key, value in attributes.items()}
+    if outputs > 1:
+        return g.op(f"{DOMAIN}::{name}", *inputs, outputs=outputs, **typed)
     out = g.op(f"{DOMAIN}::{name}", *inputs, **typed)
     out.setType(like.type())
     return out
@@ -381,6 +389,49 @@ class GuideGateOp(torch.autograd.Function):
         return out
 
 
-__all__ = ["DOMAIN", "OPERATIONS", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "FactoredHeadOp", "GuideFeaturesOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp",
+class WarpHistoryOp(torch.autograd.Function):
+    """The sampling of :meth:`denoiser.nn.temporal.TemporalRecurrence.warp` (before its gate)
+    recorded as one ``denoiser::WarpHistory`` node (attributes ``motion_limit``, ``posinf``,
+    ``outside``, ``cover_min``): the sample positions, bilinear weights and coverage computed once
+    for every buffer; the value is the plain computation.
+
+    forward(motion ``[B, 2, H, W]``, keep bool ``[B, 1, 1, 1]``, cover_min float, buffer_0 ``[B,
+    C_0, H, W]``, ...) -> (each buffer warped and divided by the coverage where it exceeds
+    cover_min, else 0, ``[B, C_i, H, W]`` float32, ..., valid ``[B, 1, H, W]``: the coverage there,
+    else 0).
+    """
+
+    @staticmethod
+    def forward(ctx, motion, keep, cover_min, *buffers):
+        from denoiser.nn.warp import warp_all
+
+        def plain():
+            warped, cover = warp_all(buffers, motion, keep)
+            ok = cover > cover_min
+            safe = cover.clamp_min(cover_min)
+            return (*(torch.where(ok, v / safe, 0.0) for v in warped), torch.where(ok, cover, 0.0))
+
+        return untraced(plain)
+
+    @staticmethod
+    def symbolic(g, motion, keep, cover_min, *buffers):
+        from denoiser.nn.warp import MOTION_LIMIT, OUTSIDE
+        from denoiser.nonfinite import POSINF
+
+        keep_f = g.op("Cast", keep, to_i=1)  # float32: 1 keep, 0 discard
+        outs = graph_node(g, "WarpHistory", motion, keep_f, *buffers, like=motion, outputs=len(buffers) + 1,
+                          motion_limit=float(MOTION_LIMIT), posinf=float(POSINF), outside=float(OUTSIDE),
+                          cover_min=float(cover_min))
+        sizes = motion.type().varyingSizes()  # [B, C_i, H, W] (None where not known)
+        for out, like in zip(outs, [*buffers, None]):
+            channels = like.type().varyingSizes()[1] if like is not None and like.type().varyingSizes() else 1
+            if sizes is not None and len(sizes) == 4:
+                out.setType(motion.type().with_sizes([sizes[0], channels, sizes[2], sizes[3]]))
+            else:
+                out.setType(motion.type())
+        return outs
+
+
+__all__ = ["DOMAIN", "OPERATIONS", "ClampBlendOp", "ColorFeatureOp", "EmbedNetOp", "FactoredHeadOp", "GuideFeaturesOp", "GuideGateOp", "KernelApplyOp", "Log1pOp", "Operation", "PyramidFilterHeadOp", "PyramidFilterOp", "WarpHistoryOp",
            "fused_kernels", "graph_node", "heads_as_matmul", "in_graph", "kernels_as_op", "matmul_heads", "unfused",
            "untraced"]

@@ -79,7 +79,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import ClampBlendOp, GuideGateOp, fused_kernels
+from denoiser.nn.graph_ops import ClampBlendOp, GuideGateOp, WarpHistoryOp, fused_kernels
 from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature_part
 from denoiser.nn.warp import warp_all
 
@@ -287,11 +287,16 @@ class TemporalRecurrence(nn.Module):
         keep = keep.view(b, 1, 1, 1)
         # discarded history is never read (its sample positions lie off the image), so it
         # cannot leak, not even as NaN through 0 * x; its coverage is 0
-        warped, cover = warp_all([state[k] for k in STATE_KEYS], motion, keep)
-        ok = cover > COVER_MIN
-        cover_safe = cover.clamp_min(COVER_MIN)
-        history = {k: torch.where(ok, v / cover_safe, 0.0) for k, v in zip(STATE_KEYS, warped)}
-        history["valid"] = torch.where(ok, cover, 0.0)
+        if fused_kernels():  # one denoiser::WarpHistory node (denoiser.nn.graph_ops)
+            *values, valid = WarpHistoryOp.apply(motion.float(), keep, COVER_MIN, *(state[k].float() for k in STATE_KEYS))
+            history = dict(zip(STATE_KEYS, values))
+        else:
+            warped, cover = warp_all([state[k] for k in STATE_KEYS], motion, keep)
+            ok = cover > COVER_MIN
+            cover_safe = cover.clamp_min(COVER_MIN)
+            history = {k: torch.where(ok, v / cover_safe, 0.0) for k, v in zip(STATE_KEYS, warped)}
+            valid = torch.where(ok, cover, 0.0)
+        history["valid"] = valid
         gate = None
         if self.reject_threshold is not None and guide is not None:
             gate = self.gate(history["guide"], guide)
@@ -299,8 +304,8 @@ class TemporalRecurrence(nn.Module):
         if self.history_disagreement:
             history["disagreement"] = history_disagreement(history["color"], like) * history["valid"]
         if self.probe is not None:
-            self.probe.update(cover=torch.where(ok, cover, 0.0), history=dict(history),
-                              gate=torch.ones_like(cover) if gate is None else gate)
+            self.probe.update(cover=valid, history=dict(history),
+                              gate=torch.ones_like(valid) if gate is None else gate)
         return history
 
     def input_parts(self, history: dict[str, torch.Tensor], scale: torch.Tensor) -> list[torch.Tensor]:

@@ -13,6 +13,7 @@
 #include "log1p.hpp"
 #include "pyramid_filter.hpp"
 #include "pyramid_filter_head.hpp"
+#include "warp_history.hpp"
 
 // every input of a node that takes any number of them (the pyramid filters: one head per level)
 static ov::OutputVector all_inputs(const ov::frontend::NodeContext& ctx) {
@@ -32,6 +33,7 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::OpExtension<denoiser::ColorFeature>>(),
     std::make_shared<ov::OpExtension<denoiser::GuideFeatures>>(),
     std::make_shared<ov::OpExtension<denoiser::FactoredHead>>(),
+    std::make_shared<ov::OpExtension<denoiser::WarpHistory>>(),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "ClampBlend", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
@@ -69,6 +71,14 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
             return std::make_shared<denoiser::GuideFeatures>(args, ctx.get_attribute<float>("albedo_max"),
                                                              ctx.get_attribute<float>("depth_far"),
                                                              ctx.get_attribute<float>("posinf"))->outputs();
+        }),
+    std::make_shared<ov::frontend::onnx::ConversionExtension>(
+        "WarpHistory", "denoiser",
+        [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            return std::make_shared<denoiser::WarpHistory>(all_inputs(ctx), ctx.get_attribute<float>("motion_limit"),
+                                                           ctx.get_attribute<float>("posinf"),
+                                                           ctx.get_attribute<float>("outside"),
+                                                           ctx.get_attribute<float>("cover_min"))->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "Log1p", "denoiser",

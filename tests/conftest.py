@@ -8,8 +8,13 @@ from pathlib import Path
 
 import pytest
 
+#: the folders this session made in the temporary directory: removed when it ends (pytest_unconfigure)
+SESSION_FOLDERS: list[Path] = []
+
 # built artefacts (the OpenVINO extension, denoiser.inference.ovext) go to a per-session folder, not ~/.cache
-os.environ.setdefault("DENOISER_CACHE", tempfile.mkdtemp(prefix="denoiser-test-cache-"))
+if "DENOISER_CACHE" not in os.environ:
+    os.environ["DENOISER_CACHE"] = tempfile.mkdtemp(prefix="denoiser-test-cache-")
+    SESSION_FOLDERS.append(Path(os.environ["DENOISER_CACHE"]))
 
 
 def _absl_handler_on_the_real_stderr() -> None:
@@ -111,6 +116,16 @@ def tiny_checkpoint(path, seed: int = 0, **extra):
 
 #: the test ledger of this test session (denoiser/report/ledger.py): never the checkout's committed one
 TEST_LEDGER = Path(tempfile.mkdtemp(prefix="denoiser-test-ledger-")) / "test_ledger.csv"
+SESSION_FOLDERS.append(TEST_LEDGER.parent)
+
+
+def pytest_unconfigure(config):
+    """The session's folders (the extension's build cache, the test ledger) go with it: a session
+    leaves nothing in the temporary directory but pytest's own ``pytest-of-<user>``."""
+    import shutil
+
+    for folder in SESSION_FOLDERS:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def compose_command(name: str, overrides, threads: int | None = None):

@@ -121,3 +121,18 @@ def test_denoise_removes_stale_frame_temporaries(tiny_ckpt, tmp_path):
     assert not stale[0].exists()
     written = ["frame_0000.exr", "frame_0001.exr", "frame_0002.exr"]
     assert sorted(p.name for p in out.iterdir() if p.name != "denoise_precision.json") == written  # auto's record
+
+
+def test_a_test_session_leaves_nothing_in_the_temporary_directory(tmp_path):
+    """A pytest session of this suite (its conftest makes the extension's build cache and the test
+    ledger's folder) leaves no folder of its own behind: only pytest's ``pytest-of-<user>``."""
+    import os
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "DENOISER_CACHE"} | {"TMPDIR": str(tmp)}
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           "tests/test_metrics.py::test_tonemap_is_aces_then_srgb"],
+                          cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert sorted(p.name for p in tmp.iterdir() if not p.name.startswith("pytest-of-")) == []

@@ -49,8 +49,9 @@ paper: setup
 	$(VENV)/bin/denoiser-pipeline pipeline=paper $(ARGS) && $(MAKE) readme
 
 # Copy every results block of the reports into docs/results.md (never typed by hand): make demo's
-# table (and its Blender table), the ablations, the comparison, the Pareto front, make paper's budget
-# and make gpu-check's block; make demo's table also into README.md, its one results table. A report
+# table (and its Blender table), the ablations, the comparison, the Pareto front, make paper's budget,
+# the recipe check (denoiser-pipeline pipeline=recipe_check) and make gpu-check's block; make demo's
+# table also into README.md, its one results table. A report
 # not made yet is said and skipped. SUMMARY: another summary. copy SUMMARY MARKER FILE [IMAGE].
 SUMMARY ?= reports/demo/summary.md
 RESULTS ?= docs/results.md
@@ -64,6 +65,9 @@ readme:
 	copy reports/compare/summary.md compare $(RESULTS); \
 	copy reports/pareto/pareto.md pareto $(RESULTS) reports/pareto/accuracy_vs_time.png:docs/images/pareto.png; \
 	copy reports/paper/summary.md paper $(RESULTS); \
+	copy reports/recipe_check/summary.md recipe_check $(RESULTS); \
+	if [ -f reports/recipe_check/summary.md ] && grep -q '<!-- recipe_cycles:begin -->' reports/recipe_check/summary.md; then \
+		copy reports/recipe_check/summary.md recipe_cycles $(RESULTS); fi; \
 	copy docs/results/gpu.md gpu $(RESULTS)
 
 # Fail (one line per block) when what a results block measures changed since its commit (a pure move

@@ -197,6 +197,23 @@ def test_summary_claims_come_from_the_paired_intervals(tmp_path):
     assert all("| 6 |" in line and line.count("[") == 3 for line in table)
 
 
+def test_an_extra_table_turned_off_in_a_composed_config_is_not_written(tmp_path):
+    """``extra_evals`` entries are tables ``{dir: title}``; a null title (a config composed on
+    demo_summary's turning off its ``blender`` entry, conf/recipe_check_summary.yaml) writes no table
+    even where its metrics.csv exists."""
+    from denoiser.commands.demo_summary import run
+    from denoiser.configs import compose_config
+
+    report = tmp_path / "report"
+    for folder in ("eval", "blender", "cycles"):
+        write_metrics(report / folder / "metrics.csv", synthetic_rows())
+    run(compose_config([f"report={report}", f"data_root={tmp_path}", "extra_evals={blender: null, cycles: Cycles}"],
+                       "demo_summary"))
+    summary = (report / "summary.md").read_text()
+    assert "<!-- cycles:begin -->" in summary and "## Cycles" in summary
+    assert "<!-- blender:begin -->" not in summary
+
+
 # --- README provenance and staleness --------------------------------------------------------------
 
 README = """# x

@@ -214,7 +214,7 @@ def extra_sections(report: Path, extra: dict, claims: list[dict], family_metric:
     lines: list[str] = []
     for name, title in extra.items():
         csv_path = report / str(name) / "metrics.csv"
-        if csv_path.exists():
+        if title is not None and csv_path.exists():  # null: an entry of the composed config turned off
             groups, per_sequence = evaluation(csv_path)
             groups = merge_identical(groups, per_sequence)
             by_family = (["", *family_lines(claims, per_sequence, families(csv_path), family_metric), ""]

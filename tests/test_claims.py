@@ -207,7 +207,7 @@ def test_an_extra_table_turned_off_in_a_composed_config_is_not_written(tmp_path)
     report = tmp_path / "report"
     for folder in ("eval", "blender", "cycles"):
         write_metrics(report / folder / "metrics.csv", synthetic_rows())
-    run(compose_config([f"report={report}", f"data_root={tmp_path}", "extra_evals={blender: null, cycles: Cycles}"],
+    run(compose_config([f"report={report}", f"data_root={tmp_path}", "extra_evals.blender=null", "+extra_evals.cycles=Cycles"],
                        "demo_summary"))
     summary = (report / "summary.md").read_text()
     assert "<!-- cycles:begin -->" in summary and "## Cycles" in summary

@@ -1,5 +1,6 @@
 """Test-session set-up shared by every test module."""
 
+import atexit
 import os
 import sys
 import tempfile
@@ -8,8 +9,19 @@ from pathlib import Path
 
 import pytest
 
-#: the folders this session made in the temporary directory: removed when it ends (pytest_unconfigure)
+#: the folders this process made in the temporary directory, removed when it exits: a pytest session,
+#: and a script a test runs that imports this module (tests/test_signal_stack.py's forced sequence)
 SESSION_FOLDERS: list[Path] = []
+
+
+def _remove_session_folders() -> None:
+    import shutil
+
+    for folder in SESSION_FOLDERS:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+atexit.register(_remove_session_folders)
 
 # built artefacts (the OpenVINO extension, denoiser.inference.ovext) go to a per-session folder, not ~/.cache
 if "DENOISER_CACHE" not in os.environ:
@@ -117,15 +129,6 @@ def tiny_checkpoint(path, seed: int = 0, **extra):
 #: the test ledger of this test session (denoiser/report/ledger.py): never the checkout's committed one
 TEST_LEDGER = Path(tempfile.mkdtemp(prefix="denoiser-test-ledger-")) / "test_ledger.csv"
 SESSION_FOLDERS.append(TEST_LEDGER.parent)
-
-
-def pytest_unconfigure(config):
-    """The session's folders (the extension's build cache, the test ledger) go with it: a session
-    leaves nothing in the temporary directory but pytest's own ``pytest-of-<user>``."""
-    import shutil
-
-    for folder in SESSION_FOLDERS:
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 def compose_command(name: str, overrides, threads: int | None = None):

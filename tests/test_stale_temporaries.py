@@ -125,7 +125,8 @@ def test_denoise_removes_stale_frame_temporaries(tiny_ckpt, tmp_path):
 
 def test_a_test_session_leaves_nothing_in_the_temporary_directory(tmp_path):
     """A pytest session of this suite (its conftest makes the extension's build cache and the test
-    ledger's folder) leaves no folder of its own behind: only pytest's ``pytest-of-<user>``."""
+    ledger's folder), and a script that imports the conftest, leave no folder of their own behind:
+    only pytest's ``pytest-of-<user>``."""
     import os
 
     tmp = tmp_path / "tmp"
@@ -135,4 +136,10 @@ def test_a_test_session_leaves_nothing_in_the_temporary_directory(tmp_path):
                            "tests/test_metrics.py::test_tonemap_is_aces_then_srgb"],
                           cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert sorted(p.name for p in tmp.iterdir() if not p.name.startswith("pytest-of-")) == []
+    # a script a test runs that imports conftest (as tests/test_signal_stack.py's does): nothing left either
+    tests = Path(__file__).resolve().parent
+    proc = subprocess.run([sys.executable, "-c", f"import sys; sys.path.insert(0, {str(tests)!r}); import conftest"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
     assert sorted(p.name for p in tmp.iterdir() if not p.name.startswith("pytest-of-")) == []

@@ -28,7 +28,11 @@ struct WarpRow {
     std::vector<int32_t> index;
     std::vector<float> nw, ne, sw, se, cover;
     std::vector<int32_t> inside;
-    explicit WarpRow(int64_t W) : index(W), nw(W), ne(W), sw(W), se(W), cover(W), inside(W) {}
+    // per strip of 16 pixels (gather_row): the four corners' masks, and where the window starts (-1: gathers)
+    std::vector<uint16_t> masks;
+    std::vector<int32_t> start;
+    explicit WarpRow(int64_t W)
+        : index(W), nw(W), ne(W), sw(W), se(W), cover(W), inside(W), masks(W / 16 * 4), start(W / 16) {}
 };
 
 // coverage of one axis: (1 - f) [0 <= i < size] + f [0 <= i + 1 < size], i = floor(s)
@@ -248,7 +252,7 @@ private:
 #if defined(__GNUC__) && !defined(__clang__)
     __attribute__((optimize("fp-contract=off")))
 #endif
-    static void gather_row(const std::vector<const float*>& planes, int64_t HW, int64_t W, const WarpRow& r,
+    static void gather_row(const std::vector<const float*>& planes, int64_t HW, int64_t W, WarpRow& r,
                            const std::vector<float*>& outs) {
 #if defined(__clang__)
 #pragma clang fp contract(off)
@@ -259,8 +263,8 @@ private:
         // per strip of 16 pixels, once for every plane: the corners' masks and where their window starts
         const int64_t strips = W / 16;
         done = strips * 16;
-        std::vector<__mmask16> masks(static_cast<size_t>(strips * 4));
-        std::vector<int32_t> start(static_cast<size_t>(strips));  // the window's first index, -1: gathers
+        uint16_t* masks = r.masks.data();  // kept in r: no allocation per row
+        int32_t* start = r.start.data();
         const __m512i one = _mm512_set1_epi32(1), right = _mm512_set1_epi32(static_cast<int32_t>(W)),
                       below = _mm512_set1_epi32(static_cast<int32_t>(W + 1));
         const __m512 zero = _mm512_setzero_ps();
@@ -268,7 +272,7 @@ private:
             const int64_t px = j * 16;
             const __mmask16 ok = _mm512_cmpneq_ps_mask(_mm512_loadu_ps(r.cover.data() + px), zero);
             const __m512i in = _mm512_loadu_si512(r.inside.data() + px);
-            __mmask16* m = masks.data() + j * 4;
+            __mmask16* m = masks + j * 4;
             for (int corner = 0; corner < 4; ++corner)
                 m[corner] = ok & _mm512_test_epi32_mask(in, _mm512_set1_epi32(1 << corner));
             const __mmask16 any = m[0] | m[1] | m[2] | m[3];
@@ -283,7 +287,7 @@ private:
             float* out = outs[k];
             for (int64_t j = 0; j < strips; ++j) {
                 const int64_t px = j * 16;
-                const __mmask16* m = masks.data() + j * 4;
+                const __mmask16* m = masks + j * 4;
                 const __m512 cover = _mm512_loadu_ps(r.cover.data() + px);
                 const __mmask16 ok = _mm512_cmpneq_ps_mask(cover, zero);
                 if (ok == 0) {

@@ -616,12 +616,17 @@ def guide_pair(b: int, h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.T
 
 
 @needs_extension
-@pytest.mark.parametrize(("hw", "t"), [((7, 11), 0.1), ((1, 6), 0.6), ((5, 1), 0.6), ((29, 41), 0.6)])
-def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t):
+@pytest.mark.parametrize(("hw", "t", "last"), [((7, 11), 0.1, True), ((1, 6), 0.6, True), ((5, 1), 0.6, True),
+                                               ((29, 41), 0.6, True), ((29, 41), 0.6, False)])
+def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t, last):
     """``denoiser::GuideGate`` (the disocclusion gate of
     :class:`~denoiser.nn.temporal.TemporalRecurrence`) against a loop over pixels and against
-    eager, at odd sizes (a single row or column), with missing normals and depth features at 0
-    and 1; the same bits with 1 and 2 threads."""
+    eager, at odd sizes (a single row or column; 41 columns: 16-pixel blocks and the rest), with
+    missing normals and depth features at 0 and 1, the previous guide channels-last as exported
+    and planar (``previous_channels_last`` 0: a graph exported before the attribute existed); the
+    same bits with 1 and 2 threads."""
+    import onnx
+
     from denoiser.nn.graph_ops import GuideGateOp
     from denoiser.nn.temporal import TemporalRecurrence
 
@@ -630,9 +635,20 @@ def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t):
             return GuideGateOp.apply(previous, current, t)
 
     previous, current = guide_pair(2, *hw, seed=hw[1])
+    previous_last = previous.permute(0, 2, 3, 1).contiguous()
     with torch.no_grad():
-        torch.onnx.export(Gate(), (previous, current), str(tmp_path / "g.onnx"), input_names=["p", "c"],
+        torch.onnx.export(Gate(), (previous_last, current), str(tmp_path / "g.onnx"), input_names=["p", "c"],
                           output_names=["y"], opset_version=17, dynamo=False, custom_opsets={"denoiser": 1})
+    model = onnx.load(str(tmp_path / "g.onnx"))
+    (node,) = [n for n in model.graph.node if n.op_type == "GuideGate"]
+    (attribute,) = [a for a in node.attribute if a.name == "previous_channels_last"]
+    assert attribute.i == 1
+    if not last:  # the attribute as an older graph has it (absent: 0), the previous guide planar
+        node.attribute.remove(attribute)
+        model.graph.input[0].type.tensor_type.shape.dim[1].dim_value = 7
+        model.graph.input[0].type.tensor_type.shape.dim[2].dim_value = hw[0]
+        model.graph.input[0].type.tensor_type.shape.dim[3].dim_value = hw[1]
+        onnx.save(model, str(tmp_path / "g.onnx"))
     import openvino as ov
 
     core = ov.Core()
@@ -640,7 +656,8 @@ def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t):
 
     def run(threads):
         compiled = core.compile_model(core.read_model(str(tmp_path / "g.onnx")), "CPU", {"INFERENCE_NUM_THREADS": threads})
-        return compiled({"p": previous.numpy(), "c": current.numpy()})[compiled.output(0)]
+        fed = previous_last if last else previous
+        return compiled({"p": fed.numpy(), "c": current.numpy()})[compiled.output(0)]
 
     got = run(2)
     assert got.shape == (2, 1, *hw)
@@ -884,19 +901,21 @@ def warp_inputs(b: int, h: int, w: int, seed: int, channels=(3, 3, 4, 7)):
 
 
 @needs_extension
-@pytest.mark.parametrize("hw", [(7, 11), (1, 6), (5, 1), (29, 41)])
-def test_warp_history_matches_the_loop_over_pixels(tmp_path, hw):
+@pytest.mark.parametrize(("hw", "last"), [((7, 11), (0, 0, 1, 1)), ((1, 6), (0, 0, 1, 1)), ((5, 1), (0, 0, 1, 1)),
+                                          ((29, 41), (0, 0, 1, 1)), ((29, 41), (0, 0, 0, 0)), ((7, 40), (1, 0, 1, 0))])
+def test_warp_history_matches_the_loop_over_pixels(tmp_path, hw, last):
     """``denoiser::WarpHistory`` (the sampling of :meth:`~denoiser.nn.temporal.TemporalRecurrence.warp`)
     against a loop over pixels and against eager, at odd sizes (a single row or column; 41 columns:
     the 16-pixel gathers and the rest), with huge, NaN and infinite motion and a reset item (whose
-    NaN state is never read); the same bits with 1 and 2 threads."""
+    NaN state is never read), buffers written planar and channels-last (``last``; the exported
+    graphs': the last two); the same bits with 1 and 2 threads."""
     import openvino as ov
 
     from denoiser.nn.graph_ops import WarpHistoryOp
 
     class Warp(torch.nn.Module):
         def forward(self, motion, keep, a, b, c, d):
-            return WarpHistoryOp.apply(motion, keep.view(-1, 1, 1, 1), 1e-4, a, b, c, d)
+            return WarpHistoryOp.apply(motion, keep.view(-1, 1, 1, 1), 1e-4, tuple(map(bool, last)), a, b, c, d)
 
     motion, keep, buffers = warp_inputs(2, *hw, seed=hw[1])
     buffers[2][-1] = float("nan")  # the reset item's state
@@ -914,7 +933,8 @@ def test_warp_history_matches_the_loop_over_pixels(tmp_path, hw):
         return [result[compiled.output(i)] for i in range(5)]
 
     got = run(2)
-    assert [g.shape for g in got] == [(2, c, *hw) for c in (3, 3, 4, 7, 1)]
+    assert [g.shape for g in got] == [(2, *hw, c) if l else (2, c, *hw) for c, l in zip((3, 3, 4, 7, 1), (*last, 0))]
+    got = [g.transpose(0, 3, 1, 2) if l else g for g, l in zip(got, (*last, 0))]  # all [B, C, H, W] from here
     outs, valid = warp_history_loop(motion, keep, buffers)
     assert (valid[-1] == 0).all()  # the reset item reads nothing
     if min(hw) > 1:  # not a single row or column, which motion of a few pixels leaves: the comparison sees samples
@@ -925,6 +945,7 @@ def test_warp_history_matches_the_loop_over_pixels(tmp_path, hw):
         np.testing.assert_allclose(g * got[-1], want * valid, atol=2e-5)
     with torch.no_grad():
         eager = Warp()(motion, keep, *buffers)
-    for g, want in zip(got, eager):
-        np.testing.assert_allclose(g, want.numpy(), atol=2e-5)
-    assert all(np.array_equal(a, b) for a, b in zip(run(1), got))
+    for g, want, l in zip(got, eager, (*last, 0)):
+        np.testing.assert_allclose(g, (want.permute(0, 3, 1, 2) if l else want).numpy(), atol=2e-5)
+    got_one = [g.transpose(0, 3, 1, 2) if l else g for g, l in zip(run(1), (*last, 0))]
+    assert all(np.array_equal(a, b) for a, b in zip(got_one, got))

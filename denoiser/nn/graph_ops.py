@@ -78,12 +78,13 @@ OPERATIONS: dict[str, Operation] = {
     "FactoredHead": Operation(3, {"mode": "STRING"}),
     # base [B, C, H, W], previous [B, C, H, W], weight [B, 1, H, W] -> [B, C, H, W]
     "ClampBlend": Operation(3, {"k": "FLOAT"}),
-    # previous [B, 7, H, W], current [B, 7, H, W] -> [B, 1, H, W]
-    "GuideGate": Operation(2, {"threshold": "FLOAT"}),
+    # previous [B, H, W, 7] (previous_channels_last 1) or [B, 7, H, W], current [B, 7, H, W] -> [B, 1, H, W]
+    "GuideGate": Operation(2, {"threshold": "FLOAT", "previous_channels_last": "INT"}),
     # motion [B, 2, H, W], keep [B, 1, 1, 1], buffer_0 [B, C_0, H, W], ... -> buffer_i warped [B, C_i, H, W]
-    # (coverage-normalised), ..., valid [B, 1, H, W]: one output per buffer, then valid
+    # or [B, H, W, C_i] where channels_last[i] is 1 (coverage-normalised), ..., valid [B, 1, H, W]: one
+    # output per buffer, then valid
     "WarpHistory": Operation(None, {"motion_limit": "FLOAT", "posinf": "FLOAT", "outside": "FLOAT",
-                                    "cover_min": "FLOAT"}),
+                                    "cover_min": "FLOAT", "channels_last": "INTS"}),
 }
 #: the suffix torch.onnx's ``g.op`` takes for each attribute type
 _SUFFIX = {"FLOAT": "f", "INT": "i", "INTS": "i", "STRING": "s"}
@@ -368,21 +369,23 @@ class ClampBlendOp(torch.autograd.Function):
 
 class GuideGateOp(torch.autograd.Function):
     """:meth:`denoiser.nn.temporal.TemporalRecurrence.gate` recorded as one ``denoiser::GuideGate``
-    node (attribute ``threshold``); the value is the plain computation.
+    node (attributes ``threshold``, ``previous_channels_last`` 1); the value is the plain computation.
 
-    forward(previous ``[B, 7, H, W]``, current ``[B, 7, H, W]``, threshold float) -> ``[B, 1, H, W]``
-    float32 in [0, 1].
+    forward(previous ``[B, H, W, 7]`` channels-last (as :class:`WarpHistoryOp` writes the warped
+    guide), current ``[B, 7, H, W]``, threshold float) -> ``[B, 1, H, W]`` float32 in [0, 1].
     """
 
     @staticmethod
     def forward(ctx, previous, current, threshold):
         from denoiser.nn.temporal import guide_disagreement
 
-        return untraced(lambda: (2.0 - guide_disagreement(previous, current) / threshold).clamp(0.0, 1.0))
+        return untraced(lambda: (2.0 - guide_disagreement(previous.permute(0, 3, 1, 2), current) / threshold
+                                 ).clamp(0.0, 1.0))
 
     @staticmethod
     def symbolic(g, previous, current, threshold):
-        out = graph_node(g, "GuideGate", previous, current, like=current, threshold=float(threshold))
+        out = graph_node(g, "GuideGate", previous, current, like=current, threshold=float(threshold),
+                         previous_channels_last=1)
         sizes = current.type().varyingSizes()  # [B, 1, H, W] (None where not known)
         if sizes is not None and len(sizes) == 4:
             out.setType(current.type().with_sizes([sizes[0], 1, sizes[2], sizes[3]]))
@@ -392,41 +395,46 @@ class GuideGateOp(torch.autograd.Function):
 class WarpHistoryOp(torch.autograd.Function):
     """The sampling of :meth:`denoiser.nn.temporal.TemporalRecurrence.warp` (before its gate)
     recorded as one ``denoiser::WarpHistory`` node (attributes ``motion_limit``, ``posinf``,
-    ``outside``, ``cover_min``): the sample positions, bilinear weights and coverage computed once
-    for every buffer; the value is the plain computation.
+    ``outside``, ``cover_min``, ``channels_last``): the sample positions, bilinear weights and
+    coverage computed once for every buffer; the value is the plain computation.
 
-    forward(motion ``[B, 2, H, W]``, keep bool ``[B, 1, 1, 1]``, cover_min float, buffer_0 ``[B,
-    C_0, H, W]``, ...) -> (each buffer warped and divided by the coverage where it exceeds
-    cover_min, else 0, ``[B, C_i, H, W]`` float32, ..., valid ``[B, 1, H, W]``: the coverage there,
-    else 0).
+    forward(motion ``[B, 2, H, W]``, keep bool ``[B, 1, 1, 1]``, cover_min float, channels_last
+    tuple of bools (one per buffer), buffer_0 ``[B, C_0, H, W]``, ...) -> (each buffer warped and
+    divided by the coverage where it exceeds cover_min, else 0, float32, ``[B, C_i, H, W]``, or
+    ``[B, H, W, C_i]`` (contiguous) where channels_last[i] (the layout of a convolution's input:
+    the graph's permute back to ``[B, C_i, H, W]`` then moves nothing), ..., valid ``[B, 1, H,
+    W]``: the coverage there, else 0).
     """
 
     @staticmethod
-    def forward(ctx, motion, keep, cover_min, *buffers):
+    def forward(ctx, motion, keep, cover_min, channels_last, *buffers):
         from denoiser.nn.warp import warp_all
 
         def plain():
             warped, cover = warp_all(buffers, motion, keep)
             ok = cover > cover_min
             safe = cover.clamp_min(cover_min)
-            return (*(torch.where(ok, v / safe, 0.0) for v in warped), torch.where(ok, cover, 0.0))
+            values = (torch.where(ok, v / safe, 0.0) for v in warped)
+            return (*(v.permute(0, 2, 3, 1).contiguous() if last else v for v, last in zip(values, channels_last)),
+                    torch.where(ok, cover, 0.0))
 
         return untraced(plain)
 
     @staticmethod
-    def symbolic(g, motion, keep, cover_min, *buffers):
+    def symbolic(g, motion, keep, cover_min, channels_last, *buffers):
         from denoiser.nn.warp import MOTION_LIMIT, OUTSIDE
         from denoiser.nonfinite import POSINF
 
         keep_f = g.op("Cast", keep, to_i=1)  # float32: 1 keep, 0 discard
         outs = graph_node(g, "WarpHistory", motion, keep_f, *buffers, like=motion, outputs=len(buffers) + 1,
                           motion_limit=float(MOTION_LIMIT), posinf=float(POSINF), outside=float(OUTSIDE),
-                          cover_min=float(cover_min))
+                          cover_min=float(cover_min), channels_last=[int(bool(c)) for c in channels_last])
         sizes = motion.type().varyingSizes()  # [B, C_i, H, W] (None where not known)
-        for out, like in zip(outs, [*buffers, None]):
+        for out, like, last in zip(outs, [*buffers, None], [*channels_last, False]):
             channels = like.type().varyingSizes()[1] if like is not None and like.type().varyingSizes() else 1
             if sizes is not None and len(sizes) == 4:
-                out.setType(motion.type().with_sizes([sizes[0], channels, sizes[2], sizes[3]]))
+                shape = [sizes[0], sizes[2], sizes[3], channels] if last else [sizes[0], channels, sizes[2], sizes[3]]
+                out.setType(motion.type().with_sizes(shape))
             else:
                 out.setType(motion.type())
         return outs

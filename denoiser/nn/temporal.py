@@ -88,6 +88,10 @@ COVER_MIN = 1e-4
 
 STATE_KEYS = ("output", "color", "features", "guide")
 
+#: the state entries an exported graph's fused warp writes channels-last ([B, H, W, C]): the U-Net's
+#: first convolution reads them in that layout (denoiser.nn.graph_ops.WarpHistoryOp)
+CHANNELS_LAST_KEYS = ("features", "guide")
+
 #: relative floor of the standard deviation in :func:`history_disagreement` (a flat neighbourhood)
 DISAGREEMENT_EPS = 0.05
 
@@ -254,13 +258,17 @@ class TemporalRecurrence(nn.Module):
         return {k: like.new_zeros(b, c, h, w, dtype=torch.float32)
                 for k, c in self.state_channels().items()}
 
-    def gate(self, previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    def gate(self, previous: torch.Tensor, current: torch.Tensor,
+             previous_last: torch.Tensor | None = None) -> torch.Tensor:
         """Disocclusion gate ``clamp(2 - D / t, 0, 1)``: guides ``[B, 7, H, W]`` -> ``[B, 1, H, W]``
-        in [0, 1] (all ones when ``reject_threshold`` is None)."""
+        in [0, 1] (all ones when ``reject_threshold`` is None). previous_last: the previous guide
+        as ``[B, H, W, 7]`` where the fused warp wrote it so (read by the fused gate, not permuted)."""
         if self.reject_threshold is None:
             return torch.ones_like(current[:, :1], dtype=torch.float32)
-        if fused_kernels():  # one denoiser::GuideGate node (denoiser.nn.graph_ops)
-            return GuideGateOp.apply(previous.float(), current.float(), self.reject_threshold)
+        if fused_kernels():  # one denoiser::GuideGate node (denoiser.nn.graph_ops), the previous guide channels-last
+            if previous_last is None:
+                previous_last = previous.permute(0, 2, 3, 1)
+            return GuideGateOp.apply(previous_last.float(), current.float(), self.reject_threshold)
         d = guide_disagreement(previous, current)
         return (2.0 - d / self.reject_threshold).clamp(0.0, 1.0)
 
@@ -288,9 +296,14 @@ class TemporalRecurrence(nn.Module):
         # discarded history is never read (its sample positions lie off the image), so it
         # cannot leak, not even as NaN through 0 * x; its coverage is 0
         if fused_kernels():  # one denoiser::WarpHistory node (denoiser.nn.graph_ops)
-            *values, valid = WarpHistoryOp.apply(motion.float(), keep, COVER_MIN, *(state[k].float() for k in STATE_KEYS))
-            history = dict(zip(STATE_KEYS, values))
+            # the guide and features warped channels-last: the U-Net's first convolution reads them so
+            last = tuple(k in CHANNELS_LAST_KEYS for k in STATE_KEYS)
+            *values, valid = WarpHistoryOp.apply(motion.float(), keep, COVER_MIN, last,
+                                                 *(state[k].float() for k in STATE_KEYS))
+            history = {k: v.permute(0, 3, 1, 2) if l else v for k, v, l in zip(STATE_KEYS, values, last)}
+            guide_last = values[STATE_KEYS.index("guide")]
         else:
+            guide_last = None
             warped, cover = warp_all([state[k] for k in STATE_KEYS], motion, keep)
             ok = cover > COVER_MIN
             cover_safe = cover.clamp_min(COVER_MIN)
@@ -299,7 +312,7 @@ class TemporalRecurrence(nn.Module):
         history["valid"] = valid
         gate = None
         if self.reject_threshold is not None and guide is not None:
-            gate = self.gate(history["guide"], guide)
+            gate = self.gate(history["guide"], guide, guide_last)
             history["valid"] = history["valid"] * gate
         if self.history_disagreement:
             history["disagreement"] = history_disagreement(history["color"], like) * history["valid"]

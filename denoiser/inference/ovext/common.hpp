@@ -101,10 +101,9 @@ static inline Strip load_strip(const float* p) {
 static inline void store_strip(float* p, Strip v) { std::memcpy(p, &v, sizeof(v)); }
 
 #if defined(__AVX512F__)
-// dst[c * dst_stride + p] = src[p * src_stride + c] for a block of 16 x 16 floats.
-static inline void transpose16(const float* src, int64_t src_stride, float* dst, int64_t dst_stride) {
-    __m512 r[16], t[16];
-    for (int i = 0; i < 16; ++i) r[i] = _mm512_loadu_ps(src + i * src_stride);
+// r[i][j] <- r[j][i]: a block of 16 x 16 floats transposed in registers.
+static inline void transpose16_regs(__m512 r[16]) {
+    __m512 t[16];
     for (int i = 0; i < 16; i += 2) {  // 2 x 2 blocks of single floats
         t[i] = _mm512_unpacklo_ps(r[i], r[i + 1]);
         t[i + 1] = _mm512_unpackhi_ps(r[i], r[i + 1]);
@@ -127,9 +126,56 @@ static inline void transpose16(const float* src, int64_t src_stride, float* dst,
         r[i + 4] = _mm512_shuffle_f32x4(t[i + 4], t[i + 12], 0x88);
         r[i + 12] = _mm512_shuffle_f32x4(t[i + 4], t[i + 12], 0xDD);
     }
+}
+
+// dst[c * dst_stride + p] = src[p * src_stride + c] for a block of 16 x 16 floats.
+static inline void transpose16(const float* src, int64_t src_stride, float* dst, int64_t dst_stride) {
+    __m512 r[16];
+    for (int i = 0; i < 16; ++i) r[i] = _mm512_loadu_ps(src + i * src_stride);
+    transpose16_regs(r);
     for (int i = 0; i < 16; ++i) _mm512_storeu_ps(dst + i * dst_stride, r[i]);
 }
 #endif
+
+// Channels-last to planar: dst[c * dst_stride + px] = src[px * C + c] for px < n, c < C.
+static inline void planar_from_channels_last(const float* src, int64_t C, int64_t n, float* dst, int64_t dst_stride) {
+    int64_t done = 0;
+#if defined(__AVX512F__)
+    // 16 pixels at a time, 16 channels at a time: each pixel's values (masked loads) transposed in registers
+    for (; done + 16 <= n; done += 16)
+        for (int64_t c0 = 0; c0 < C; c0 += 16) {
+            const int64_t nc = std::min<int64_t>(16, C - c0);
+            const __mmask16 lanes = static_cast<__mmask16>((1u << nc) - 1u);
+            __m512 r[16];
+            for (int i = 0; i < 16; ++i) r[i] = _mm512_maskz_loadu_ps(lanes, src + (done + i) * C + c0);
+            transpose16_regs(r);
+            for (int64_t c = 0; c < nc; ++c) _mm512_storeu_ps(dst + (c0 + c) * dst_stride + done, r[c]);
+        }
+#endif
+    for (int64_t px = done; px < n; ++px)
+        for (int64_t c = 0; c < C; ++c) dst[c * dst_stride + px] = src[px * C + c];
+}
+
+// Planar to channels-last: dst[px * C + c] = src[c * src_stride + px] for px < n, c < C.
+static inline void channels_last_from_planar(const float* src, int64_t src_stride, int64_t C, int64_t n, float* dst) {
+    int64_t done = 0;
+#if defined(__AVX512F__)
+    // 16 pixels at a time, 16 channels at a time: the planar rows (zeros past C) transposed, each
+    // pixel's values stored (masked stores)
+    for (; done + 16 <= n; done += 16)
+        for (int64_t c0 = 0; c0 < C; c0 += 16) {
+            const int64_t nc = std::min<int64_t>(16, C - c0);
+            const __mmask16 lanes = static_cast<__mmask16>((1u << nc) - 1u);
+            __m512 r[16];
+            for (int i = 0; i < 16; ++i)
+                r[i] = i < nc ? _mm512_loadu_ps(src + (c0 + i) * src_stride + done) : _mm512_setzero_ps();
+            transpose16_regs(r);
+            for (int i = 0; i < 16; ++i) _mm512_mask_storeu_ps(dst + (done + i) * C + c0, lanes, r[i]);
+        }
+#endif
+    for (int64_t px = done; px < n; ++px)
+        for (int64_t c = 0; c < C; ++c) dst[px * C + c] = src[c * src_stride + px];
+}
 
 // exp_bounded of a strip (the same reduction and polynomial; the rounding to the nearest integer
 // by adding and subtracting 1.5 * 2^23, exact for these |x log2(e)| < 2^22; products and sums not

@@ -44,7 +44,9 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
         "GuideGate", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
             return std::make_shared<denoiser::GuideGate>(ctx.get_input(0), ctx.get_input(1),
-                                                         ctx.get_attribute<float>("threshold"))->outputs();
+                                                         ctx.get_attribute<float>("threshold"),
+                                                         ctx.get_attribute<int64_t>("previous_channels_last", 0))
+                ->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "EmbedNet", "denoiser",
@@ -75,10 +77,11 @@ OPENVINO_CREATE_EXTENSIONS(std::vector<ov::Extension::Ptr>({
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "WarpHistory", "denoiser",
         [](const ov::frontend::NodeContext& ctx) -> ov::OutputVector {
+            const auto last = ctx.get_attribute<std::vector<int64_t>>("channels_last", std::vector<int64_t>{});
             return std::make_shared<denoiser::WarpHistory>(all_inputs(ctx), ctx.get_attribute<float>("motion_limit"),
                                                            ctx.get_attribute<float>("posinf"),
                                                            ctx.get_attribute<float>("outside"),
-                                                           ctx.get_attribute<float>("cover_min"))->outputs();
+                                                           ctx.get_attribute<float>("cover_min"), last)->outputs();
         }),
     std::make_shared<ov::frontend::onnx::ConversionExtension>(
         "Log1p", "denoiser",

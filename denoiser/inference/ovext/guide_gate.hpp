@@ -1,4 +1,6 @@
-// GuideGate(previous [B, 7, H, W], current [B, 7, H, W]; attribute threshold) -> [B, 1, H, W] f32:
+// GuideGate(previous [B, 7, H, W] or, with previous_channels_last 1, [B, H, W, 7] (as WarpHistory
+//   writes it for the convolution that also reads it), current [B, 7, H, W]; attributes threshold,
+//   previous_channels_last) -> [B, 1, H, W] f32:
 //   the disocclusion gate clamp(2 - D / threshold, 0, 1) of denoiser.nn.temporal.TemporalRecurrence.gate,
 //   D = denoiser.nn.temporal.guide_disagreement of the warped and the current guide features
 //   (albedo 3, normal 3, depth feature 1; its docstring and the module's are the definition):
@@ -22,8 +24,9 @@ public:
     OPENVINO_OP("GuideGate", "denoiser");
 
     GuideGate() = default;
-    GuideGate(const ov::Output<ov::Node>& previous, const ov::Output<ov::Node>& current, float threshold)
-        : Op({previous, current}), m_threshold(threshold) {
+    GuideGate(const ov::Output<ov::Node>& previous, const ov::Output<ov::Node>& current, float threshold,
+              int64_t previous_channels_last)
+        : Op({previous, current}), m_threshold(threshold), m_previous_channels_last(previous_channels_last) {
         constructor_validate_and_infer_types();
     }
 
@@ -39,21 +42,25 @@ public:
     }
 
     std::shared_ptr<ov::Node> clone_with_new_inputs(const ov::OutputVector& args) const override {
-        return std::make_shared<GuideGate>(args.at(0), args.at(1), m_threshold);
+        return std::make_shared<GuideGate>(args.at(0), args.at(1), m_threshold, m_previous_channels_last);
     }
 
     bool visit_attributes(ov::AttributeVisitor& visitor) override {
         visitor.on_attribute("threshold", m_threshold);
+        visitor.on_attribute("previous_channels_last", m_previous_channels_last);
         return true;
     }
 
     bool has_evaluate() const override { return true; }
 
     bool evaluate(ov::TensorVector& outputs, const ov::TensorVector& inputs) const override {
+        const bool last = m_previous_channels_last != 0;
         const auto& ps = inputs[0].get_shape();
         const auto& cs = inputs[1].get_shape();
-        OPENVINO_ASSERT(cs.size() == 4 && ps == cs && cs[1] == 7, "GuideGate: previous ", ps, " and current ", cs,
-                        " must both be [B, 7, H, W]");
+        OPENVINO_ASSERT(cs.size() == 4 && cs[1] == 7 && ps.size() == 4 && ps[0] == cs[0] &&
+                            (last ? ps[1] == cs[2] && ps[2] == cs[3] && ps[3] == 7 : ps == cs),
+                        "GuideGate: previous ", ps, " and current ", cs, " must be ",
+                        last ? "[B, H, W, 7] and [B, 7, H, W]" : "both [B, 7, H, W]");
         const int64_t B = cs[0], H = cs[2], W = cs[3], HW = H * W;
         outputs[0].set_shape({cs[0], 1, cs[2], cs[3]});
         const float* P = inputs[0].data<const float>();
@@ -61,11 +68,16 @@ public:
         float* O = outputs[0].data<float>();
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
             std::vector<float> hmax(static_cast<size_t>(W + 2)), hmin(static_cast<size_t>(W + 2)),
-                d(static_cast<size_t>(W));
+                d(static_cast<size_t>(W)), prow(static_cast<size_t>(last ? 7 * W : 0));
+            const int64_t pstride = last ? W : HW;  // the previous guide's plane stride as read below
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H, y0 = std::max<int64_t>(y - 1, 0),
                               y2 = std::min<int64_t>(y + 1, H - 1);
                 const float* p = P + b * 7 * HW + y * W;
+                if (last) {  // this row of the previous guide made planar (7 rows of W)
+                    planar_from_channels_last(P + (b * H + y) * W * 7, 7, W, prow.data(), W);
+                    p = prow.data();
+                }
                 const float* x = X + b * 7 * HW + y * W;
                 std::fill(d.begin(), d.end(), 0.0f);
                 // albedo: how far the previous albedo lies outside the current 3x3 [min, max], max over channels
@@ -80,7 +92,7 @@ public:
                         lo[px + 1] = std::min(std::min(r0[px], r1[px]), r2[px]);
                     }
                     hi[0] = hi[1], hi[W + 1] = hi[W], lo[0] = lo[1], lo[W + 1] = lo[W];
-                    const float* pc = p + c * HW;
+                    const float* pc = p + c * pstride;
                     float* __restrict dd = d.data();
                     for (int64_t px = 0; px < W; ++px) {
                         const float h = std::max(std::max(hi[px], hi[px + 1]), hi[px + 2]);
@@ -93,7 +105,7 @@ public:
                 const float* __restrict d_ = d.data();
                 for (int64_t px = 0; px < W; ++px) {
                     // normals: 1 - cos where both are present (length > 0.5), 0 where neither, else 1
-                    const float p0 = p[3 * HW + px], p1 = p[4 * HW + px], p2 = p[5 * HW + px];
+                    const float p0 = p[3 * pstride + px], p1 = p[4 * pstride + px], p2 = p[5 * pstride + px];
                     const float c0 = x[3 * HW + px], c1 = x[4 * HW + px], c2 = x[5 * HW + px];
                     const float lp = std::sqrt(p0 * p0 + p1 * p1 + p2 * p2);
                     const float lc = std::sqrt(c0 * c0 + c1 * c1 + c2 * c2);
@@ -101,7 +113,7 @@ public:
                     const float cos = (p0 * c0 + p1 * c1 + p2 * c2) / std::max(lp * lc, 1e-6f);
                     const float normal = hp && hc ? 1.0f - cos : (hp == hc ? 0.0f : 1.0f);
                     // depth features: |log(p (1 - c) / (c (1 - p)))|, clamped to [eps, 1 - eps]
-                    const float pd = std::min(std::max(p[6 * HW + px], DEPTH_LOGIT_EPS), 1.0f - DEPTH_LOGIT_EPS);
+                    const float pd = std::min(std::max(p[6 * pstride + px], DEPTH_LOGIT_EPS), 1.0f - DEPTH_LOGIT_EPS);
                     const float cd = std::min(std::max(x[6 * HW + px], DEPTH_LOGIT_EPS), 1.0f - DEPTH_LOGIT_EPS);
                     const float depth = std::fabs(log_normal((pd * (1.0f - cd)) / (cd * (1.0f - pd))));
                     const float D = std::max(std::max(d_[px], normal), depth);
@@ -114,6 +126,7 @@ public:
 
 private:
     float m_threshold = 0.1f;
+    int64_t m_previous_channels_last = 0;
 };
 
 }  // namespace denoiser

@@ -49,16 +49,7 @@ struct FactoredHead0 {
         const int64_t C = NC > 0 ? NC : Cs, Wp = padded();
         float* planar = buf + n * Wp;  // C rows of Wp: this row of skip, channel by channel
         up->row(z + (b * N0 + c0) * h * w, n, y, buf, Wp, planar + C * Wp);
-        const float* srow = skip + (b * H + y) * W * C;
-        int64_t done = 0;
-#if defined(__AVX512F__)
-        if (NC > 0 && NC % 16 == 0)  // 16 x 16 blocks transposed in registers (4x the scalar loop's speed)
-            for (; done + 16 <= W; done += 16)
-                for (int64_t c0 = 0; c0 < C; c0 += 16)
-                    transpose16(srow + done * C + c0, C, planar + c0 * Wp + done, Wp);
-#endif
-        for (int64_t px = done; px < W; ++px)
-            for (int64_t c = 0; c < C; ++c) planar[c * Wp + px] = srow[px * C + c];
+        planar_from_channels_last(skip + (b * H + y) * W * C, C, W, planar, Wp);
         for (int64_t c = 0; c < C; ++c) std::fill(planar + c * Wp + W, planar + (c + 1) * Wp, 0.0f);
         for (int64_t t = 0; t < n; ++t) std::fill(buf + t * Wp + W, buf + (t + 1) * Wp, 0.0f);
         if constexpr (NC > 0) {  // strip by strip, the strip's skip channels in registers

@@ -1,7 +1,9 @@
 // WarpHistory(motion [B, 2, H, W], keep [B, 1, 1, 1], buffer_0 [B, C_0, H, W], ..., buffer_{n-1};
-//   attributes motion_limit, posinf, outside, cover_min) -> n + 1 outputs f32: each buffer warped
-//   [B, C_i, H, W], then valid [B, 1, H, W]: denoiser.nn.temporal.TemporalRecurrence.warp's
-//   sampling (its docstring and denoiser.nn.warp's are the definition), before the gate:
+//   attributes motion_limit, posinf, outside, cover_min, channels_last) -> n + 1 outputs f32: each
+//   buffer warped, [B, C_i, H, W], or [B, H, W, C_i] where channels_last[i] is 1 (the layout the
+//   convolution that reads it takes: no reorder at full resolution), then valid [B, 1, H, W]:
+//   denoiser.nn.temporal.TemporalRecurrence.warp's sampling (its docstring and denoiser.nn.warp's
+//   are the definition), before the gate:
 //
 //     m = clamp(sanitize(motion), -motion_limit * max(H, W), +...)  (NaN, -Inf -> 0, +Inf -> posinf)
 //     sx = x + m_x (outside where keep is 0), sy = y + m_y
@@ -53,10 +55,15 @@ public:
     OPENVINO_OP("WarpHistory", "denoiser");
 
     WarpHistory() = default;
-    WarpHistory(const ov::OutputVector& args, float motion_limit, float posinf, float outside, float cover_min)
-        : Op(args), m_motion_limit(motion_limit), m_posinf(posinf), m_outside(outside), m_cover_min(cover_min) {
+    WarpHistory(const ov::OutputVector& args, float motion_limit, float posinf, float outside, float cover_min,
+                std::vector<int64_t> channels_last)
+        : Op(args), m_motion_limit(motion_limit), m_posinf(posinf), m_outside(outside), m_cover_min(cover_min),
+          m_channels_last(std::move(channels_last)) {
         constructor_validate_and_infer_types();
     }
+
+    // whether buffer i is written channels-last
+    bool last(size_t i) const { return i < m_channels_last.size() && m_channels_last[i] != 0; }
 
     void validate_and_infer_types() override {
         const size_t n = get_input_size();
@@ -66,10 +73,16 @@ public:
             NODE_VALIDATION_CHECK(this, get_input_element_type(i) == ov::element::f32 &&
                                             get_input_partial_shape(i).rank().compatible(4),
                                   "WarpHistory: 4-D f32 inputs only");
+        NODE_VALIDATION_CHECK(this, m_channels_last.empty() || m_channels_last.size() == n - 2,
+                              "WarpHistory: channels_last has ", m_channels_last.size(), " entries for ", n - 2,
+                              " buffers");
         for (size_t i = 2; i < n; ++i) {
             auto shape = get_input_partial_shape(0);  // [B, C_i, H, W]: the motion's B, H, W
             const auto& buffer = get_input_partial_shape(i);
-            if (shape.rank().is_static() && buffer.rank().is_static()) shape[1] = buffer[1];
+            if (shape.rank().is_static() && buffer.rank().is_static()) {
+                shape[1] = buffer[1];
+                if (last(i - 2)) shape = ov::PartialShape{shape[0], shape[2], shape[3], shape[1]};
+            }
             set_output_type(i - 2, ov::element::f32, shape);
         }
         auto valid = get_input_partial_shape(0);
@@ -78,7 +91,7 @@ public:
     }
 
     std::shared_ptr<ov::Node> clone_with_new_inputs(const ov::OutputVector& args) const override {
-        return std::make_shared<WarpHistory>(args, m_motion_limit, m_posinf, m_outside, m_cover_min);
+        return std::make_shared<WarpHistory>(args, m_motion_limit, m_posinf, m_outside, m_cover_min, m_channels_last);
     }
 
     bool visit_attributes(ov::AttributeVisitor& visitor) override {
@@ -86,6 +99,7 @@ public:
         visitor.on_attribute("posinf", m_posinf);
         visitor.on_attribute("outside", m_outside);
         visitor.on_attribute("cover_min", m_cover_min);
+        visitor.on_attribute("channels_last", m_channels_last);
         return true;
     }
 
@@ -107,7 +121,7 @@ public:
             OPENVINO_ASSERT(s.size() == 4 && s[0] == ms[0] && s[2] == ms[2] && s[3] == ms[3], "WarpHistory: buffer ",
                             i, " has shape ", s, " for motion ", ms);
             channels[i] = s[1];
-            outputs[i].set_shape(s);
+            outputs[i].set_shape(last(i) ? ov::Shape{s[0], s[2], s[3], s[1]} : s);
             src[i] = inputs[i + 2].data<const float>();
             dst[i] = outputs[i].data<float>();
         }
@@ -116,10 +130,13 @@ public:
         const float* M = inputs[0].data<const float>();
         const float* keep = inputs[1].data<const float>();
         const float limit = m_motion_limit * static_cast<float>(std::max(H, W));
+        int64_t last_channels = 0;  // the channels-last buffers' rows are gathered planar first
+        for (size_t i = 0; i < n; ++i) last_channels += last(i) ? channels[i] : 0;
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
             WarpRow r(W);
             std::vector<const float*> planes;
             std::vector<float*> rows_out;
+            std::vector<float> planar(static_cast<size_t>(last_channels * W));
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
                 const bool kept = keep[b] != 0.0f;
@@ -127,12 +144,18 @@ public:
                 const float* my = mx + HW;
                 sample_row(mx, my, W, H, y, kept, limit, r, valid + b * HW + y * W);
                 planes.clear(), rows_out.clear();
-                for (size_t i = 0; i < n; ++i)
+                for (size_t i = 0, p = 0; i < n; ++i)
                     for (int64_t c = 0; c < channels[i]; ++c) {
                         planes.push_back(src[i] + (b * channels[i] + c) * HW);
-                        rows_out.push_back(dst[i] + (b * channels[i] + c) * HW + y * W);
+                        rows_out.push_back(last(i) ? planar.data() + (p++) * W : dst[i] + (b * channels[i] + c) * HW + y * W);
                     }
                 gather_row(planes, HW, W, r, rows_out);
+                for (size_t i = 0, p = 0; i < n; ++i)
+                    if (last(i)) {
+                        channels_last_from_planar(planar.data() + p * W, W, channels[i], W,
+                                                  dst[i] + (b * H + y) * W * channels[i]);
+                        p += channels[i];
+                    }
             }
         });
         return true;
@@ -340,6 +363,7 @@ private:
     float m_posinf = 65504.0f;
     float m_outside = -2.0f;
     float m_cover_min = 1e-4f;
+    std::vector<int64_t> m_channels_last;  // per buffer, 1: its output channels-last (empty: none)
 };
 
 }  // namespace denoiser

@@ -228,3 +228,21 @@ def test_backend_fuses_kernels_when_the_extension_builds(tiny, monkeypatch, caps
     for frame, reset, (out, _) in zip(frames, RESETS, expected):
         got = runner(frame, reset)
         assert np.all(np.abs(out - got) <= F32_RTOL * np.maximum(1.0, np.abs(out)))
+
+
+def test_the_bench_warm_up_reaches_every_slot(tiny):
+    """denoiser-bench's default warm-up runs every infer request a recurrent OpenVINO step
+    alternates between (its two slots), so no timed step is the first on a request (whose
+    intermediate memory OpenVINO maps then: at 1080p about 1,400-3,400 page faults and 200 ms on the
+    first timed step after a one-step warm-up, 10-20 faults on the later ones)."""
+    from denoiser.configs import compose_config
+    from denoiser.measure import recurrent_steps, round_robin
+
+    _, path, frames, _ = tiny
+    cfg = compose_config([], "bench")
+    step = OpenVinoStep(path, threads=1)
+    stepper = type("S", (), {"step": staticmethod(step.step), "sync": staticmethod(lambda: None)})
+    _, errors = round_robin({"f32": recurrent_steps(stepper, frames)}, int(cfg.warmup), 0)
+    assert not errors
+    slots = step._compiled[(1, 20, 28)][1]
+    assert len(slots) == 2 and all(s.fed for s in slots)  # each request has inferred

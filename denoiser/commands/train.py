@@ -90,7 +90,7 @@ def measure_time(cfg: DictConfig, net) -> dict[str, float]:
                           f"got {spec.get('backend')!r}")
     name, overrides = resolve_backend(spec.backend, key="objectives.time.backend")
     backend = load_backend(name, "objectives.time.backend", **overrides)
-    row = time_network(net, backend, list(spec.size), threads=spec.get("threads"), warmup=int(spec.get("warmup", 1)),
+    row = time_network(net, backend, list(spec.size), threads=spec.get("threads"), warmup=int(spec.get("warmup", 2)),
                        repeats=int(spec.get("repeats", 3)))
     if row["status"] != "ok":
         raise ConfigError(f"objectives.time.backend: {row['status']}")

@@ -434,3 +434,17 @@ def test_no_module_changes_the_allocator_for_the_process():
 
     root = Path(denoiser.__file__).parent
     assert [str(p) for p in root.rglob("*.py") if "mallopt" in p.read_text()] == []
+
+
+def test_skip_names_a_method_or_a_backend(setup, tmp_path):
+    """``skip`` leaves out a method at some sizes, or a backend (its ``use_backends`` key) for
+    every network at some sizes; the rest still runs."""
+    import denoiser.commands.bench as bench_module
+
+    root, ckpt = setup
+    rows = bench_module.run(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",
+                                              "sizes=[[16,16],[16,24]]", "repeats=1", "warmup=1",
+                                              "use_backends=[eager,channels_last]", "skip={eager: [[16,24]]}",
+                                              "quality=false", "baselines={}", f"out_dir={tmp_path / 'bench'}"]))
+    ran = {(r["backend"], r["width"]) for r in rows if r["method"] == "student" and r["status"] == "ok"}
+    assert ran == {("eager fp32", 16), ("channels_last fp32", 16), ("channels_last fp32", 24)}

@@ -214,7 +214,8 @@ def backend_quality(cfg: DictConfig, nets, backends, pairs, threads: int) -> dic
 
 
 def skipped(skip_cfg, label: str, size: tuple[int, int]) -> bool:
-    """True when ``skip[label]`` lists ``[H, W]`` = ``size``."""
+    """True when ``skip[label]`` lists ``[H, W]`` = ``size`` (label: a method's, or a backend's key in
+    ``use_backends``, which skips that backend for every network)."""
     entries = (skip_cfg or {}).get(label) or []
     return any(tuple(int(v) for v in e) == size for e in entries)
 
@@ -402,7 +403,7 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, versions: d
                 spec["gflop"], spec["gflop_size"] = count_flops(net, *size) / 1e9, size
             allowed = (cfg.get("method_backends") or {}).get(label)
             for bkey, backend in backends.items():
-                if allowed is not None and bkey not in allowed:
+                if (allowed is not None and bkey not in allowed) or skipped(cfg.get("skip"), bkey, size):
                     continue
                 base = {"method": label, "backend": backend.label, "device": backend.device, "gflop": spec["gflop"],
                         "dtype": getattr(backend, "dtype", ""), "params": net.num_parameters(), "kind": kind}

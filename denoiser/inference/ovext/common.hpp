@@ -137,44 +137,52 @@ static inline void transpose16(const float* src, int64_t src_stride, float* dst,
 }
 #endif
 
-// Channels-last to planar: dst[c * dst_stride + px] = src[px * C + c] for px < n, c < C.
-static inline void planar_from_channels_last(const float* src, int64_t C, int64_t n, float* dst, int64_t dst_stride) {
+// Rows of n pixels and C channels between channels-last (value px * C + c) and planar (c * stride
+// + px): TO_PLANAR copies channels-last src into planar dst, else planar src into channels-last dst.
+// AVX-512: 16 pixels and 16 channels at a time, transposed in registers (masked loads or stores
+// where C is not a multiple of 16).
+template <bool TO_PLANAR>
+static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, int64_t stride) {
     int64_t done = 0;
 #if defined(__AVX512F__)
-    // 16 pixels at a time, 16 channels at a time: each pixel's values (masked loads) transposed in registers
     for (; done + 16 <= n; done += 16)
         for (int64_t c0 = 0; c0 < C; c0 += 16) {
             const int64_t nc = std::min<int64_t>(16, C - c0);
             const __mmask16 lanes = static_cast<__mmask16>((1u << nc) - 1u);
             __m512 r[16];
-            for (int i = 0; i < 16; ++i) r[i] = _mm512_maskz_loadu_ps(lanes, src + (done + i) * C + c0);
+            for (int i = 0; i < 16; ++i) {
+                if constexpr (TO_PLANAR)
+                    r[i] = _mm512_maskz_loadu_ps(lanes, src + (done + i) * C + c0);
+                else
+                    r[i] = i < nc ? _mm512_loadu_ps(src + (c0 + i) * stride + done) : _mm512_setzero_ps();
+            }
             transpose16_regs(r);
-            for (int64_t c = 0; c < nc; ++c) _mm512_storeu_ps(dst + (c0 + c) * dst_stride + done, r[c]);
+            for (int i = 0; i < 16; ++i) {
+                if constexpr (TO_PLANAR) {
+                    if (i < nc) _mm512_storeu_ps(dst + (c0 + i) * stride + done, r[i]);
+                } else {
+                    _mm512_mask_storeu_ps(dst + (done + i) * C + c0, lanes, r[i]);
+                }
+            }
         }
 #endif
     for (int64_t px = done; px < n; ++px)
-        for (int64_t c = 0; c < C; ++c) dst[c * dst_stride + px] = src[px * C + c];
+        for (int64_t c = 0; c < C; ++c) {
+            if constexpr (TO_PLANAR)
+                dst[c * stride + px] = src[px * C + c];
+            else
+                dst[px * C + c] = src[c * stride + px];
+        }
+}
+
+// Channels-last to planar: dst[c * dst_stride + px] = src[px * C + c] for px < n, c < C.
+static inline void planar_from_channels_last(const float* src, int64_t C, int64_t n, float* dst, int64_t dst_stride) {
+    relayout<true>(src, dst, C, n, dst_stride);
 }
 
 // Planar to channels-last: dst[px * C + c] = src[c * src_stride + px] for px < n, c < C.
 static inline void channels_last_from_planar(const float* src, int64_t src_stride, int64_t C, int64_t n, float* dst) {
-    int64_t done = 0;
-#if defined(__AVX512F__)
-    // 16 pixels at a time, 16 channels at a time: the planar rows (zeros past C) transposed, each
-    // pixel's values stored (masked stores)
-    for (; done + 16 <= n; done += 16)
-        for (int64_t c0 = 0; c0 < C; c0 += 16) {
-            const int64_t nc = std::min<int64_t>(16, C - c0);
-            const __mmask16 lanes = static_cast<__mmask16>((1u << nc) - 1u);
-            __m512 r[16];
-            for (int i = 0; i < 16; ++i)
-                r[i] = i < nc ? _mm512_loadu_ps(src + (c0 + i) * src_stride + done) : _mm512_setzero_ps();
-            transpose16_regs(r);
-            for (int i = 0; i < 16; ++i) _mm512_mask_storeu_ps(dst + (done + i) * C + c0, lanes, r[i]);
-        }
-#endif
-    for (int64_t px = done; px < n; ++px)
-        for (int64_t c = 0; c < C; ++c) dst[px * C + c] = src[c * src_stride + px];
+    relayout<false>(src, dst, C, n, src_stride);
 }
 
 // exp_bounded of a strip (the same reduction and polynomial; the rounding to the nearest integer

@@ -131,6 +131,50 @@ def test_eval_console_script_reports_one_line(tmp_path):
     assert not (tmp_path / "ledger.csv").exists()
 
 
+def test_a_test_split_rendered_again_keeps_its_looks(setup, tmp_path):
+    """A split is what was drawn, not the bytes of one render of it: the same sequences rendered
+    again (a fresh clone's make demo: each sequence.json's render timings differ, and a frame's
+    Monte Carlo bytes may too) keep the ledger's count, and the summary says which look it is.
+    Another draw (a sequence's seeds changed) starts at 1. The make demo of 2026-11-29 from a fresh
+    clone recorded look 1 of a split looked at five times before."""
+    import shutil
+
+    from denoiser.commands.evaluate import run
+    from denoiser.data.sequence import SEQUENCE_JSON
+    from denoiser.report import ledger
+
+    root, a, _ = setup
+    book = tmp_path / "ledger.csv"
+    base = ["data=tiny", f"ckpt=[{a}]", "~baselines.oidn_balanced", "~baselines.oidn_high", "metrics=[psnr]",
+            "images.frame=null", f"ledger={book}", "purpose=report"]
+    run(compose_eval([*base, f"data.root={root / 'data'}", f"out_dir={tmp_path / 'first'}"]))
+    again = tmp_path / "again"
+    shutil.copytree(root / "data", again)
+    for meta in sorted((again / "test").rglob(SEQUENCE_JSON)):  # the render timings of another run
+        data = json.loads(meta.read_text())
+        data["render_seconds"] = {"color": 12.5, "reference": 40.25}
+        data["frame_seconds"] = [{"color": 3.0}] * 4
+        meta.write_text(json.dumps(data, indent=2))
+    frame = sorted((again / "test").rglob("*.exr"))[1]
+    frame.write_bytes(frame.read_bytes() + b"\0")  # other bytes in one frame: MC noise of another run
+    run(compose_eval([*base, f"data.root={again}", f"out_dir={tmp_path / 'again_out'}"]))
+    rows = ledger.read(book)
+    assert [r["look"] for r in rows] == ["1", "2"] and rows[0]["split_id"] == rows[1]["split_id"]
+    assert rows[0]["split_sha256"] != rows[1]["split_sha256"]  # the files' bytes differ
+    told = json.loads((tmp_path / "again_out" / "evaluation.json").read_text())
+    assert told["look"] == 2 and told["split_id"] == rows[0]["split_id"]
+    assert "has been evaluated 2 times" in ledger.looks_line(told, book)
+    # another draw: one sequence's seeds changed
+    other = tmp_path / "other"
+    shutil.copytree(again, other)
+    meta = min((other / "test").rglob(SEQUENCE_JSON))
+    data = json.loads(meta.read_text())
+    data["seeds"] = {"sequence": 12345}
+    meta.write_text(json.dumps(data, indent=2))
+    run(compose_eval([*base, f"data.root={other}", f"out_dir={tmp_path / 'other_out'}"]))
+    assert ledger.read(book)[-1]["look"] == "1"
+
+
 def test_a_look_at_the_test_split_needs_a_purpose_and_is_recorded(setup, tmp_path):
     """``split=test`` without ``purpose=`` is one error line and evaluates nothing; with it, each
     complete evaluation appends one ledger row (UTC date, dataset, the split's content hash, run
@@ -162,7 +206,8 @@ def test_a_look_at_the_test_split_needs_a_purpose_and_is_recorded(setup, tmp_pat
     for k, row in enumerate(rows):
         told = json.loads((tmp_path / str(k) / "evaluation.json").read_text())
         assert told == {"commit": row["commit"], "date": row["date"], "dataset": str(root / "data"), "split": "test",
-                        "split_sha256": digest, "sequences": 2, "look": k + 1, "ledger": str(book.resolve())}
+                        "split_sha256": digest, "sequences": 2, "look": k + 1, "ledger": str(book.resolve()),
+                        "split_id": ledger.split_id(root / "data" / "test")}
     copy = tmp_path / "copy"
     shutil.copytree(root / "data", copy)
     shutil.copytree(copy / "test", copy / "val")

@@ -138,6 +138,7 @@ def run(cfg: DictConfig) -> dict:
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     date, digest = ledger.utc_now(), tree_hash(Path(cfg.data.root) / cfg.split)
+    drawn = ledger.split_id(Path(cfg.data.root) / cfg.split)
     look_line, look, where = "", None, None
     if looked:  # after a complete evaluation: the look happened
         where = cfg.get("ledger") or ledger.LEDGER
@@ -145,8 +146,8 @@ def run(cfg: DictConfig) -> dict:
         checkpoints = [ledger.run_id(p) for p in named.values()]
         baselines = [name for name in methods if name not in named]
         look = ledger.record(str(cfg.data.root), str(cfg.split), digest, len(sources), checkpoints, baselines,
-                             commit, str(cfg.purpose).strip(), where, date=date)
-        look_line = ledger.look_sentence(look, digest, where)
+                             commit, str(cfg.purpose).strip(), where, date=date, split_id=drawn)
+        look_line = ledger.look_sentence(look, digest, where, drawn)
         print(look_line)
     rows = ev.sequence_rows()
     write_csv(out_dir / "metrics.csv", rows, ["method", "scene", "sequence", "frames", *ev.columns, "ms_per_frame"])
@@ -158,7 +159,8 @@ def run(cfg: DictConfig) -> dict:
               "\"frames 2+\": every frame of a sequence but its first (frames counted from 1), warm-up or not.\n\n"
               + (look_line + "\n\n" if look_line else ""))
     atomic_write_text(out_dir / "metrics.md", markdown_report(ev, rows, header))
-    provenance = ledger.provenance(commit, date, str(cfg.data.root), str(cfg.split), digest, len(sources), look, where)
+    provenance = ledger.provenance(commit, date, str(cfg.data.root), str(cfg.split), digest, len(sources), look, where,
+                                   drawn)
     atomic_write_text(out_dir / ledger.PROVENANCE, json.dumps(provenance, indent=2) + "\n")
     overall = {r["method"]: {m: r[m] for m in ev.columns} for r in rows if r["sequence"] == "mean"}
     print(markdown_table([r for r in rows if r["sequence"] == "mean"], ["method", *ev.columns, "ms_per_frame"],

@@ -9,17 +9,20 @@ successful evaluation, appends one row to the ledger (:data:`LEDGER`, or ``ledge
 
 * ``date``: UTC, ``YYYY-MM-DDTHH:MM:SSZ``;
 * ``dataset``: the data root; ``split``: the split's name; ``split_sha256``: the content hash of
-  the split's files (:func:`denoiser.report.summary.tree_hash`), which identifies the split
-  whatever its folder is called;
+  the split's files (:func:`denoiser.report.summary.tree_hash`); ``split_id``: the split as drawn
+  (:func:`split_id`: each sequence's metadata without its render timings, and its files' names), which
+  identifies the split whatever its folder is called and however often it is rendered again;
 * ``sequences``: how many sequences were evaluated (``sequences=`` may pick a subset);
 * ``checkpoints``: the run ids (a checkpoint's run folder, else its file name), ``;``-separated;
   ``baselines``: the baseline methods, ``;``-separated;
 * ``commit``: the code that evaluated (:func:`denoiser.report.summary.git_commit`, ``-dirty``
   with uncommitted changes);
-* ``purpose``: as given; ``look``: the how-many-th evaluation of this ``split_sha256`` the row is.
+* ``purpose``: as given; ``look``: the how-many-th evaluation of this split the row is.
 
-Looks are counted per split hash: a split copied to another folder keeps its count, and a split
-rendered afresh (new seeds) starts at 1.
+Looks are counted per ``split_id`` (a row from before that column, per ``split_sha256``): a split
+copied to another folder keeps its count, the same sequences rendered again keep it too (a fresh
+clone's ``make demo`` renders its test split anew: the render timings in each ``sequence.json``
+differ, and so may a frame's Monte Carlo bytes), and a split drawn afresh (new seeds) starts at 1.
 
 Beside its tables, every evaluation writes :data:`PROVENANCE` (:func:`provenance`): the commit it
 ran at, its date, the split and its hash, and for a test split the look it recorded. A summary takes
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import csv
 import fcntl
+import hashlib
 import json
 import os
 import time
@@ -43,8 +47,12 @@ from denoiser.measure import write_csv
 ROOT = Path(__file__).resolve().parents[2]
 #: the committed ledger of this checkout
 LEDGER = ROOT / "docs" / "results" / "test_ledger.csv"
-COLUMNS = ["date", "dataset", "split", "split_sha256", "sequences", "checkpoints", "baselines", "commit", "purpose",
-           "look"]
+COLUMNS = ["date", "dataset", "split", "split_sha256", "split_id", "sequences", "checkpoints", "baselines", "commit",
+           "purpose", "look"]
+#: per-sequence metadata files: denoiser-render's sequence.json, scripts/blender_sequences.py's render.json
+METADATA_FILES = ("sequence.json", "render.json")
+#: their keys that time a render rather than define what it draws
+VOLATILE_KEYS = ("render_seconds", "frame_seconds", "seconds")
 #: the split name whose evaluations are recorded (and need a purpose)
 TEST_SPLIT = "test"
 #: the evaluation's provenance, a JSON file beside its metrics.csv (denoiser-eval's out_dir)
@@ -69,6 +77,43 @@ def run_id(checkpoint: str | os.PathLike) -> str:
     return path.name
 
 
+def split_id(root: str | os.PathLike) -> str:
+    """SHA-256 of the split under ``root`` as drawn: over its files in sorted order, a metadata file
+    (:data:`METADATA_FILES`) by its relative path and its JSON without :data:`VOLATILE_KEYS` (keys
+    sorted), every other file in a folder that holds one by its relative path only (its bytes are one
+    render of what the metadata draws), and a file elsewhere by its path and bytes (a split without
+    metadata is its bytes, as :func:`denoiser.report.summary.tree_hash`)."""
+    root = Path(root)
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    described = {p.parent for p in files if p.name in METADATA_FILES}
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(str(path.relative_to(root)).encode() + b"\0")
+        if path.name in METADATA_FILES:
+            try:
+                meta = json.loads(path.read_text())
+            except (OSError, ValueError):
+                meta = None
+            if isinstance(meta, dict):
+                meta = {k: v for k, v in meta.items() if k not in VOLATILE_KEYS}
+                digest.update(json.dumps(meta, sort_keys=True).encode() + b"\0")
+                continue
+        elif any(parent in described for parent in path.parents):
+            continue
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+    return digest.hexdigest()
+
+
+def same_split(row: Mapping[str, str], split_sha256: str, split_id: str | None = None) -> bool:
+    """Whether ledger ``row`` evaluated this split: by ``split_id`` where both have one, else (a row
+    or an evaluation from before that column) by the content hash."""
+    if split_id and row.get("split_id"):
+        return row["split_id"] == split_id
+    return row.get("split_sha256") == split_sha256
+
+
 def read(ledger: str | os.PathLike = LEDGER) -> list[dict[str, str]]:
     """The ledger's rows as strings (no number parsing: hashes and commits stay text); [] when missing."""
     path = Path(ledger)
@@ -78,45 +123,51 @@ def read(ledger: str | os.PathLike = LEDGER) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER) -> int:
-    """How many rows of ``ledger`` evaluated the split of that hash (0 when there is no ledger)."""
-    return sum(1 for row in read(ledger) if row.get("split_sha256") == split_sha256)
+def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str | None = None) -> int:
+    """How many rows of ``ledger`` evaluated this split (:func:`same_split`; 0 when there is no ledger)."""
+    return sum(1 for row in read(ledger) if same_split(row, split_sha256, split_id))
 
 
 def record(dataset: str, split: str, split_sha256: str, sequences: int, checkpoints: Sequence[str],
            baselines: Sequence[str], commit: str, purpose: str, ledger: str | os.PathLike = LEDGER,
-           date: str | None = None) -> int:
+           date: str | None = None, split_id: str | None = None) -> int:
     """Append one evaluation to ``ledger`` (created with its header when missing; an exclusive lock
     on a side file keeps concurrent evaluations from losing a row; the write is atomic). Returns the
-    look number of this row. ``date``: the row's (:func:`utc_now`, now when None)."""
+    look number of this row. ``date``: the row's (:func:`utc_now`, now when None); ``split_id``: the
+    split as drawn (:func:`split_id`)."""
     path = Path(ledger)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.with_name(path.name + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         rows: list[dict] = read(path)
-        look = 1 + sum(1 for row in rows if row.get("split_sha256") == split_sha256)
+        look = 1 + sum(1 for row in rows if same_split(row, split_sha256, split_id))
         rows.append({"date": date or utc_now(), "dataset": str(dataset),
-                     "split": str(split), "split_sha256": split_sha256, "sequences": int(sequences),
+                     "split": str(split), "split_sha256": split_sha256, "split_id": split_id or "",
+                     "sequences": int(sequences),
                      "checkpoints": ";".join(checkpoints), "baselines": ";".join(baselines), "commit": commit,
                      "purpose": purpose, "look": look})
         write_csv(path, rows, COLUMNS)
     return look
 
 
-def look_sentence(look: int, split_sha256: str, ledger: str | os.PathLike = LEDGER) -> str:
+def look_sentence(look: int, split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str | None = None) -> str:
     """One sentence for a report: which look this is, of how many recorded, naming the ledger."""
-    total = looks(split_sha256, ledger)
+    total = looks(split_sha256, ledger, split_id)
     return (f"Test ledger: this evaluation is look {look} of {total} recorded at {split_sha256[:12]} "
             f"({Path(ledger).name}); a split looked at more than once is no longer unseen.")
 
 
 def provenance(commit: str, date: str, dataset: str, split: str, split_sha256: str, sequences: int,
-               look: int | None, ledger: str | os.PathLike | None) -> dict:
+               look: int | None, ledger: str | os.PathLike | None, split_id: str | None = None) -> dict:
     """What :data:`PROVENANCE` holds: the commit the evaluation ran at (``-dirty`` with uncommitted
     changes), its UTC date, the data root, the split, its SHA-256, how many sequences, and for a
-    test split the look it recorded and the ledger it recorded it in (None for another split)."""
-    return {"commit": commit, "date": date, "dataset": str(dataset), "split": str(split), "split_sha256": split_sha256,
+    test split the look it recorded and the ledger it recorded it in (None for another split); with
+    ``split_id`` (:func:`split_id`), that too."""
+    told = {"commit": commit, "date": date, "dataset": str(dataset), "split": str(split), "split_sha256": split_sha256,
             "sequences": int(sequences), "look": look, "ledger": None if ledger is None else str(Path(ledger).resolve())}
+    if split_id:
+        told["split_id"] = split_id
+    return told
 
 
 def read_provenance(eval_dir: str | os.PathLike) -> dict | None:
@@ -149,7 +200,7 @@ def looks_line(evaluation: Mapping | None, ledger: str | os.PathLike = LEDGER) -
         return (f"Test ledger: looks not recorded (split `{evaluation.get('split')}` is not a test split; only a "
                 f"split named {TEST_SPLIT} is).")
     digest, look = str(evaluation["split_sha256"]), int(evaluation["look"])
-    total = looks(digest, ledger)
+    total = looks(digest, ledger, evaluation.get("split_id"))
     text = (f"Test ledger: this test split (SHA-256 {digest[:12]}) has been evaluated {total} "
             f"time{'' if total == 1 else 's'} ({_named(ledger)}); this summary's evaluation is look {look}")
     if look > total:

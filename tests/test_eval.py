@@ -164,6 +164,10 @@ def test_a_test_split_rendered_again_keeps_its_looks(setup, tmp_path):
     told = json.loads((tmp_path / "again_out" / "evaluation.json").read_text())
     assert told["look"] == 2 and told["split_id"] == rows[0]["split_id"]
     assert "has been evaluated 2 times" in ledger.looks_line(told, book)
+    # an evaluation from before the column (no split_id): the draw its hash's rows name
+    first = json.loads((tmp_path / "first" / "evaluation.json").read_text())
+    del first["split_id"]
+    assert "has been evaluated 2 times" in ledger.looks_line(first, book)
     # another draw: one sequence's seeds changed
     other = tmp_path / "other"
     shutil.copytree(again, other)

@@ -124,8 +124,14 @@ def read(ledger: str | os.PathLike = LEDGER) -> list[dict[str, str]]:
 
 
 def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str | None = None) -> int:
-    """How many rows of ``ledger`` evaluated this split (:func:`same_split`; 0 when there is no ledger)."""
-    return sum(1 for row in read(ledger) if same_split(row, split_sha256, split_id))
+    """How many rows of ``ledger`` evaluated this split (:func:`same_split`; 0 when there is no ledger).
+    Without ``split_id`` (an evaluation from before that column), the draw that the ledger's rows of
+    the same content hash name, when they name one."""
+    rows = read(ledger)
+    if not split_id:
+        drawn = {row["split_id"] for row in rows if row.get("split_sha256") == split_sha256 and row.get("split_id")}
+        split_id = drawn.pop() if len(drawn) == 1 else None
+    return sum(1 for row in rows if same_split(row, split_sha256, split_id))
 
 
 def record(dataset: str, split: str, split_sha256: str, sequences: int, checkpoints: Sequence[str],

@@ -43,6 +43,7 @@ from pathlib import Path
 
 from denoiser.errors import UserError
 from denoiser.measure import write_csv
+from denoiser.report.summary import hash_bytes
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the committed ledger of this checkout
@@ -100,9 +101,7 @@ def split_id(root: str | os.PathLike) -> str:
                 continue
         elif any(parent in described for parent in path.parents):
             continue
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                digest.update(chunk)
+        hash_bytes(digest, path)
     return digest.hexdigest()
 
 

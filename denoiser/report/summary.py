@@ -283,10 +283,15 @@ def tree_hash(root: str | os.PathLike) -> str:
     root = Path(root)
     for path in sorted(p for p in root.rglob("*") if p.is_file()):
         digest.update(str(path.relative_to(root)).encode() + b"\0")
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                digest.update(chunk)
+        hash_bytes(digest, path)
     return digest.hexdigest()
+
+
+def hash_bytes(digest, path: str | os.PathLike) -> None:
+    """Feed the bytes of the file at ``path`` to ``digest`` (a hashlib object), a MiB at a time."""
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
 
 
 def commit_line(evaluation: Mapping | None) -> str:

@@ -212,6 +212,7 @@ def test_kernel_apply_in_bf16_inference(tmp_path):
     ([7], 2.5, (6, 5)),  # one level, a kernel larger than the image
     ([5, 5, 5], 2.5, (12, 72)),  # strips with every tap inside (the vector path) on levels 0 and 1
     ([3, 3], None, (8, 70)),  # the same with the softmax shifted by its maximum
+    ([5, 5, 5], 2.5, (70, 36)),  # five bands of 16 rows: the rows either side of a thread's bands recomputed
 ])
 def test_pyramid_filter_matches_the_module(tmp_path, sizes, scale, hw):
     """``denoiser::PyramidFilter`` against :class:`~denoiser.nn.pyramid.PyramidFilter` (eager:
@@ -222,7 +223,8 @@ def test_pyramid_filter_matches_the_module(tmp_path, sizes, scale, hw):
     want = module(x, *heads).detach().numpy()
     got = run_openvino(path, x, heads)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
-    assert np.array_equal(run_openvino(path, x, heads, threads=2), got)
+    for threads in (2, 3):  # the threads' shares of the bands do not change a value
+        assert np.array_equal(run_openvino(path, x, heads, threads=threads), got)
 
 
 class FactoredPyramid(torch.nn.Module):
@@ -247,11 +249,12 @@ class FactoredPyramid(torch.nn.Module):
     (16, (20, 44), "bilinear"),  # the demo student's 16 channels (blocks transposed in registers), a partial strip
     (32, (12, 16), "bilinear"),  # the teacher's width
     (5, (10, 14), "nearest"),  # any other width, nearest upsampling
+    (16, (70, 40), "bilinear"),  # five bands of 16 rows, split between the threads
 ])
 def test_pyramid_filter_head_matches_the_module(tmp_path, skip, hw, mode):
     """``denoiser::PyramidFilterHead`` against the eager PyramidFilter on head 0 computed as its
     definition: the 1x1 convolution of ``[skip0, interpolate(half)]`` (a concatenation), not the
-    factored form; two images, one and two threads alike."""
+    factored form; two images, one, two and three threads alike."""
     import openvino as ov
 
     from denoiser.nn.graph_ops import OPERATIONS
@@ -279,12 +282,12 @@ def test_pyramid_filter_head_matches_the_module(tmp_path, skip, hw, mode):
     ovext.load_into(core, tmp_path / "f.onnx")
     feed = dict(zip(names, (t.numpy() for t in (x, skip0, half, *heads))))
     got = []
-    for threads in (1, 2):
+    for threads in (3, 2, 1):  # the split ones first: their bands' edge rows are not left from an earlier run
         compiled = core.compile_model(core.read_model(str(tmp_path / "f.onnx")), "CPU",
                                       {"INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "f32"})
         got.append(compiled(feed)[compiled.output(0)])
     np.testing.assert_allclose(got[0], want, rtol=1e-4, atol=1e-4)
-    assert np.array_equal(got[0], got[1])
+    assert np.array_equal(got[0], got[1]) and np.array_equal(got[0], got[2])
 
 
 @needs_extension

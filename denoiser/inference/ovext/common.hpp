@@ -53,8 +53,6 @@ static inline float exp_bounded(float x) {
     return p * scale;
 }
 
-static std::unique_ptr<float[]> uninitialised(size_t n) { return std::unique_ptr<float[]>(new float[n]); }
-
 // Softmax scale per pixel of a row: s[px] = scale / sqrt(var over the n planes + 1) (two-pass
 // variance, as torch.var(unbiased=False)), or 1. z: n planes of W values, `plane` apart. tmp: W floats.
 static void logit_scale_row(const float* z, int64_t n, int64_t plane, int64_t W, float scale, bool has_scale,
@@ -75,13 +73,6 @@ static void logit_scale_row(const float* z, int64_t n, int64_t plane, int64_t W,
         }
     for (int64_t px = 0; px < W; ++px) s[px] = scale / std::sqrt(s[px] * (1.0f / n) + 1.0f);
 }
-
-// Scratch of one thread for rows of width W and C channels.
-struct RowScratch {
-    explicit RowScratch(int64_t W, int64_t C) : data(uninitialised(static_cast<size_t>(W) * C)) { acc = data.get(); }
-    std::unique_ptr<float[]> data;
-    float* acc;  // C rows of W: the filtered row
-};
 
 constexpr int64_t S = 16;  // pixels per strip: one AVX-512 register of floats
 
@@ -185,25 +176,32 @@ static inline void channels_last_from_planar(const float* src, int64_t src_strid
     relayout<false>(src, dst, C, n, src_stride);
 }
 
-// exp_bounded of a strip (the same reduction and polynomial; the rounding to the nearest integer
-// by adding and subtracting 1.5 * 2^23, exact for these |x log2(e)| < 2^22; products and sums not
-// fused, so within a few ulp of exp_bounded)
-static inline Strip exp_strip(Strip x) {
-    x = x < -87.0f ? Strip{} - 87.0f : x;
-    const Strip n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
-    Strip f = x - n * 0.693359375f;
-    f = f + n * 2.12194440e-4f;
-    Strip p = f * 1.9875691500e-4f + 1.3981999507e-3f;
-    p = p * f + 8.3334519073e-3f;
-    p = p * f + 4.1665795894e-2f;
-    p = p * f + 1.6666665459e-1f;
-    p = p * f + 5.0000001201e-1f;
-    p = (p * f) * f + f + 1.0f;
-    const IntStrip bits = (__builtin_convertvector(n, IntStrip) + 127) << 23;
+// 2^u of a strip, about 1 ulp past the rounding of u: u = n + f with n the nearest integer (adding
+// and subtracting 1.5 * 2^23, exact for |u| < 2^22) and |f| <= 1/2, 2^f by a degree-6 polynomial
+// (Chebyshev fit, relative error 1e-7), times 2^n built in the exponent bits (a NaN stays NaN).
+// CLAMP: u below -126 taken as -126 (2^n would not be a normal float); without it u must lie in
+// [-126, 127]. The kernel filters take exp(x) as 2^(x log2 e), log2 e folded into the softmax
+// scale: 12 or 13 vector operations where the natural-base reduction takes 17.
+template <bool CLAMP>
+static inline Strip exp2_strip(Strip u) {
+    if constexpr (CLAMP) u = u < -126.0f ? Strip{} - 126.0f : u;
+    const Strip v = u + 12582912.0f;
+    const Strip f = u - (v - 12582912.0f);
+    Strip p = f * 1.546531857457012e-4f + 1.3395285932347178e-3f;
+    p = p * f + 9.618040174245834e-3f;
+    p = p * f + 5.550340563058853e-2f;
+    p = p * f + 2.4022650718688965e-1f;
+    p = p * f + 6.931471824645996e-1f;
+    p = p * f + 1.0f;
+    IntStrip bits;
+    std::memcpy(&bits, &v, sizeof(bits));
+    bits = (bits << 23) + (127 << 23);  // v's low mantissa bits hold n; its other bits shift out
     Strip scale;
     std::memcpy(&scale, &bits, sizeof(scale));
     return p * scale;
 }
+
+constexpr float LOG2E = 1.44269504088896341f;
 
 // Whether the softmax may be shifted by the logits' mean instead of their maximum: with the
 // scale-normalised logits every centred, scaled logit lies within scale * sqrt(K) of it
@@ -212,15 +210,53 @@ static bool mean_shift_ok(int64_t K, float scale, bool has_scale) {
     return has_scale && scale * std::sqrt(static_cast<float>(K)) <= 80.0f;
 }
 
-// The kernel filter of pixels px0 .. px0 + S - 1 of row y, channels 0 .. C-1 (NC = C when known at
+constexpr int64_t MAX_K = 15;  // the largest kernel size the filters take
+
+// The k source rows of a filtered row y: rows[i] is row y + i - r of x (channel c at
+// rows[i] + c * cstride), null where that row lies outside the image. Planes of one tensor
+// (cstride H * W) or rows kept in a ring (PyramidFilter's level 0, cstride W).
+struct SourceRows {
+    const float* rows[MAX_K];
+    int64_t cstride;
+};
+
+// The source rows of row y of C planes X of H x W for a k x k filter.
+static inline SourceRows planar_rows(const float* X, int64_t H, int64_t W, int64_t k, int64_t y) {
+    SourceRows src{{}, H * W};
+    for (int64_t i = 0, r = k / 2; i < k; ++i) src.rows[i] = y + i - r >= 0 && y + i - r < H ? X + (y + i - r) * W : nullptr;
+    return src;
+}
+
+// The taps of filter_strip's vector path (every tap inside the row): acc (NC rows, acc_plane
+// apart) at px0 .. px0 + S - 1 = sum_t e_t x_t / sum_t e_t, e_t = exp(z_t s - shift).
+template <int NC, bool CLAMP>
+static inline void filter_strip_taps(const SourceRows& X, const float* Z, int64_t plane, int64_t k, int64_t px0,
+                                     const float* s, const float* shift, float* acc_rows, int64_t acc_plane) {
+    const int64_t r = k / 2, cs = X.cstride;
+    const Strip sv = load_strip(s) * LOG2E, shv = load_strip(shift) * LOG2E;
+    Strip sumv = {}, accv[NC] = {};
+    for (int64_t i = 0; i < k; ++i) {
+        if (X.rows[i] == nullptr) continue;
+        for (int64_t j = 0; j < k; ++j) {
+            const Strip e = exp2_strip<CLAMP>(load_strip(Z + (i * k + j) * plane + px0) * sv - shv);
+            const float* xr = X.rows[i] + px0 + j - r;
+            sumv += e;
+            for (int64_t c = 0; c < NC; ++c) accv[c] += e * load_strip(xr + c * cs);
+        }
+    }
+    const Strip inv = 1.0f / sumv;
+    for (int64_t c = 0; c < NC; ++c) store_strip(acc_rows + c * acc_plane + px0, accv[c] * inv);
+}
+
+// The kernel filter of pixels px0 .. px0 + S - 1 of a row, channels 0 .. C-1 (NC = C when known at
 // compile time, else 0), into acc (C rows of W). EDGE: some of the strip's taps or pixels lie
-// outside the row (checked per pixel); otherwise every tap column is inside. X: C planes of
-// H x W; Z: k*k logit planes `plane` apart, offset to row y.
+// outside the row (checked per pixel); otherwise every tap column is inside. X: the row's source
+// rows; Z: k*k logit rows `plane` apart.
 template <int NC, bool EDGE>
-static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
-                         int64_t y, int64_t px0, float scale, bool has_scale, float* acc_rows) {
+static void filter_strip(const SourceRows& X, int64_t C_, int64_t W, const float* Z, int64_t plane, int64_t k,
+                         int64_t px0, float scale, bool has_scale, float* acc_rows, int64_t acc_plane) {
     const int64_t C = NC > 0 ? NC : C_;
-    const int64_t r = k / 2, K = k * k, HW = H * W;
+    const int64_t r = k / 2, K = k * k, cs = X.cstride;
     const int64_t n = EDGE ? std::min<int64_t>(S, W - px0) : S;
     float mean[S] = {}, s[S], shift[S], sum[S] = {};
     float acc[NC > 0 ? NC : 8][S] = {};
@@ -248,7 +284,7 @@ static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const
         const float* zc = Z + (r * k + r) * plane + px0;
         for (int64_t l = 0; l < S; ++l) shift[l] = l < n ? zc[l] * s[l] : 0.0f;
         for (int64_t i = 0; i < k; ++i) {
-            if (y + i - r < 0 || y + i - r >= H) continue;
+            if (X.rows[i] == nullptr) continue;
             for (int64_t j = 0; j < k; ++j) {
                 const float* z = Z + (i * k + j) * plane + px0;
                 for (int64_t l = 0; l < S; ++l) {
@@ -258,35 +294,25 @@ static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const
             }
         }
     }
-    if constexpr (!EDGE && NC > 0) {  // every tap inside: the strip as vectors (exp_strip)
-        const Strip sv = load_strip(s), shv = load_strip(shift);
-        Strip sumv = {}, accv[NC > 0 ? NC : 1] = {};
-        for (int64_t i = 0; i < k; ++i) {
-            const int64_t yy = y + i - r;
-            if (yy < 0 || yy >= H) continue;
-            for (int64_t j = 0; j < k; ++j) {
-                const Strip e = exp_strip(load_strip(Z + (i * k + j) * plane + px0) * sv - shv);
-                const float* xr = X + yy * W + px0 + j - r;
-                sumv += e;
-                for (int64_t c = 0; c < NC; ++c) accv[c] += e * load_strip(xr + c * HW);
-            }
-        }
-        const Strip inv = 1.0f / sumv;
-        for (int64_t c = 0; c < NC; ++c) store_strip(acc_rows + c * W + px0, accv[c] * inv);
+    if constexpr (!EDGE && NC > 0) {  // every tap inside: the strip as vectors (exp2_strip)
+        // shifted by the mean, the exponents lie within scale sqrt(K) log2(e) <= 116 of 0
+        if (mean_shift_ok(K, scale, has_scale))
+            filter_strip_taps<NC, false>(X, Z, plane, k, px0, s, shift, acc_rows, acc_plane);
+        else
+            filter_strip_taps<NC, true>(X, Z, plane, k, px0, s, shift, acc_rows, acc_plane);
         return;
     }
     for (int64_t i = 0; i < k; ++i) {
-        const int64_t yy = y + i - r;
-        if (yy < 0 || yy >= H) continue;
+        if (X.rows[i] == nullptr) continue;
         for (int64_t j = 0; j < k; ++j) {
             const int64_t d = j - r;
             const float* z = Z + (i * k + j) * plane + px0;
-            const float* xr = X + yy * W + px0 + d;
+            const float* xr = X.rows[i] + px0 + d;
             if (!EDGE) {
                 for (int64_t l = 0; l < S; ++l) {
                     const float e = exp_bounded(z[l] * s[l] - shift[l]);
                     sum[l] += e;
-                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * HW + l];
+                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * cs + l];
                 }
             } else {
                 for (int64_t l = 0; l < n; ++l) {
@@ -294,37 +320,41 @@ static void filter_strip(const float* X, int64_t C_, int64_t H, int64_t W, const
                     if (q < 0 || q >= W) continue;
                     const float e = exp_bounded(z[l] * s[l] - shift[l]);
                     sum[l] += e;
-                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * HW + l];
+                    for (int64_t c = 0; c < C; ++c) acc[c][l] += e * xr[c * cs + l];
                 }
             }
         }
     }
     for (int64_t l = 0; l < S; ++l) sum[l] = 1.0f / sum[l];
     for (int64_t c = 0; c < C; ++c)
-        for (int64_t l = 0; l < n; ++l) acc_rows[c * W + px0 + l] = acc[c][l] * sum[l];
+        for (int64_t l = 0; l < n; ++l) acc_rows[c * acc_plane + px0 + l] = acc[c][l] * sum[l];
 }
 
 template <int NC>
-static void filter_row_c(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
-                         int64_t y, float scale, bool has_scale, float* acc) {
+static void filter_row_c(const SourceRows& X, int64_t C, int64_t W, const float* Z, int64_t plane, int64_t k,
+                         float scale, bool has_scale, float* acc, int64_t acc_plane) {
     const int64_t r = k / 2;
     for (int64_t px0 = 0; px0 < W; px0 += S) {
         if (px0 >= r && px0 + S + r <= W)
-            filter_strip<NC, false>(X, C, H, W, Z, plane, k, y, px0, scale, has_scale, acc);
+            filter_strip<NC, false>(X, C, W, Z, plane, k, px0, scale, has_scale, acc, acc_plane);
         else
-            filter_strip<NC, true>(X, C, H, W, Z, plane, k, y, px0, scale, has_scale, acc);
+            filter_strip<NC, true>(X, C, W, Z, plane, k, px0, scale, has_scale, acc, acc_plane);
     }
 }
 
-// The kernel filter of row y: t.acc (C rows of W) = sum_t w_t * x[c, y + i - r, px + j - r] with
-// the softmax weights w. X: C planes of H x W; Z: k*k logit planes `plane` apart, offset to row y.
-static void filter_row(const float* X, int64_t C, int64_t H, int64_t W, const float* Z, int64_t plane, int64_t k,
-                       int64_t y, float scale, bool has_scale, RowScratch& t) {
-    if (C == 3) return filter_row_c<3>(X, C, H, W, Z, plane, k, y, scale, has_scale, t.acc);
-    if (C == 4) return filter_row_c<4>(X, C, H, W, Z, plane, k, y, scale, has_scale, t.acc);
+// The kernel filter of a row: acc (C rows, acc_plane apart) = sum_t w_t * x[c, y + i - r, px + j - r]
+// with the softmax weights w. X: the row's source rows (planar_rows, or a ring's); Z: k*k logit
+// rows `plane` apart.
+static void filter_row(const SourceRows& X, int64_t C, int64_t W, const float* Z, int64_t plane, int64_t k,
+                       float scale, bool has_scale, float* acc, int64_t acc_plane) {
+    if (C == 3) return filter_row_c<3>(X, C, W, Z, plane, k, scale, has_scale, acc, acc_plane);
+    if (C == 4) return filter_row_c<4>(X, C, W, Z, plane, k, scale, has_scale, acc, acc_plane);
     for (int64_t c0 = 0; c0 < C; c0 += 8) {  // other channel counts, 8 at a time
         const int64_t cn = std::min<int64_t>(8, C - c0);
-        filter_row_c<0>(X + c0 * H * W, cn, H, W, Z, plane, k, y, scale, has_scale, t.acc + c0 * W);
+        SourceRows part = X;
+        for (int64_t i = 0; i < k; ++i)
+            if (part.rows[i] != nullptr) part.rows[i] += c0 * X.cstride;
+        filter_row_c<0>(part, cn, W, Z, plane, k, scale, has_scale, acc + c0 * acc_plane, acc_plane);
     }
 }
 
@@ -335,7 +365,8 @@ static void parallel_rows(int64_t rows, F&& body) {
 
 static int64_t kernel_size_of(int64_t K) {
     const int64_t k = static_cast<int64_t>(std::lround(std::sqrt(static_cast<double>(K))));
-    OPENVINO_ASSERT(k * k == K && k % 2 == 1, "kernel logits need k*k channels with odd k, got ", K);
+    OPENVINO_ASSERT(k * k == K && k % 2 == 1 && k <= MAX_K, "kernel logits need k*k channels with odd k <= ", MAX_K,
+                    ", got ", K);
     return k;
 }
 

@@ -63,12 +63,13 @@ public:
         const Upsampling up(zs[2], zs[3], H, W, m_mode == "bilinear");
         const FactoredHead0 head{inputs[0].data<const float>(), inputs[1].data<const float>(),
                                  inputs[2].data<const float>(), N, static_cast<int64_t>(ss[3]), H, W,
-                                 static_cast<int64_t>(zs[2]), static_cast<int64_t>(zs[3]), &up};
+                                 static_cast<int64_t>(zs[2]), static_cast<int64_t>(zs[3]), 1, &up};
         float* O = outputs[0].data<float>();
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
             std::vector<float> buf(static_cast<size_t>(head.scratch_floats(N)));
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
+                head.load(b, y, buf.data());
                 const Head0Rows r = head.rows(b, y, 0, N, buf.data());
                 for (int64_t t = 0; t < N; ++t)
                     std::memcpy(O + ((b * N + t) * H + y) * W, r.data + t * r.plane, W * sizeof(float));

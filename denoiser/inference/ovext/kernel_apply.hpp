@@ -62,14 +62,10 @@ public:
         float* O = outputs[0].data<float>();
         const int64_t HW = H * W;
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
-            RowScratch t(W, C);
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
-                filter_row(X + b * C * HW, C, H, W, L + b * k * k * HW + y * W, HW, k, y, m_scale, m_has_scale, t);
-                for (int64_t c = 0; c < C; ++c) {
-                    float* o = O + (b * C + c) * HW + y * W;
-                    std::memcpy(o, t.acc + c * W, W * sizeof(float));
-                }
+                filter_row(planar_rows(X + b * C * HW, H, W, k, y), C, W, L + b * k * k * HW + y * W, HW, k, m_scale,
+                           m_has_scale, O + b * C * HW + y * W, HW);
             }
         });
         return true;

@@ -11,7 +11,9 @@
 //   planes (28 for the demo student, 232 MB at 1080p) are not stored by a matrix product, read
 //   and written again by AddUpsampled and read by the filter. skip is read channels-last, the
 //   layout the convolution that makes it writes (the exported graph's transpose of it costs
-//   nothing).
+//   nothing), once: each row is transposed to planar into a ring that serves both the partition
+//   logits and, r0 rows later, the kernel logits (133 MB at 1080p for the demo student's 16
+//   channels; it was read and transposed twice).
 #pragma once
 
 #include "pyramid_filter.hpp"
@@ -20,22 +22,33 @@
 namespace denoiser {
 
 
-// Head 0 from its factors, one row at a time (see the top of this file).
+// Head 0 from its factors, one row at a time (see the top of this file). load() transposes a row
+// of skip to planar into a ring of `ring` rows (the filter asks for a row's kernel logits r0 rows
+// after its partition logits, so ring = r0 + 1): skip is read and transposed once.
 struct FactoredHead0 {
     const float* skip;    // [B, H, W, Cs]
     const float* weight;  // [N0, Cs]
     const float* z;       // [B, N0, h, w]
-    int64_t N0, Cs, H, W, h, w;
+    int64_t N0, Cs, H, W, h, w, ring;
     const Upsampling* up;
     static constexpr bool computes = true;
 
     int64_t padded() const { return (W + S - 1) / S * S; }
 
-    // floats of `buf` that rows(..., n, buf) needs: the n rows (padded to whole strips), the row of
-    // skip transposed to planar and a row of z
-    int64_t scratch_floats(int64_t n) const { return n * padded() + Cs * padded() + w; }
+    // floats of `buf` that load() and rows(..., n, buf) need: the ring of planar skip rows, n rows
+    // (padded to whole strips) and a row of z
+    int64_t scratch_floats(int64_t n) const { return (ring * Cs + n) * padded() + w; }
 
-    // channels c0 .. c0 + n - 1 of head 0's row y of image b, planes padded() apart in buf
+    // row y of image b's skip, planar, into its slot of the ring in buf
+    void load(int64_t b, int64_t y, float* buf) const {
+        const int64_t Wp = padded();
+        float* planar = buf + (y % ring) * Cs * Wp;
+        planar_from_channels_last(skip + (b * H + y) * W * Cs, Cs, W, planar, Wp);
+        for (int64_t c = 0; c < Cs; ++c) std::fill(planar + c * Wp + W, planar + (c + 1) * Wp, 0.0f);
+    }
+
+    // channels c0 .. c0 + n - 1 of head 0's row y of image b (loaded at most ring - 1 rows ago),
+    // planes padded() apart in buf
     Head0Rows rows(int64_t b, int64_t y, int64_t c0, int64_t n, float* buf) const {
         switch (Cs) {  // the channel loops unrolled for the shipped widths (a third faster)
             case 16: return rows_of<16>(b, y, c0, n, buf);
@@ -47,33 +60,32 @@ struct FactoredHead0 {
     template <int NC>
     Head0Rows rows_of(int64_t b, int64_t y, int64_t c0, int64_t n, float* buf) const {
         const int64_t C = NC > 0 ? NC : Cs, Wp = padded();
-        float* planar = buf + n * Wp;  // C rows of Wp: this row of skip, channel by channel
-        up->row(z + (b * N0 + c0) * h * w, n, y, buf, Wp, planar + C * Wp);
-        planar_from_channels_last(skip + (b * H + y) * W * C, C, W, planar, Wp);
-        for (int64_t c = 0; c < C; ++c) std::fill(planar + c * Wp + W, planar + (c + 1) * Wp, 0.0f);
-        for (int64_t t = 0; t < n; ++t) std::fill(buf + t * Wp + W, buf + (t + 1) * Wp, 0.0f);
+        const float* planar = buf + (y % ring) * C * Wp;  // C rows of Wp: this row of skip, channel by channel
+        float* out = buf + ring * C * Wp;
+        up->row(z + (b * N0 + c0) * h * w, n, y, out, Wp, out + n * Wp);
+        for (int64_t t = 0; t < n; ++t) std::fill(out + t * Wp + W, out + (t + 1) * Wp, 0.0f);
         if constexpr (NC > 0) {  // strip by strip, the strip's skip channels in registers
             for (int64_t px0 = 0; px0 < Wp; px0 += S) {
                 Strip col[NC];
                 for (int64_t c = 0; c < NC; ++c) col[c] = load_strip(planar + c * Wp + px0);
                 for (int64_t t = 0; t < n; ++t) {
                     const float* wt = weight + (c0 + t) * NC;
-                    Strip acc = load_strip(buf + t * Wp + px0);
+                    Strip acc = load_strip(out + t * Wp + px0);
                     for (int64_t c = 0; c < NC; ++c) acc += wt[c] * col[c];
-                    store_strip(buf + t * Wp + px0, acc);
+                    store_strip(out + t * Wp + px0, acc);
                 }
             }
         } else {
             for (int64_t t = 0; t < n; ++t) {
                 const float* wt = weight + (c0 + t) * C;
                 for (int64_t px0 = 0; px0 < Wp; px0 += S) {
-                    Strip acc = load_strip(buf + t * Wp + px0);
+                    Strip acc = load_strip(out + t * Wp + px0);
                     for (int64_t c = 0; c < C; ++c) acc += wt[c] * load_strip(planar + c * Wp + px0);
-                    store_strip(buf + t * Wp + px0, acc);
+                    store_strip(out + t * Wp + px0, acc);
                 }
             }
         }
-        return {buf, Wp};
+        return {out, Wp};
     }
 };
 
@@ -139,7 +151,8 @@ public:
         const Upsampling up(zs[2], zs[3], H, W, m_mode == "bilinear");
         const FactoredHead0 head0{inputs[1].data<const float>(), inputs[2].data<const float>(),
                                   inputs[3].data<const float>(), N0, static_cast<int64_t>(ss[3]), H, W,
-                                  static_cast<int64_t>(zs[2]), static_cast<int64_t>(zs[3]), &up};
+                                  static_cast<int64_t>(zs[2]), static_cast<int64_t>(zs[3]),
+                                  m_kernel_sizes[0] / 2 + 1, &up};
         run_pyramid_filter(inputs[0].data<const float>(), xs, head0, inputs, 4, heads, m_kernel_sizes, m_scale,
                            m_has_scale, outputs[0].data<float>(), m_scratch);
         return true;

@@ -39,7 +39,7 @@ from denoiser.buffers import FRAME_INPUTS
 from denoiser.configs import instantiate_config
 from denoiser.data.augment import Augment
 from denoiser.data.collate import collate_items
-from denoiser.data.dataset import SequenceDataset, WindowDataset, index_split
+from denoiser.data.dataset import SequenceDataset, WindowDataset, extra_root_entries, index_split
 from denoiser.data.layouts.base import Layout, SequenceSource
 from denoiser.data.reader import FrameReader
 from denoiser.data.sampler import MixedSampler, SequenceShardSampler, ShareSampler
@@ -82,7 +82,7 @@ class SequenceDataModule(L.LightningDataModule):
         self,
         root: str,
         layout: Layout | Mapping,
-        extra_roots: Sequence[str] = (),
+        extra_roots: Sequence = (),
         buffers: Sequence[str] = FRAME_INPUTS,
         samples: bool = False,
         window: int = 8,
@@ -107,7 +107,9 @@ class SequenceDataModule(L.LightningDataModule):
     ):
         super().__init__()
         self.root = str(root)
-        self.extra_roots = tuple(str(r) for r in (extra_roots or ()))
+        self.extra_roots = tuple(extra_roots or ())  # paths or {root, layout} (dataset.extra_root_entries)
+        self._extra = tuple(extra_root_entries(self.extra_roots))  # layouts built once
+        self._extra_dirs = tuple(r for r, _ in self._extra)
         self.layout = _instantiate(layout, Layout, "data.layout")
         self.buffers = tuple(buffers)
         self.samples = bool(samples)
@@ -159,7 +161,7 @@ class SequenceDataModule(L.LightningDataModule):
         return self._index(self.splits.get(split) or split)
 
     def _index(self, split: str) -> list[SequenceSource]:
-        return index_split(self.layout, self.root, split, self.extra_roots)
+        return index_split(self.layout, self.root, split, self._extra)
 
     def prepare_data(self) -> None:
         if self.precache and self.cache_dir:
@@ -204,7 +206,7 @@ class SequenceDataModule(L.LightningDataModule):
         """Per labeled training window: whether its sequence lies under one of ``extra_roots``."""
         if self.train_set is None:
             self.setup("fit")
-        roots = [os.path.realpath(r) for r in self.extra_roots]
+        roots = [os.path.realpath(r) for r in self._extra_dirs]
         extra = [any(os.path.realpath(s.directory).startswith(r + os.sep) for r in roots) for s in self.train_set.sources]
         return [extra[i] for i, _ in self.train_set.windows]
 
@@ -217,7 +219,7 @@ class SequenceDataModule(L.LightningDataModule):
             groups = [[i for i, e in enumerate(extra) if not e], [i for i, e in enumerate(extra) if e]]
             if self.extra_share > 0 and not groups[1]:
                 raise ConfigError(f"data.extra_share={self.extra_share:g}: no {self.splits['train']} windows under "
-                                  f"data.extra_roots ({', '.join(self.extra_roots)}); render them (e.g. denoiser-render "
+                                  f"data.extra_roots ({', '.join(self._extra_dirs)}); render them (e.g. denoiser-render "
                                   "render_set=demo_motion) or train without them: data.extra_share=null data.extra_roots=[]")
             shares = [(1 - u) * (1 - self.extra_share), (1 - u) * self.extra_share]
             dataset = self.train_set

@@ -41,28 +41,65 @@ from denoiser.errors import ConfigError, UserError
 CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2, "reference": 3}
 
 
+def extra_root_entries(extra_roots: Sequence) -> list[tuple[str, Layout | None]]:
+    """``data.extra_roots`` as ``[(root, layout or None)]``. An entry is a root (a path: read in
+    the dataset's layout) or ``{root: <path>, layout: <name or config>}``: a root in a layout of its
+    own, e.g. Blender Cycles renders joined to Mitsuba ones, ``{root: data/release_cycles, layout:
+    blender}`` (``layout``: a name of ``conf/layout/``, a ``_target_`` config or a Layout)."""
+    from collections.abc import Mapping
+
+    out: list[tuple[str, Layout | None]] = []
+    for i, entry in enumerate(extra_roots or ()):
+        if isinstance(entry, (str, os.PathLike)):
+            out.append((str(entry), None))
+            continue
+        if isinstance(entry, tuple) and len(entry) == 2 and (entry[1] is None or isinstance(entry[1], Layout)):
+            out.append((str(entry[0]), entry[1]))  # already parsed
+            continue
+        if not isinstance(entry, Mapping) or "root" not in entry or set(entry) - {"root", "layout"}:
+            raise ConfigError(f"data.extra_roots[{i}]: a path or {{root: <path>, layout: <name>}}, got {entry!r}")
+        layout = entry.get("layout")
+        if isinstance(layout, str):
+            from denoiser.configs import load_layout
+
+            layout = load_layout(layout)
+        elif isinstance(layout, Mapping):
+            from denoiser.configs import instantiate_config
+
+            layout = instantiate_config(layout, f"data.extra_roots[{i}].layout")
+        elif layout is not None and not isinstance(layout, Layout):
+            raise ConfigError(f"data.extra_roots[{i}].layout: a layout name or config, got {layout!r}")
+        out.append((str(entry["root"]), layout))
+    return out
+
+
 def index_split(layout: Layout, root: str | os.PathLike, split: str,
-                extra_roots: Sequence[str | os.PathLike] = ()) -> list[SequenceSource]:
+                extra_roots: Sequence = ()) -> list[SequenceSource]:
     """Open every sequence of ``<root>/<split>`` (validated), names ``"<split>/<sequence>"``.
 
     ``extra_roots``: more dataset roots whose ``<extra>/<split>`` sequences join the split, when
     that folder exists (``data.extra_roots``: families rendered as their own dataset, e.g.
-    ``conf/render_set/demo_motion.yaml``, added to another without copying it). A sequence name in two
-    roots is an error naming both folders."""
-    dirs = list(layout.list_sequences(os.path.join(root, split)))
-    seen = {d.name: d for d in dirs}
-    for extra in extra_roots:
+    ``conf/render_set/demo_motion.yaml``, added to another without copying it), each a path or
+    ``{root, layout}`` (:func:`extra_root_entries`: a root in another layout, whose sources carry it
+    as ``source.layout``). A sequence name in two roots is an error naming both folders."""
+    import dataclasses
+
+    found = [(d, None) for d in layout.list_sequences(os.path.join(root, split))]
+    seen = {d.name: d for d, _ in found}
+    for extra, own in extra_root_entries(extra_roots):
         folder = os.path.join(extra, split)
         if not os.path.isdir(folder):
             continue
-        for d in layout.list_sequences(folder):
+        for d in (own or layout).list_sequences(folder):
             if d.name in seen:
                 raise UserError(f"{d}: sequence {split}/{d.name} is also in {seen[d.name]} "
                                 "(data.root and data.extra_roots must not share sequence names)")
             seen[d.name] = d
-            dirs.append(d)
-    sources = [layout.open_sequence(d, name=f"{split}/{d.name}")
-               for d in tqdm(dirs, desc=f"index {split}", unit="seq", leave=False, disable=len(dirs) < 50)]
+            found.append((d, own))
+    sources = []
+    for d, own in tqdm(found, desc=f"index {split}", unit="seq", leave=False, disable=len(found) < 50):
+        src = (own or layout).open_sequence(d, name=f"{split}/{d.name}")
+        sources.append(dataclasses.replace(src, layout=own) if own is not None else src)
     if not sources:
         raise UserError(f"{os.path.join(root, split)}: split has no sequences")
     return sources

@@ -38,7 +38,7 @@ class FrameReader:
         self.decoded = 0  #: files decoded by this reader (for tests and the benchmark)
 
     def _decode(self, path: Path, buffers: Sequence[str], source: SequenceSource) -> dict[str, np.ndarray]:
-        arrays, bad = self.layout.read_file(path, buffers, source.sample_count)
+        arrays, bad = (source.layout or self.layout).read_file(path, buffers, source.sample_count)
         self.decoded += 1
         if bad and path not in self._reported:
             self._reported.add(path)
@@ -47,10 +47,12 @@ class FrameReader:
 
     def read(self, source: SequenceSource, index: int, buffers: Sequence[str],
              crop: Crop | None = None) -> dict[str, np.ndarray]:
-        """Buffers of frame ``index``: ``{buffer: float32 [C, h, w]}`` (own memory, writable)."""
+        """Buffers of frame ``index``: ``{buffer: float32 [C, h, w]}`` (own memory, writable), read
+        through the source's own layout when it has one (``source.layout``), else the reader's."""
+        layout = source.layout or self.layout
         by_file: dict[Path, list[str]] = {}
         for b in buffers:
-            by_file.setdefault(self.layout.file_for(source, index, b), []).append(b)
+            by_file.setdefault(layout.file_for(source, index, b), []).append(b)
         sl = (slice(None),) if crop is None else (
             slice(None), slice(crop[0], crop[0] + crop[2]), slice(crop[1], crop[1] + crop[3]))
         out: dict[str, np.ndarray] = {}
@@ -61,7 +63,7 @@ class FrameReader:
                     out[b] = np.ascontiguousarray(planes[b][sl], dtype=np.float32)
                 continue
             ident = FrameCache.identity(path)
-            keys = {b: FrameCache.digest(ident, b, self.layout.spec_key(b)) for b in bs}
+            keys = {b: FrameCache.digest(ident, b, layout.spec_key(b)) for b in bs}
             for b in bs:
                 hit = self.cache.read(keys[b], source.height, source.width, crop)
                 if hit is not None:

@@ -60,7 +60,9 @@ class SequenceSource:
 
     ``name``: ``<split>/<sequence>`` (or the directory name); ``files``: per file role, one path
     per frame (frame ``i`` of role ``r`` is ``files[r][i]``); ``buffers``: logical buffers
-    available; ``sample_count``: per-sample radiance images per frame (0 if none).
+    available; ``sample_count``: per-sample radiance images per frame (0 if none); ``layout``: the
+    layout that reads its files when it is not the dataset's (a sequence of an extra root in another
+    layout, :func:`~denoiser.data.dataset.index_split`), else None.
     """
 
     name: str
@@ -70,6 +72,7 @@ class SequenceSource:
     buffers: tuple[str, ...]
     sample_count: int = 0
     extra: Mapping[str, object] = field(default_factory=dict)
+    layout: "Layout | None" = None
 
     @property
     def frames(self) -> int:

@@ -10,7 +10,7 @@ PYTEST_ARGS ?=
 # summary still prints (issue 44; tests/test_signal_stack.py::test_make_test_survives_a_crashing_test).
 PYTEST_ISOLATION ?= -p xdist -n 1 --max-worker-restart=100
 
-.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val
+.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val blender-venv
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -103,17 +103,21 @@ BLENDER_VAL_ARGS ?= --size 128 --frames 8 --spp 4 --ref-spp 512
 BLENDER_CKPT   ?=
 BLENDER_EVAL_ARGS ?=
 BLENDER_OUT    ?= reports/blender
+BLENDER_PURPOSE ?= make blender: report
 
 $(BLENDER_VENV)/.installed:
 	test -x $(BLENDER_VENV)/bin/python || $(BLENDER_PYTHON) -m venv $(BLENDER_VENV)
 	$(BLENDER_VENV)/bin/python -m pip install -q "bpy>=4.2" numpy
 	touch $@
 
+# the bpy venv alone (denoiser-render-blender runs in it)
+blender-venv: $(BLENDER_VENV)/.installed
+
 blender-val: $(BLENDER_VENV)/.installed
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split val $(BLENDER_VAL_ARGS)
 
 blender: setup $(BLENDER_VENV)/.installed blender-val
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split test $(BLENDER_ARGS)
-	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) out_dir=$(BLENDER_OUT) \
-		$(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)
+	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) split=test out_dir=$(BLENDER_OUT) \
+		'purpose=$(BLENDER_PURPOSE)' $(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)
 	$(VENV)/bin/python -m denoiser.commands.albedo_bound $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md

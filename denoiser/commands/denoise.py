@@ -3,7 +3,7 @@
 ::
 
     denoiser-denoise ckpt=runs/student.ckpt input=renders/shot1 output=denoised/shot1
-    denoiser-denoise ckpt=s.ckpt input=blender_out layout=blender write=rgb
+    denoiser-denoise ckpt=s.ckpt input=blender_out output=denoised layout=blender write=rgb
 
 Input: one sequence directory in a layout of ``conf/layout/`` (``native``: ``frame_XXXX.exr``
 with native channel names, ``sequence.json`` optional; ``blender``: Cycles multilayer EXRs in

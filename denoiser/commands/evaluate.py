@@ -2,9 +2,13 @@
 
 ::
 
-    denoiser-eval ckpt=[runs/a.ckpt,runs/b.ckpt] data=demo
-    denoiser-eval 'ckpt={teacher: t.ckpt, student: s.ckpt}' out_dir=eval/  # names from a dict
-    denoiser-eval ckpt=s.ckpt '~baselines.oidn_balanced' metrics=[psnr,ssim] max_frames=8
+    denoiser-eval ckpt=[runs/a.ckpt,runs/b.ckpt] data=demo purpose=report
+    denoiser-eval 'ckpt={teacher: t.ckpt, student: s.ckpt}' out_dir=eval/ purpose=report  # names from a dict
+    denoiser-eval ckpt=s.ckpt split=val '~baselines.oidn_balanced' metrics=[psnr,ssim] max_frames=8
+
+A split named ``test`` needs ``purpose=``; each look at one is a row of the test ledger (``ledger=``;
+by default :func:`denoiser.report.ledger.default_ledger`: the project's tracked
+``docs/results/test_ledger.csv`` for its own datasets, ``<data.root>/test_ledger.csv`` for a user's).
 
 Config: ``conf/eval.yaml`` (composes the groups ``data``: root and test split, ``layout``, and
 ``baselines``). Methods: the baselines of ``baselines`` (``conf/baselines/default.yaml``, Hydra
@@ -101,8 +105,9 @@ def run(cfg: DictConfig) -> dict:
         raise ConfigError(f"metrics: unknown {unknown}; known: {list(METRICS)}")
     looked = ledger.is_test_split(cfg.split)
     if looked and not str(cfg.get("purpose") or "").strip():
+        where = cfg.get("ledger") or ledger.default_ledger(cfg.data.root)
         raise ConfigError(f"split={cfg.split}: purpose= is required. Every look at a test split is a row of the test "
-                          f"ledger ({ledger.LEDGER.relative_to(ledger.ROOT)}); say why, e.g. "
+                          f"ledger ({ledger.named(where)}); say why, e.g. "
                           "purpose='final judgement of recipe X', 'report' or 'debug'")
     commit = git_commit()  # the code that evaluates, taken before it runs
     threads = set_threads(cfg.get("threads"))
@@ -141,7 +146,7 @@ def run(cfg: DictConfig) -> dict:
     drawn = ledger.split_id(Path(cfg.data.root) / cfg.split)
     look_line, look, where = "", None, None
     if looked:  # after a complete evaluation: the look happened
-        where = cfg.get("ledger") or ledger.LEDGER
+        where = cfg.get("ledger") or ledger.default_ledger(cfg.data.root)
         named = checkpoint_paths(cfg.get("ckpt"))
         checkpoints = [ledger.run_id(p) for p in named.values()]
         baselines = [name for name in methods if name not in named]

@@ -4,8 +4,9 @@ that a result can say how many times its split has been looked at, and which loo
 A test split judges one frozen recipe once (docs/training.md, "Measuring honestly"); a split
 looked at again is no longer unseen. ``denoiser-eval`` refuses ``split=test`` without a
 ``purpose=`` (for example ``final judgement of recipe X``, ``report``, ``debug``) and, after a
-successful evaluation, appends one row to the ledger (:data:`LEDGER`, or ``ledger=`` of
-``conf/eval.yaml``):
+successful evaluation, appends one row to the ledger (``ledger=`` of ``conf/eval.yaml``; by
+default :func:`default_ledger`: :data:`LEDGER` for the project's own datasets, a ``test_ledger.csv``
+beside a user's data root for any other):
 
 * ``date``: UTC, ``YYYY-MM-DDTHH:MM:SSZ``;
 * ``dataset``: the data root; ``split``: the split's name; ``split_sha256``: the content hash of
@@ -41,6 +42,7 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from denoiser.conf import CONF_DIR
 from denoiser.errors import UserError
 from denoiser.measure import write_csv
 from denoiser.report.summary import hash_bytes
@@ -58,6 +60,41 @@ VOLATILE_KEYS = ("render_seconds", "frame_seconds", "seconds")
 TEST_SPLIT = "test"
 #: the evaluation's provenance, a JSON file beside its metrics.csv (denoiser-eval's out_dir)
 PROVENANCE = "evaluation.json"
+#: a user's ledger, beside their data root (:func:`default_ledger`)
+LEDGER_NAME = "test_ledger.csv"
+#: datasets the project renders besides its render sets: ``make blender``'s (BLENDER_DATA)
+PROJECT_EXTRA_DATASETS = ("blender",)
+
+
+def project_datasets() -> set[str]:
+    """Names of the project's own datasets: each render set's ``name`` (``conf/render_set/*.yaml``,
+    rendered by ``denoiser-render render_set=<name>`` into ``data/<name>``) and
+    :data:`PROJECT_EXTRA_DATASETS`."""
+    from omegaconf import OmegaConf
+
+    names = set(PROJECT_EXTRA_DATASETS)
+    for path in sorted(Path(CONF_DIR, "render_set").glob("*.yaml")):
+        name = OmegaConf.load(path).get("name")
+        if name:
+            names.add(str(name))
+    return names
+
+
+def is_project_dataset(root: str | os.PathLike) -> bool:
+    """Whether data root ``root`` is one of the project's own datasets: a folder named as one of
+    :func:`project_datasets` directly in the checkout's ``data/`` or in ``$DENOISER_DATA`` (where the
+    configs put them, ``${oc.env:DENOISER_DATA,data}/<name>``)."""
+    path = Path(root).resolve()
+    data_dirs = {(ROOT / "data").resolve(), Path(os.environ.get("DENOISER_DATA", ROOT / "data")).resolve()}
+    return path.parent in data_dirs and path.name in project_datasets()
+
+
+def default_ledger(root: str | os.PathLike) -> Path:
+    """The ledger a look at a test split of data root ``root`` is recorded in when ``ledger=`` is not
+    given: the project's tracked :data:`LEDGER` for its own datasets (:func:`is_project_dataset`),
+    else ``<root>/test_ledger.csv``, the user's own, beside their splits (outside each split, so
+    its hash is unchanged), which counts every look at their data whatever ``out_dir`` is."""
+    return LEDGER if is_project_dataset(root) else Path(root) / LEDGER_NAME
 
 
 def utc_now() -> str:
@@ -190,7 +227,7 @@ def read_provenance(eval_dir: str | os.PathLike) -> dict | None:
     return data
 
 
-def _named(ledger: str | os.PathLike) -> str:
+def named(ledger: str | os.PathLike) -> str:
     """The ledger's path relative to the checkout when it lies in it (docs/results/test_ledger.csv)."""
     path = Path(ledger).resolve()
     return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
@@ -207,7 +244,7 @@ def looks_line(evaluation: Mapping | None, ledger: str | os.PathLike = LEDGER) -
     digest, look = str(evaluation["split_sha256"]), int(evaluation["look"])
     total = looks(digest, ledger, evaluation.get("split_id"))
     text = (f"Test ledger: this test split (SHA-256 {digest[:12]}) has been evaluated {total} "
-            f"time{'' if total == 1 else 's'} ({_named(ledger)}); this summary's evaluation is look {look}")
+            f"time{'' if total == 1 else 's'} ({named(ledger)}); this summary's evaluation is look {look}")
     if look > total:
         text += f" (recorded in another ledger: {evaluation.get('ledger')})"
     elif total > 1:

@@ -16,7 +16,7 @@ from conftest import compose_command, tiny_checkpoint
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_eval_data import write_dataset, write_sequence
+from helpers.eval_data import write_dataset, write_sequence
 
 from denoiser.conf import CONF_DIR
 from denoiser.data.exr import read_channels

@@ -10,7 +10,7 @@ import torch
 from conftest import compose_command, tiny_checkpoint
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_eval_data import write_dataset
+from helpers.eval_data import write_dataset
 
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame

@@ -22,7 +22,7 @@ import torch
 from conftest import compose_command
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_eval_data import write_dataset
+from helpers.eval_data import write_dataset
 
 from denoiser.checkpoint import load_denoiser, read_checkpoint, save_checkpoint
 from denoiser.configs import build_net, compose_net_config
@@ -210,7 +210,7 @@ def train_data(tmp_path_factory):
 
 
 def train(data: Path, out: Path, *overrides: str) -> dict:
-    from test_train_runs import FAST
+    from helpers.train_args import FAST
 
     from denoiser.commands import train as train_script
 

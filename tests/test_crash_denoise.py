@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_crash_render import kill_when
+from helpers.kill import kill_when
 
 BIN = Path(sys.executable).parent
 FRAMES = 24

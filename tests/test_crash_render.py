@@ -9,42 +9,18 @@ pass has a deterministic seed. After the kill, every file under a final name mus
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+from helpers.kill import kill_when
 
 BIN = Path(sys.executable).parent
 FRAMES = 6
 #: small but not instant frames (scalar_rgb: no JIT compile at start-up)
 RENDER = ["scene=cornell", "split=train", f"frames={FRAMES}", "width=24", "height=24", "spp=2", "ref_spp=24",
           "variant=scalar_rgb", "seed=3"]
-
-
-def kill_when(argv: list[str], ready, timeout: float = 240.0, env=None) -> bool:
-    """Start ``argv``, SIGKILL it as soon as ``ready()`` is true; True if it was still running then."""
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, start_new_session=True)
-    deadline = time.monotonic() + timeout
-    try:
-        while not ready():
-            if proc.poll() is not None:
-                raise AssertionError(f"finished before the kill: {proc.stderr.read().decode()[-2000:]}")
-            if time.monotonic() > deadline:
-                raise AssertionError("timed out waiting for the first output")
-            time.sleep(0.005)
-        running = proc.poll() is None
-        os.killpg(proc.pid, signal.SIGKILL)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-        proc.stderr.close()
-    assert proc.returncode == -signal.SIGKILL or not running
-    return running
 
 
 def render(root: Path) -> None:

@@ -16,7 +16,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_crash_render import kill_when
+from helpers.kill import kill_when
 
 REPO = Path(__file__).resolve().parents[1]
 MAX_STEPS = 12

@@ -259,7 +259,7 @@ def test_gpu_check_resumed_report_keeps_the_sections_it_does_not_set(tmp_path):
 def test_gpu_check_loader_rate_runs_past_one_epoch(tmp_path):
     """The data module's rate is timed over more batches than one epoch of a small carried subset
     holds (a lent H200's check stopped on StopIteration): the loader goes round again."""
-    from test_eval_data import write_dataset
+    from helpers.eval_data import write_dataset
 
     from denoiser.commands.gpu_check import loader_rate
 
@@ -274,7 +274,7 @@ def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
     """sections=[cpu_eval]: a checkpoint (trained on a lent GPU) evaluated where this runs, into the
     kept report, which keeps the sections of the lease; without eval_ckpt: one clear error."""
     from conftest import compose_command, tiny_checkpoint
-    from test_eval_data import write_dataset
+    from helpers.eval_data import write_dataset
 
     from denoiser.commands.gpu_check import Report, run
     from denoiser.errors import ConfigError

@@ -24,6 +24,7 @@ from hydra import compose, initialize_config_dir
 from denoiser.conf import CONF_DIR
 from denoiser.configs import instantiate_config
 from denoiser.data.synthetic import write_synthetic_sequence
+from helpers.train_args import NARROW
 
 REPO = Path(__file__).resolve().parents[1]
 VAL_FRAMES = (5, 3, 6)  # uneven: 2-frame pieces 3 + 2 + 3, and an odd number of sequences for 2 ranks
@@ -103,9 +104,6 @@ def test_two_rank_validation_equals_one_process(uneven_root):
         assert double[key] == pytest.approx(single[key], abs=1e-4), key
 
 
-#: a student narrower than net=tiny, and a small critic
-NARROW = ["net.embed.hidden=4", "net.embed.out_channels=4", "net.unet.encoder=[4,6,8]", "net.unet.bottleneck=8",
-          "net.unet.decoder=[6,4]", "model.critic.widths=[4,8]"]
 QUIET = ["threads=1", "trainer.enable_progress_bar=false", "callbacks.progress=null",
          "trainer.enable_model_summary=false", "trainer.log_every_n_steps=1", "model.image_interval=0"]
 

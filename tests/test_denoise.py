@@ -10,7 +10,7 @@ import torch
 from conftest import compose_command, tiny_checkpoint
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_eval_data import write_sequence
+from helpers.eval_data import write_sequence
 
 from denoiser.checkpoint import load_denoiser
 from denoiser.data.exr import list_channels, read_channels, write_channels

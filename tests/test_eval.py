@@ -12,7 +12,7 @@ import torch
 from conftest import compose_command, tiny_checkpoint
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_eval_data import write_dataset
+from helpers.eval_data import write_dataset
 
 from denoiser.errors import UserError
 from denoiser.measure import read_csv

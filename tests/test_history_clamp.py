@@ -13,7 +13,7 @@ from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.nn.temporal import TemporalRecurrence, neighbourhood_clamp
-from tests.test_nn_quality_levers import (
+from helpers.levers import (
     max_blend_identity_filter,
     moving_object_sequence,
     two_steps_stay_finite,

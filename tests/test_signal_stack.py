@@ -122,7 +122,7 @@ FORCED = textwrap.dedent("""
     faulthandler.enable()
     sys.path.insert(0, {tests!r})
     from conftest import compose_command, tiny_checkpoint
-    from test_eval_data import write_dataset
+    from helpers.eval_data import write_dataset
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
     from denoiser.conf import CONF_DIR

@@ -53,6 +53,9 @@ from pathlib import Path
 
 import bpy
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # blender -b -P does not add the script's folder
+from blender_cycles import apply_settings, enable_passes, render_frames, set_exr_output
+
 #: seeds of the fast-object-motion sequences ``fast_<seed>`` per split (disjoint)
 MOVING_SEEDS = {"val": (101, 102, 103), "test": (301, 302, 303, 304, 305, 306)}
 #: what ``--split`` renders by default
@@ -74,15 +77,9 @@ def reset_scene(width: int, height: int, threads: int):
     scene.render.threads_mode = "FIXED"
     scene.render.threads = threads
     scene.render.film_transparent = False
-    scene.render.use_compositing = False
-    scene.render.use_sequencer = False
+    apply_settings(scene)                         # blender_cycles.RENDER_SETTINGS: no adaptive sampling, ...
     cyc = scene.cycles
     cyc.device = "CPU"
-    cyc.use_adaptive_sampling = False
-    cyc.use_denoising = False
-    cyc.use_animated_seed = True
-    cyc.pixel_filter_type = "BOX"
-    cyc.filter_width = 1.0                        # a box one pixel wide: no cross-pixel splatting
     cyc.max_bounces = 8
     cyc.caustics_reflective = True
     cyc.caustics_refractive = True
@@ -91,20 +88,8 @@ def reset_scene(width: int, height: int, threads: int):
 
     layer = scene.view_layers[0]
     layer.name = "ViewLayer"
-    layer.use_pass_combined = True
-    layer.use_pass_z = True
-    layer.use_pass_vector = True
-    layer.cycles.denoising_store_passes = True    # Denoising Normal / Albedo / Depth
-
-    fmt = scene.render.image_settings
-    if hasattr(fmt, "media_type"):                # Blender 5.0: multilayer is a media type
-        fmt.media_type = "MULTI_LAYER_IMAGE"
-        fmt.file_format = "OPEN_EXR_MULTILAYER" if "OPEN_EXR_MULTILAYER" in _enum(fmt, "file_format") \
-            else "OPEN_EXR"
-    else:
-        fmt.file_format = "OPEN_EXR_MULTILAYER"
-    fmt.color_depth = "32"
-    fmt.exr_codec = "ZIP"
+    enable_passes(layer)                          # Combined, Z, Vector, Denoising Data
+    set_exr_output(scene)                         # multilayer float32 EXR, ZIP
 
     world = bpy.data.worlds.new("World")
     scene.world = world
@@ -116,10 +101,6 @@ def reset_scene(width: int, height: int, threads: int):
     out = world.node_tree.nodes.get("World Output") or world.node_tree.nodes.new("ShaderNodeOutputWorld")
     world.node_tree.links.new(bg.outputs["Background"], out.inputs["Surface"])
     return scene
-
-
-def _enum(struct, prop: str) -> set[str]:
-    return {item.identifier for item in struct.bl_rna.properties[prop].enum_items}
 
 
 def material(name: str, kind: str, color=(0.8, 0.8, 0.8), roughness=0.5, metallic=0.0,
@@ -440,22 +421,9 @@ def sequence_name(name: str) -> str:
 
 
 def render_pass(scene, out_dir: Path, frames: int, spp: int, seed: int, label: str) -> list[float]:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    scene.cycles.samples = spp
-    scene.cycles.seed = seed
-    seconds = []
-    for f in range(1, frames + 1):
-        scene.frame_set(f)
-        path = out_dir / f"{f:04d}.exr"
-        scene.render.filepath = str(path)
-        scene.render.use_file_extension = False
-        t0 = time.perf_counter()
-        bpy.ops.render.render(write_still=True)
-        seconds.append(time.perf_counter() - t0)
-        if not path.exists():
-            raise SystemExit(f"blender_sequences: Blender did not write {path}")
-        print(f"  {label} frame {f}/{frames} ({spp} spp): {seconds[-1]:.1f} s", flush=True)
-    return seconds
+    """Frames 1..frames to ``out_dir/<frame:04d>.exr``; the seconds of each (blender_cycles.render_frames)."""
+    return list(render_frames(scene, out_dir, range(1, frames + 1), spp, seed, label,
+                              prefix="blender_sequences").values())
 
 
 def parse_args(argv):

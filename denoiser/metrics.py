@@ -21,6 +21,25 @@ Metrics
       same for the reference, ``tpsnr(t) = 10 log10(1 / max(mean((d_x - d_y)^2), 1e-10))``:
       the PSNR (peak 1, as ``psnr``) of the output's frame-to-frame change against the
       reference's. It is undefined (NaN) on the first frame and at camera cuts.
+    * ``warp``: temporal stability without a reference, the warping error of Lai et al. 2018
+      ("Learning Blind Video Temporal Consistency", ``evaluate_WarpError.py``). With ``o_t`` the
+      tonemapped frame t, ``w_t = warp(o_{t-1})`` frame t-1 warped to t with frame t's backward
+      motion (the convention of :mod:`denoiser.nn.warp`: the surface at pixel ``p`` of frame t was
+      at ``p + motion(p)`` in t-1; bilinear) and ``M_t`` the visibility mask (1 where the pixel's
+      surface is seen in both frames), ``warp(t) = sum_p M_t(p) sum_c (o_t - w_t)^2 / sum_p M_t(p)``:
+      the squared colour distance (summed over the 3 channels, as Lai et al.) averaged over the
+      kept pixels; lower is steadier, 0 for a perfectly stable sequence. NaN on the first frame, at
+      camera cuts and when no pixel is kept. The mask (:mod:`denoiser.report.flicker`, which also
+      gives the share of pixels kept) drops pixels whose bilinear footprint leaves the previous
+      frame, non-finite values, and disocclusions: by the forward-backward check of Ruder et al.
+      2016 where the layout has motion in both directions (Blender's ``Vector`` pass), else by the
+      depth/normal/albedo disagreement of the networks' disocclusion gate (:mod:`denoiser.nn.temporal`).
+      Limits: it counts every change of the visible colour, the flicker of noise and of a
+      denoiser but also real shading changes (moving lights, specular highlights and shadows that
+      move over a surface, animated textures); and a blurry output scores well. Read it beside
+      ``warp_ref``, the same measure on the reference frames, the floor that real shading
+      changes alone give; where no reference exists, compare methods on the same frames only.
+    * ``warp_ref``: ``warp`` of the reference frames (computed beside ``warp``).
     * ``flip``: HDR-FLIP (NVIDIA ``flip-evaluator``, ACES tonemapper, 67 pixels per degree),
       mean of the per-pixel error map, lower is better. The exposure range (start, stop,
       count) is fixed per sequence from its reference frames by :func:`flip_exposure` (FLIP's
@@ -87,7 +106,16 @@ METRICS: dict[str, Metric] = {
     "flip": Metric("FLIP", 4, lower_is_better=True),
     "relmse": Metric("relMSE", 4, lower_is_better=True),
     "smape": Metric("SMAPE", 4, lower_is_better=True),
+    "warp": Metric("warp err ×1e3", 3, lower_is_better=True),
+    "warp_ref": Metric("warp err of reference ×1e3", 3, lower_is_better=True),
 }
+
+#: Metrics whose per-frame values the caller computes (they need motion, which
+#: :meth:`MetricAccumulator.update` does not see) and passes as ``values``: ``warp`` and
+#: ``warp_ref`` (:mod:`denoiser.report.flicker`). Stored in units of 1e-3 (the label's ×1e3).
+CALLER_METRICS = ("warp", "warp_ref")
+#: ``warp`` is kept and shown in units of 1e-3 of the squared distance (values of a few units)
+WARP_UNIT = 1e-3
 
 
 def frame_subset(of: str, first_frame: int) -> Metric:
@@ -212,6 +240,28 @@ def tpsnr_pair(prev_out_tm, out_tm, prev_ref_tm, ref_tm) -> torch.Tensor:
     """tPSNR from *tonemapped* frames ``[N, 3, H, W]`` at t-1 and t -> ``[N]``."""
     d = (out_tm - prev_out_tm) - (ref_tm - prev_ref_tm)
     return mse_to_psnr((d * d).mean(dim=(1, 2, 3)))
+
+
+def masked_warp_error(current_tm: torch.Tensor, warped_tm: torch.Tensor, visible: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The warping error of ``warp`` (module docstring) from tonemapped frames already aligned.
+
+    current_tm: ``[N, 3, H, W]`` tonemapped frame t; warped_tm: ``[N, 3, H, W]`` tonemapped frame
+    t-1 warped to t; visible: bool ``[N, 1, H, W]`` (the mask ``M_t``). Pixels where either frame
+    is not finite are dropped whatever ``visible`` says. Returns ``(error [N], kept [N])``: the
+    masked mean of the squared distance summed over channels, in units of :data:`WARP_UNIT`
+    (NaN where no pixel is kept, never from a non-finite pixel), and the share of pixels kept.
+    """
+    if current_tm.shape != warped_tm.shape or current_tm.ndim != 4 or current_tm.shape[1] != 3:
+        raise ValueError(f"warp error: expected two [N, 3, H, W] frames, got {tuple(current_tm.shape)} and "
+                         f"{tuple(warped_tm.shape)}")
+    d = current_tm.float() - warped_tm.float()
+    dist = (d * d).sum(dim=1, keepdim=True)
+    mask = visible.bool() & torch.isfinite(dist)
+    count = mask.sum(dim=(1, 2, 3)).double()
+    total = torch.where(mask, dist, 0.0).sum(dim=(1, 2, 3), dtype=torch.float64)
+    error = torch.where(count > 0, total / count.clamp_min(1.0), float("nan")) / WARP_UNIT
+    return error.float(), (count / float(mask[0].numel())).float()
 
 
 # ----------------------------------------------------------------------------- HDR-FLIP
@@ -358,7 +408,8 @@ class MetricAccumulator:
     @torch.no_grad()
     def update(self, output: torch.Tensor, reference: torch.Tensor, sequence: str | Sequence[str],
                frame_index: torch.Tensor | Sequence[int] | None = None,
-               reset: torch.Tensor | Sequence[bool] | None = None) -> None:
+               reset: torch.Tensor | Sequence[bool] | None = None,
+               values: dict[str, Sequence[float]] | None = None) -> None:
         """Add frames.
 
         Either one sequence: ``output, reference`` ``[T, 3, H, W]`` linear HDR, ``sequence`` a
@@ -366,12 +417,15 @@ class MetricAccumulator:
         ``[B, T, 3, H, W]``, ``sequence`` a list of B names, ``frame_index`` ``[B, T]``,
         ``reset`` ``[B, T]``. Frames must come in order within a sequence. Without
         ``frame_index`` frames are numbered after the last one seen; without ``reset`` only
-        the first frame ever seen of a sequence resets.
+        the first frame ever seen of a sequence resets. ``values``: the per-frame values of the
+        :data:`CALLER_METRICS` computed (``{name: [T]}``, or ``[B, T]`` for windows; NaN where
+        undefined); a caller metric not given is NaN.
         """
         if output.ndim == 4:
             fi = None if frame_index is None else torch.as_tensor(frame_index)[None]
             rs = None if reset is None else torch.as_tensor(reset)[None]
-            return self.update(output[None], reference[None], [sequence], fi, rs)
+            vs = None if values is None else {k: [list(v)] for k, v in values.items()}
+            return self.update(output[None], reference[None], [sequence], fi, rs, vs)
         if output.ndim != 5 or output.shape != reference.shape or output.shape[2] != 3:
             raise ValueError(f"expected [B, T, 3, H, W] output and reference, got {tuple(output.shape)} "
                              f"and {tuple(reference.shape)}")
@@ -382,10 +436,12 @@ class MetricAccumulator:
         for b, name in enumerate(sequence):
             fi = None if frame_index is None else [int(v) for v in torch.as_tensor(frame_index)[b].tolist()]
             rs = None if reset is None else [bool(v) for v in torch.as_tensor(reset)[b].tolist()]
-            self._update_sequence(str(name), output[b], reference[b], fi, rs)
+            vs = {k: [float(x) for x in v[b]] for k, v in (values or {}).items()}
+            self._update_sequence(str(name), output[b], reference[b], fi, rs, vs)
 
     def _update_sequence(self, name: str, out: torch.Tensor, ref: torch.Tensor,
-                         frame_index: list[int] | None, reset: list[bool] | None) -> None:
+                         frame_index: list[int] | None, reset: list[bool] | None,
+                         values: dict[str, list[float]] | None = None) -> None:
         state = self._seqs.setdefault(name, _SequenceState())
         t_count = out.shape[0]
         if frame_index is None:
@@ -404,8 +460,11 @@ class MetricAccumulator:
             if reset[t]:
                 state.steps_since_reset = 0
             row: dict = {"sequence": name, "frame": idx}
-            for m, values in per_frame.items():
-                row[m] = float(values[t])
+            for m, frame_values in per_frame.items():
+                row[m] = float(frame_values[t])
+            for m in CALLER_METRICS:
+                if m in self.metrics:
+                    row[m] = float(values[m][t]) if values and m in values else float("nan")
             if "tpsnr" in self.metrics:
                 if not reset[t] and contiguous and state.prev_out_tm is not None:
                     row["tpsnr"] = float(tpsnr_pair(state.prev_out_tm[None], out_tm[t:t + 1],

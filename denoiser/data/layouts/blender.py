@@ -30,7 +30,9 @@ channels complete the pass is used (several candidate layers are an error naming
 t-1 minus the position in frame t, in pixels, with +Y pointing *up*; (Z, W) are the position in
 t minus the position in t+1 (verified on Blender 5.0.1 with a known camera and object motion).
 Our ``motion`` (docs/design.md §3.1) is the same backward displacement with y pointing *down*, so
-``motion = (X, -Y)``: :func:`vector_to_motion`, referenced from the layout config.
+``motion = (X, -Y)``: :func:`vector_to_motion`, referenced from the layout config. The optional
+buffer ``motion_next`` is (Z, W) converted the same way: ``(Z, -W)``, the position in t minus the
+position in t+1, y down (earlier minus later, as ``motion``).
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from denoiser.data import exr
-from denoiser.data.layouts.base import Layout, SequenceSource, image_size
+from denoiser.data.layouts.base import Layout, SequenceSource, image_size, parse_buffer_specs
 from denoiser.data.layouts.native import check_sizes, derived_meta, list_sequence_dirs
 from denoiser.data.sequence import SEQUENCE_JSON, check_frames_on_disk, load_sequence_json
 from denoiser.errors import ExrError, UserError
@@ -94,14 +96,22 @@ class BlenderLayout(Layout):
 
     ``require_meta``: a directory without ``sequence.json`` is an error; by default (``False``)
     the file is optional (sizes from the frames, no cuts), as for ``NativeLayout(require_meta=False)``.
+    ``optional_buffers``: buffers read where a file has them (same entries as ``buffers``) but never
+    listed among a sequence's buffers nor required: ``motion_next``, the forward motion of
+    the ``Vector`` pass that the flicker measure's forward-backward check reads
+    (:mod:`denoiser.report.flicker`).
     """
 
     name = "blender"
     samples_role = "noisy"
 
     def __init__(self, buffers: Mapping[str, object], noisy_dir: str = "noisy", reference_dir: str = "reference",
-                 layer_prefixes: Sequence[str] = ("ViewLayer.", ""), require_meta: bool = False):
+                 layer_prefixes: Sequence[str] = ("ViewLayer.", ""), require_meta: bool = False,
+                 optional_buffers: Mapping[str, object] | None = None):
         super().__init__(buffers, default_file="noisy")
+        optional = parse_buffer_specs(optional_buffers or {}, "noisy")
+        self.optional = frozenset(optional)
+        self.specs.update(optional)
         self.noisy_dir = noisy_dir
         self.reference_dir = reference_dir
         self.layer_prefixes = tuple(layer_prefixes)
@@ -164,7 +174,7 @@ class BlenderLayout(Layout):
         present = {role: exr.list_channels(paths[0]) for role, paths in files.items()}
         out = []
         for b, spec in self.specs.items():
-            if spec.file in present and self.resolve(files[spec.file][0], b, present[spec.file]) is not None:
+            if b not in self.optional and spec.file in present and self.resolve(files[spec.file][0], b, present[spec.file]) is not None:
                 out.append(b)
         if "color" not in out:
             path = files["noisy"][0]

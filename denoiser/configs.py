@@ -9,7 +9,9 @@ instantiating any ``_target_`` config, with one-line errors.
   running Hydra app too);
 * :func:`compose_net_config`: the resolved net config of the groups ``net``, ``kernel`` and
   ``ablation`` plus overrides (what checkpoints store under ``hyper_parameters['net']``);
-* :func:`build_net`: that config instantiated, a :class:`~denoiser.nn.denoiser.Denoiser`.
+* :func:`build_net`: that config instantiated, a :class:`~denoiser.nn.denoiser.Denoiser`;
+* :func:`job_dirname`: a multirun job's folder name from its overrides (the resolver
+  ``${job_dirname:...}`` of ``conf/train.yaml``'s ``hydra.sweep.subdir``).
 
 Used by the commands (training, the benchmarks, netstats), checkpoints, the data module and
 the tests.
@@ -17,6 +19,8 @@ the tests.
 
 from __future__ import annotations
 
+import hashlib
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -167,3 +171,20 @@ def build_net(cfg: Any, where: str = "net"):
     if not isinstance(net, torch.nn.Module):
         raise ConfigError(f"{where}: net config builds a {type(net).__name__}, not a torch module")
     return net
+
+
+#: the longest job folder name :func:`job_dirname` gives (a longer one is cut and ends in a hash)
+MAX_DIRNAME = 80
+_UNSAFE = re.compile(r"[^A-Za-z0-9._=,+-]+")
+
+
+def job_dirname(overrides: str, limit: int = MAX_DIRNAME) -> str:
+    """A folder name from a multirun job's ``hydra.job.override_dirname`` (``ablation=k3,model.optimizer.lr=0.001``):
+    every run of characters other than letters, digits and ``._=,+-`` (``/``, spaces, quotes,
+    brackets) becomes one ``_``; ``""`` (no override left) is ``defaults``; a name longer than
+    ``limit`` keeps its first ``limit - 9`` characters and ends in ``_`` and 8 hex digits of the
+    SHA-1 of the whole, so two long names stay apart."""
+    name = _UNSAFE.sub("_", str(overrides)).strip("_") or "defaults"
+    if len(name) > limit:
+        name = name[: limit - 9] + "_" + hashlib.sha1(str(overrides).encode()).hexdigest()[:8]
+    return name

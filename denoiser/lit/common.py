@@ -9,7 +9,11 @@
   each rank validates whole sequences and the per-sequence sums are gathered), logs
   image panels (noisy | output | reference, tonemapped) to TensorBoard every
   ``image_interval`` training steps and once per validation, and builds optimizers and
-  schedulers from ``_partial_: true`` configs.
+  schedulers from ``_partial_: true`` configs. Beside the network's ``val/psnr`` and the noisy
+  input's ``val/input_psnr`` it logs ``val/oidn_fast_psnr``: OIDN-fast
+  (:class:`~denoiser.methods.baselines.OidnDenoiser`) on the same frames, crops and warm-up, computed
+  at the first validation of the run and cached (the val split does not change), so every run's
+  curve shows where OIDN stands; without ``pyoidn`` one line says it is not logged.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import functools
 import inspect
 import math
+import sys
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -30,6 +35,8 @@ from denoiser.metrics import MetricAccumulator, combine_sequence_sums, tonemap
 
 #: Metrics computed in validation (names of denoiser.metrics.METRICS); logged as ``val/<name>``.
 VAL_METRICS = ("psnr", "ssim", "tpsnr", "smape")
+#: the OIDN quality whose val PSNR is logged beside the network's, as ``val/oidn_<quality>_psnr``
+VAL_OIDN_QUALITY = "fast"
 
 
 def network_inputs(batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
@@ -112,6 +119,11 @@ class DenoiserModule(pl.LightningModule):
         self.logit_penalty = float(logit_penalty or 0.0)
         self.val_metrics = MetricAccumulator(VAL_METRICS, warmup=self.warmup_frames)
         self.val_input_metrics = MetricAccumulator(("psnr", "ssim"), warmup=self.warmup_frames)
+        self.val_oidn_metrics = MetricAccumulator(("psnr",), warmup=self.warmup_frames)
+        #: the val split's OIDN PSNR once computed (cached for the run); None before
+        self.val_oidn_psnr: float | None = None
+        self._oidn = None            # the OidnDenoiser, built at the first validation
+        self._oidn_missing = False   # pyoidn not installed: said once, nothing logged
         #: global step of the last (non-sanity) validation, -1 before any
         self.validated_step = -1
         self._val_carry: tuple[list[str], dict] | None = None  # (sequence names, state) of the last val batch
@@ -211,6 +223,33 @@ class DenoiserModule(pl.LightningModule):
         self._val_carry = None
         self.val_metrics.reset()
         self.val_input_metrics.reset()
+        self.val_oidn_metrics.reset()
+
+    def oidn_for_validation(self, batch: Mapping[str, Any]):
+        """The OIDN denoiser of the val baseline (built once, with albedo and normal when the batch has
+        them); None when its PSNR is cached, in a sanity check, or without ``pyoidn`` (one line, once)."""
+        if self.val_oidn_psnr is not None or self._oidn_missing or getattr(self.trainer, "sanity_checking", False):
+            return None
+        if self._oidn is None:
+            try:
+                from denoiser.methods.baselines import OidnDenoiser
+
+                self._oidn = OidnDenoiser(VAL_OIDN_QUALITY, use_aux="albedo" in batch and "normal" in batch)
+            except ImportError as exc:
+                self._oidn_missing = True
+                print(f"val/oidn_{VAL_OIDN_QUALITY}_psnr not logged: {exc.name or 'pyoidn'} is not installed "
+                      "(pip install pyoidn)", file=sys.stderr)
+                return None
+        return self._oidn
+
+    @torch.no_grad()
+    def oidn_outputs(self, oidn, batch: Mapping[str, Any]) -> torch.Tensor:
+        """OIDN on every frame of a val batch: ``[B, T, 3, H, W]`` from ``color``, ``albedo``, ``normal``
+        ``[B, T, 3, H, W]`` (single frames: OIDN has no state)."""
+        b, t = batch["color"].shape[:2]
+        keys = ("color", "albedo", "normal") if oidn.use_aux else ("color",)
+        frames = [[oidn({k: batch[k][i, j][None] for k in keys})[0] for j in range(t)] for i in range(b)]
+        return torch.stack([torch.stack(f) for f in frames])
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         """Whole sequences, or their pieces in order (``data.val_window``, batch size 1: the state is
@@ -224,6 +263,9 @@ class DenoiserModule(pl.LightningModule):
         kwargs = {"frame_index": batch.get("frame_index"), "reset": batch["reset"]}
         self.val_metrics.update(outputs.float(), reference.float(), names, **kwargs)
         self.val_input_metrics.update(batch["color"].float(), reference.float(), names, **kwargs)
+        oidn = self.oidn_for_validation(batch)
+        if oidn is not None:
+            self.val_oidn_metrics.update(self.oidn_outputs(oidn, batch).float(), reference.float(), names, **kwargs)
         if batch_idx == 0 and not getattr(self.trainer, "sanity_checking", False):
             t = outputs.shape[1] // 2
             self.log_panel("val/panel", batch["color"][0, t], outputs[0, t], reference[0, t])
@@ -232,12 +274,20 @@ class DenoiserModule(pl.LightningModule):
         """Metrics over all processes' sequences (each process validated whole sequences, see
         :class:`denoiser.data.sampler.SequenceShardSampler`): per-sequence sums and counts are
         gathered, then averaged per sequence and over sequences, identically on every rank."""
-        parts = gather_objects((self.val_metrics.sequence_sums(), self.val_input_metrics.sequence_sums()))
-        if not any(out or inp for out, inp in parts):
+        parts = gather_objects((self.val_metrics.sequence_sums(), self.val_input_metrics.sequence_sums(),
+                                self.val_oidn_metrics.sequence_sums()))
+        if not any(out or inp for out, inp, _ in parts):
             return
         values = {f"val/{k}": v for k, v in combine_sequence_sums([p[0] for p in parts], self.val_metrics.metrics).items()}
         values.update({f"val/input_{k}": v for k, v in
                        combine_sequence_sums([p[1] for p in parts], self.val_input_metrics.metrics).items()})
+        if self.val_oidn_psnr is None and any(p[2] for p in parts):  # the first validation: cached from now on
+            self.val_oidn_psnr = combine_sequence_sums([p[2] for p in parts], ("psnr",))["psnr"]
+            if self._oidn is not None:
+                self._oidn.close()
+                self._oidn = None
+        if self.val_oidn_psnr is not None:
+            values[f"val/oidn_{VAL_OIDN_QUALITY}_psnr"] = self.val_oidn_psnr
         values = {k: float(v) for k, v in values.items() if not math.isnan(v)}  # drop NaN (e.g. tPSNR on 1-frame sequences)
         for k, v in values.items():  # the same values on every rank: sync_dist's mean leaves them unchanged
             self.log(k, v, prog_bar=k in ("val/psnr", "val/ssim"), sync_dist=True)

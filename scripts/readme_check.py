@@ -53,12 +53,13 @@ CONF_ROOTS = ("conf/", "denoiser/conf/")
 #: metrics, the benchmark and its backends (a block's time columns), the pipelines' runner and the
 #: summaries that write the blocks; every config (the recipes: conf/base, conf/experiment,
 #: conf/pipeline, ...); the scripts that make a block's inputs (the Cycles sequences, make gpu-check's run)
-MEASURED = ("denoiser/", "conf/", "scripts/blender_sequences.py", "scripts/gpu_check.sh")  # denoiser/conf/ in denoiser/
+MEASURED = ("denoiser/", "conf/", "scripts/blender_sequences.py", "scripts/blender_cycles.py", "scripts/gpu_check.sh")  # denoiser/conf/ in denoiser/
 #: tools that no pipeline (conf/pipeline), summary or gpu-check runs and that no measured module imports
 #: (tests/test_claims.py checks both), with their configs: benchmarks of what no block shows (data
 #: loading, long sequences, network variants, the renderer), the parameter and FLOP count, export and
-#: denoise (a trained network applied to a user's frames), the val table
-TOOLS = ("bench_data", "bench_longseq", "bench_networks", "bench_render", "netstats", "export", "denoise", "val_table")
+#: denoise (a trained network applied to a user's frames), the val table, render_blender (a user's .blend file)
+TOOLS = ("bench_data", "bench_longseq", "bench_networks", "bench_render", "netstats", "export", "denoise", "val_table",
+         "render_blender")
 #: under MEASURED but unable to change a trained network or a block's numbers
 UNMEASURED = (
     *(f"{root}hydra/help/" for root in CONF_ROOTS),           # the --help text

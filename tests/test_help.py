@@ -30,6 +30,7 @@ COMMANDS = {
     "denoiser-denoise": ("denoiser.commands.denoise", "denoise"),
     "denoiser-render": ("denoiser.commands.render", "render"),
     "denoiser-pareto": ("denoiser.commands.pareto", "pareto"),
+    "denoiser-flicker": ("denoiser.commands.flicker", "flicker"),
 }
 #: Hydra's own groups a command's help also lists (only training runs multiruns)
 HYDRA_GROUPS = {"denoiser-train": {"hydra/launcher", "hydra/sweeper"}}

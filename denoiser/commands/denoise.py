@@ -41,6 +41,13 @@ Other backends default to f32. With ``device=cuda``: ``cuda`` and
 fp16, the Triton filter; ``cuda_compiled`` replays a CUDA graph per frame size; docs/gpu.md).
 Every backend steps through the one recurrent runner (:class:`~denoiser.runner.RecurrentRunner`).
 
+Report (``report=true``, the default): at the end, ``report.json`` and ``report.md`` in ``output``: the
+run (frames, seconds, frames/s, backend, precision, threads) and, when the input has motion, the
+flicker of the noisy input and of the denoised output, frame by frame: the warp error of
+:mod:`denoiser.metrics` (``warp``, no reference needed; :mod:`denoiser.report.flicker`), with
+``flicker.png``, the two over frames, and the share of the run the measure took. Frames replayed
+for a resumed run's history count as measured.
+
 Resuming: frames whose output file exists are not written again. Their outputs are still
 needed as the recurrent history of the next frame, so the run restarts the network at the
 last reset (first frame or camera cut) at or before the first missing frame and replays the
@@ -63,6 +70,7 @@ from tqdm.auto import tqdm
 from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, ExrError
+from denoiser.report.flicker import FlickerMeter, denoise_report, read_motion
 from denoiser.runner import RecurrentRunner
 
 log = logging.getLogger(__name__)
@@ -291,6 +299,9 @@ def run(cfg: DictConfig) -> dict:
         if backend is None:  # the recorded precision of a resumed run
             backend_name, backend = make_backend(backend_name, precision, device)
     runner = RecurrentRunner(backend.prepare(net, None, threads).step)
+    # the flicker of the input and the output (report.json/md, flicker.png), where the frames have motion
+    meter = FlickerMeter(["input", "output"]) if cfg.get("report", True) and "motion" in source.buffers else None
+    measure_seconds = 0.0
     started = time.perf_counter()
     with torch.inference_mode(), tqdm(todo, desc=f"denoise ({backend.label})", unit="frame") as progress:
         for i in progress:
@@ -300,6 +311,10 @@ def run(cfg: DictConfig) -> dict:
             reset = i == start or i in cuts
             frame = frame_tensors(arrays, device)
             output = runner(frame, reset)
+            if meter is not None:
+                tick = time.perf_counter()
+                flicker_frame(meter, layout, source, i, frame, output, reset)
+                measure_seconds += time.perf_counter() - tick
             if outputs[i].exists():
                 counts["replayed"] += int(i < first)
                 continue
@@ -311,7 +326,26 @@ def run(cfg: DictConfig) -> dict:
     print(f"denoised {counts['written']} frame(s) of {src_dir} into {out_dir} in {seconds:.1f} s "
           f"({counts['skipped']} already there, {counts['replayed']} replayed for the recurrent history; "
           f"backend {backend_name}, precision {backend.dtype})")
+    if cfg.get("report", True):
+        info = {"input": str(src_dir), "frames": len(todo), "seconds": seconds, "measure_seconds": measure_seconds,
+                "backend": backend_name, "precision": str(backend.dtype), "threads": threads,
+                "size": [source.height, source.width], "written": counts["written"], "replayed": counts["replayed"]}
+        record = denoise_report(meter, [i + 1 for i in todo], info, out_dir)
+        if record["flicker"] and record["flicker"]["output"]["mean"] is not None:
+            fl = record["flicker"]
+            print(f"flicker (warp error ×1e3, lower is steadier): input {fl['input']['mean']:.3f}, "
+                  f"output {fl['output']['mean']:.3f} ({record['measure_share']:.1%} of the run)")
+        print(f"wrote {out_dir / 'report.md'} and report.json" + (" and flicker.png" if meter is not None else ""))
     return counts
+
+
+def flicker_frame(meter, layout, source, index: int, frame: dict, output, reset: bool) -> None:
+    """Add frame ``index`` (its input ``frame`` ``{buffer: [1, C, H, W]}`` and the network's ``output``
+    ``[1, 3, H, W]``) to the flicker ``meter`` (:class:`~denoiser.report.flicker.FlickerMeter`)."""
+    out = output if isinstance(output, torch.Tensor) else torch.from_numpy(np.asarray(output))
+    extra = read_motion(layout, source, index, {k: v.cpu() for k, v in frame.items()})
+    meter.update({"input": frame["color"].cpu(), "output": out.float().cpu()}, extra["motion"], reset,
+                  extra["guide"], extra["next_motion"])
 
 
 def main() -> None:

@@ -30,6 +30,7 @@ over a whole sequence held in memory. :func:`read_motion` reads what a layout's 
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -388,3 +389,64 @@ def plot_flicker(path, results: Mapping[str, WarpError], title: str, frame_numbe
 def json_values(values: Sequence[float]) -> list[float | None]:
     """Per-frame values for JSON: NaN (first frame, cuts) as null."""
     return [None if math.isnan(v) else float(v) for v in values]
+
+
+# ----------------------------------------------------------------------------- denoiser-denoise's report
+
+
+def denoise_report(meter: FlickerMeter | None, frames: Sequence[int], info: Mapping, out_dir) -> dict:
+    """``denoiser-denoise``'s record of a run, written into ``out_dir``: ``report.json``, ``report.md``
+    and (with a meter) ``flicker.png``, the warp error of the input and the output over frames.
+
+    meter: a :class:`FlickerMeter` of the streams ``input`` and ``output`` (None: the frames have no
+    motion, no flicker measured); frames: the frame numbers (1-based) measured, one per meter entry;
+    info: what the run was (``input``, ``frames``, ``seconds``, ``backend``, ``precision``, ``threads``,
+    ``size``, ``measure_seconds``: the time the measure took). Returns the JSON record.
+    """
+    from pathlib import Path
+
+    from denoiser.atomic import atomic_write_text
+
+    out_dir = Path(out_dir)
+    seconds = float(info["seconds"])
+    seconds = max(seconds, 1e-9)
+    record = {**info, "frames_per_second": len(frames) / seconds,
+              "measure_share": float(info.get("measure_seconds", 0.0)) / seconds, "frame_numbers": list(frames)}
+    lines = [f"# denoiser-denoise report: {info['input']}", "",
+             f"{len(frames)} frame(s) of {info['size'][1]}x{info['size'][0]} in {seconds:.1f} s "
+             f"({record['frames_per_second']:.2f} frames/s), backend {info['backend']}, precision {info['precision']}, "
+             f"{info['threads']} thread(s).", ""]
+    if meter is None:
+        record["flicker"] = None
+        lines.append("No flicker measured: the input frames have no motion pass.")
+    else:
+        results = {n: meter.result(n) for n in ("input", "output")}
+        defined = any(not math.isnan(v) for v in results["output"].per_frame)
+        record["flicker"] = {n: {"mean": r.mean if defined else None, "kept": r.mean_kept if defined else None,
+                                 "per_frame": json_values(r.per_frame), "kept_per_frame": json_values(r.kept)}
+                             for n, r in results.items()}
+        record["flicker"]["mask"] = meter.mask
+        if defined:
+            plot_flicker(out_dir / "flicker.png", results, f"{info['input']}: warp error of the noisy input and "
+                         "of the denoised output", frames)
+            lines += ["## Flicker (warp error, no reference needed)", "",
+                      summary_table(results, align=False).rstrip(), "",
+                      f"Warp error (Lai et al. 2018; denoiser/metrics.py `warp`): per frame, the mean over the pixels "
+                      f"visible in both frames (test: {meter.mask}) of the squared distance between the tonemapped "
+                      "frame and the previous one warped along the motion vectors, ×1e3; lower is steadier. It also "
+                      "counts real changes of shading (moving lights and highlights): compare the output with the "
+                      "input and with other denoisers' frames of the same render (denoiser-flicker), not with 0. "
+                      f"The measure took {record['measure_share']:.1%} of the run.", "",
+                      "![flicker over frames](flicker.png)", "",
+                      "| frame | input | output |", "|---:|---:|---:|"]
+            lines += [f"| {f} | {_fmt(a)} | {_fmt(b)} |" for f, a, b in
+                      zip(frames, results["input"].per_frame, results["output"].per_frame)]
+        else:
+            lines.append("No flicker measured: no frame has a previous one (a single frame, or cuts everywhere).")
+    atomic_write_text(out_dir / "report.json", json.dumps(record, indent=1, allow_nan=False) + "\n")
+    atomic_write_text(out_dir / "report.md", "\n".join(lines) + "\n")
+    return record
+
+
+def _fmt(v: float) -> str:
+    return "" if math.isnan(v) else f"{v:.3f}"

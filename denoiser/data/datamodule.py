@@ -106,6 +106,8 @@ class SequenceDataModule(L.LightningDataModule):
         extra_share: float | None = None,
     ):
         super().__init__()
+        if root is None:  # experiment=my_data leaves it to the user
+            raise ConfigError("data.root: required, the dataset root (<root>/<split>/<sequence>/), e.g. data.root=<renders>")
         self.root = str(root)
         self.extra_roots = tuple(extra_roots or ())  # paths or {root, layout} (dataset.extra_root_entries)
         self._extra = tuple(extra_root_entries(self.extra_roots))  # layouts built once

@@ -33,21 +33,22 @@ def blender_python_or_skip() -> Path:
     pytest.skip(reason)
 
 
-#: a bpy script: ``<python> -c BUILD_SCENE out.blend <motion blur 0|1> <camera 0|1>`` saves a 32x32,
-#: three-frame scene (a cube moving +X, a point light, a camera) with Blender's factory render settings
+#: a bpy script: ``<python> -c BUILD_SCENE out.blend <motion blur 0|1> <camera 0|1> <size> <frames>`` saves
+#: a scene of ``size`` x ``size`` pixels and frames 1..frames (a cube moving +X 0.5 m per frame, a point
+#: light, a camera) with Blender's factory render settings
 BUILD_SCENE = """
 import sys
 import bpy
-out, blur, cam = sys.argv[1], sys.argv[2] == "1", sys.argv[3] == "1"
+out, blur, cam, size, frames = sys.argv[1], sys.argv[2] == "1", sys.argv[3] == "1", int(sys.argv[4]), int(sys.argv[5])
 bpy.ops.wm.read_factory_settings(use_empty=True)
 scene = bpy.context.scene
 scene.render.engine = "CYCLES"
-scene.render.resolution_x = scene.render.resolution_y = 32
-scene.frame_start, scene.frame_end = 1, 3
+scene.render.resolution_x = scene.render.resolution_y = size
+scene.frame_start, scene.frame_end = 1, frames
 scene.render.use_motion_blur = blur
 bpy.ops.mesh.primitive_cube_add(location=(0, 0, 0))
 cube = bpy.context.active_object
-for f, x in ((0, -1.0), (4, 1.0)):
+for f, x in ((0, -1.0), (frames + 1, 0.5 * frames - 0.5)):
     cube.location.x = x
     cube.keyframe_insert("location", frame=f)
 light = bpy.data.objects.new("Light", bpy.data.lights.new("Light", type="POINT"))
@@ -64,8 +65,9 @@ bpy.ops.wm.save_as_mainfile(filepath=out)
 """
 
 
-def build_scene(python: Path, out: Path, motion_blur: bool = False, camera: bool = True) -> Path:
+def build_scene(python: Path, out: Path, motion_blur: bool = False, camera: bool = True, size: int = 32,
+                frames: int = 3) -> Path:
     """Save :data:`BUILD_SCENE`'s scene to ``out`` with the bpy venv's ``python``; returns ``out``."""
-    subprocess.run([str(python), "-c", BUILD_SCENE, str(out), str(int(motion_blur)), str(int(camera))],
-                   check=True, capture_output=True)
+    subprocess.run([str(python), "-c", BUILD_SCENE, str(out), str(int(motion_blur)), str(int(camera)), str(size),
+                    str(frames)], check=True, capture_output=True)
     return out

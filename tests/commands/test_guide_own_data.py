@@ -1,0 +1,83 @@
+"""docs/guide.md's "Your own renders" block, run line by line as the guide prints it: a tiny Cycles
+dataset rendered with denoiser-render-blender from scenes built here with bpy (64x64: the recipe's
+crop, 4 frames: its window), trained on (fast_dev_run, then a few steps), evaluated against the noisy
+input and OIDN on val and test, and denoised. The lines are read from the guide, so the guide and
+this test cannot drift; only the placeholders are substituted, and the references' spp and the
+steps made smaller (:data:`SMALLER`)."""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from helpers.blender import blender_python_or_skip, build_scene
+
+from denoiser.measure import read_csv
+from denoiser.report import ledger
+
+ROOT = Path(__file__).resolve().parents[2]
+GUIDE = ROOT / "docs" / "guide.md"
+SECTION = "## Your own renders"
+VENV_BIN = Path(sys.executable).parent
+#: what the test shrinks: (pattern in a command line, replacement), applied to every line
+SMALLER = ((r"\bref_spp=1024\b", "ref_spp=16"),)
+#: added to the training run without debug= (its steps)
+SHORT_RUN = ["trainer.max_steps=4", "trainer.val_check_interval=2", "callbacks.last.every_n_train_steps=2"]
+
+
+def guide_lines() -> list[str]:
+    """The commands of the section's first bash block, continuation lines joined, comments dropped."""
+    text = GUIDE.read_text()
+    start = text.index(SECTION)
+    end = text.find("\n## ", start + len(SECTION))
+    block = re.search(r"```bash\n(.*?)```", text[start:end], re.DOTALL)
+    assert block, f"{GUIDE}: no bash block under {SECTION!r}"
+    joined = block[1].replace("\\\n", " ")
+    return [line.strip() for line in joined.splitlines() if line.strip() and not line.strip().startswith("#")]
+
+
+def test_the_guides_block_has_every_step():
+    verbs = [shlex.split(line)[0] for line in guide_lines()]
+    assert verbs.count("denoiser-render-blender") == 3 and verbs.count("denoiser-eval") == 2
+    assert "python" in verbs and "denoiser-denoise" in verbs
+
+
+@pytest.mark.slow
+def test_the_guides_own_data_commands_run_as_written(tmp_path):
+    python = blender_python_or_skip()
+    places = {f"<shot_{k}.blend>": str(build_scene(python, tmp_path / f"shot_{k}.blend", size=64, frames=4))
+              for k in "abc"}
+    places |= {"<first>-<last>": "1-4", "<renders>": str(tmp_path / "renders"), "<run>": str(tmp_path / "run"),
+               "<reports>": str(tmp_path / "reports"), "<denoised>": str(tmp_path / "denoised"), "<shot_c>": "shot_c"}
+    env = {**os.environ, "DENOISER_BLENDER_PYTHON": str(python)}
+    project_ledger = ledger.LEDGER.read_bytes()
+    for line in guide_lines():
+        for placeholder, value in places.items():
+            line = line.replace(placeholder, value)
+        for pattern, replacement in SMALLER:
+            line = re.sub(pattern, replacement, line)
+        assert "<" not in line, f"a placeholder the test does not know: {line}"
+        argv = shlex.split(line)
+        if argv[:2] == ["python", "train.py"]:
+            argv = [sys.executable, str(ROOT / "train.py"), *argv[2:], "threads=1",
+                    *([] if any(a.startswith("debug=") for a in argv) else SHORT_RUN)]
+        else:
+            argv = [str(VENV_BIN / argv[0]), *argv[1:]]
+        done = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True, check=False, timeout=600)
+        assert done.returncode == 0, f"{line}\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
+    renders = tmp_path / "renders"
+    for split, shot in (("train", "shot_a"), ("val", "shot_b"), ("test", "shot_c")):
+        assert len(list((renders / split / shot / "reference").glob("*.exr"))) == 4
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").is_file()
+    for split in ("val", "test"):
+        methods = {row["method"] for row in read_csv(tmp_path / "reports" / split / "metrics.csv")}
+        assert {"noisy input", "OIDN-fast", "mine"} <= methods, methods
+    rows = ledger.read(renders / "test_ledger.csv")
+    assert [(r["split"], r["look"], r["purpose"]) for r in rows] == [("test", "1", "final judgement of my recipe")]
+    assert ledger.LEDGER.read_bytes() == project_ledger
+    assert sorted(p.name for p in (tmp_path / "denoised").glob("*.exr")) == [f"{f:04d}.exr" for f in range(1, 5)]

@@ -94,7 +94,12 @@ RUN_CHECKPOINTS = ("checkpoints/best.ckpt", "checkpoints/last.ckpt")
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """``path`` itself, or for a training run directory the checkpoint it is evaluated with:
     ``checkpoints/best.ckpt``, else ``checkpoints/last.ckpt``. UserError naming ``path`` when it
-    does not exist or is a directory holding neither."""
+    does not exist or is a directory holding neither. ``release:teacher`` / ``release:student``: the
+    shipped networks (:func:`denoiser.release.release_file`)."""
+    from denoiser.release import is_release_name, release_file
+
+    if is_release_name(path):
+        return release_file(path)
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: checkpoint file does not exist")

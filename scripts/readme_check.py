@@ -29,6 +29,10 @@ line on stdout saying so; different ones, or a tree the fingerprint cannot run o
 
     python scripts/readme_check.py                        # README.md and docs/results.md of this checkout
     python scripts/readme_check.py --readme README.md [--readme docs/results.md] [--repo DIR] [--report-only]
+
+It also checks the shipped release (``denoiser/models``): a weight file whose size or SHA-256 is not
+its manifest's, or a model card that is not what the manifest renders to, fails the check (also with
+``--report-only``).
 """
 
 from __future__ import annotations
@@ -257,6 +261,19 @@ def toplevel(directory: Path) -> Path:
     return Path(top.stdout.strip()) if top.returncode == 0 else directory
 
 
+def release_problems(repo: Path) -> list[str]:
+    """The shipped release (``denoiser/models``): its weight files and its card agree with its
+    manifest (:func:`denoiser.report.model_card.check_release`); one line per problem."""
+    sys.path.insert(0, str(repo))
+    from denoiser.report.model_card import check_release
+
+    folder = repo / "denoiser" / "models"
+    problems = check_release(folder)
+    if not problems and (folder / "release.json").is_file():
+        print(f"{folder.relative_to(repo)}: the shipped weights and their card agree with release.json")
+    return problems
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--readme", type=Path, action="append",
@@ -273,11 +290,14 @@ def main() -> None:
     files = args.readme or [repo / name for name in FILES if (repo / name).is_file()]
     if not files:
         sys.exit(f"error: {repo}: none of {', '.join(FILES)} found (--readme names the files)")
+    release = release_problems(repo)
+    for line in release:
+        print(line, file=sys.stderr)
     stale = [line for path in files for line in stale_blocks(path, repo)]
     for line in stale:
         print(line, file=sys.stderr)
-    if stale and not args.report_only:
-        sys.exit(1)
+    if release or (stale and not args.report_only):
+        sys.exit(1)  # shipped weights that disagree with their card fail even --report-only: it is no stale figure
     if stale:
         print(f"{len(stale)} stale results block(s) (listed on stderr; --report-only): rerun what wrote them, then make readme")
     for path in files:

@@ -59,6 +59,7 @@ run. ``replay_frames=N`` bounds that replay to the N frames before the first mis
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -76,6 +77,8 @@ from denoiser.runner import RecurrentRunner
 log = logging.getLogger(__name__)
 
 WRITE_MODES = ("buffers", "rgb")
+#: the network used without ckpt= (denoiser/models: the shipped release)
+DEFAULT_CKPT = "release:student"
 
 
 def openvino_installed() -> bool:
@@ -254,9 +257,13 @@ def run(cfg: DictConfig) -> dict:
     from denoiser.configs import instantiate_config
     from denoiser.data import exr
 
-    for key in ("ckpt", "input", "output"):
+    for key in ("input", "output"):
         if not cfg.get(key):
-            raise ConfigError(f"{key}: required (denoiser-denoise ckpt=<file> input=<dir> output=<dir>)")
+            raise ConfigError(f"{key}: required (denoiser-denoise input=<dir> output=<dir> [ckpt=<file>])")
+    ckpt = cfg.get("ckpt") or DEFAULT_CKPT
+    if not cfg.get("ckpt"):
+        print(f"denoiser-denoise: no ckpt= given: the shipped release student ({DEFAULT_CKPT}, "
+              "denoiser/models/README.md)", file=sys.stderr)
     mode = str(cfg.write)
     if mode not in WRITE_MODES:
         raise ConfigError(f"write: {mode!r} is not one of {', '.join(WRITE_MODES)}")
@@ -271,7 +278,7 @@ def run(cfg: DictConfig) -> dict:
     backend_name, backend = make_backend(cfg.get("backend"), cfg.get("precision"), device)
     measure_precision = auto_precision(cfg.get("backend"), cfg.get("precision"), device)
 
-    net = load_denoiser(cfg.ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
+    net = load_denoiser(ckpt, device, trust=bool(cfg.get("trust_checkpoint")))
     layout = instantiate_config(cfg.layout, "layout")
     source = layout.open_sequence(src_dir)
     needed = needed_buffers(net)

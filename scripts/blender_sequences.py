@@ -1112,9 +1112,10 @@ def sequence_name(name: str) -> str:
 # ----------------------------------------------------------------------------- rendering
 
 
-def render_pass(scene, out_dir: Path, frames: int, spp: int, seed: int, label: str) -> list[float]:
-    """Frames 1..frames to ``out_dir/<frame:04d>.exr``; the seconds of each (blender_cycles.render_frames)."""
-    return list(render_frames(scene, out_dir, range(1, frames + 1), spp, seed, label,
+def render_pass(scene, out_dir: Path, frames: int, spp: int, seed: int, label: str, keep: bool = False) -> list[float]:
+    """Frames 1..frames to ``out_dir/<frame:04d>.exr``; the seconds of each frame rendered
+    (blender_cycles.render_frames; ``keep``: frames on disk are kept)."""
+    return list(render_frames(scene, out_dir, range(1, frames + 1), spp, seed, label, keep=keep,
                               prefix="blender_sequences").values())
 
 
@@ -1274,13 +1275,22 @@ def main(argv=None) -> int:
         if not args.force and complete(seq_dir, args.frames, wanted):
             print(f"{name}: complete with these settings, skipped (--force re-renders)", flush=True)
             continue
-        print(f"{name}: building scene", flush=True)
+        # render.pending.json: the settings of a run under way; a run stopped with the same settings
+        # left frames this one keeps (each frame is renamed into place only when complete)
+        pending = seq_dir / "render.pending.json"
+        try:
+            keep = not args.force and json.loads(pending.read_text()) == wanted
+        except (OSError, ValueError):
+            keep = False
+        seq_dir.mkdir(parents=True, exist_ok=True)
+        pending.write_text(json.dumps(wanted, indent=2) + "\n")
+        print(f"{name}: building scene{' (resuming: frames on disk kept)' if keep else ''}", flush=True)
         scene = reset_scene(width, height, args.threads)
         scene.frame_start, scene.frame_end = 1, args.frames
         drawn = build(name, args.frames, width)
         info = {**wanted, "engine": "CYCLES", "device": "CPU", "threads": args.threads,
                 "pixel_filter": "BOX 1.0", "denoiser": False, **({"scene": drawn} if drawn else {}),
-                "seconds": {}}
+                "seconds": {}, **({"resumed": True} if keep else {})}
         info["cpu_seconds"] = {}                  # Cycles' threads together: the figure a busy host keeps
         t0 = time.perf_counter()
         passes = [("noisy", args.spp, args.seed)]
@@ -1296,7 +1306,7 @@ def main(argv=None) -> int:
                 c0 = time.process_time()
                 try:
                     info["seconds"][folder] = render_pass(scene, seq_dir / folder, args.frames, spp, seed,
-                                                          f"{name} {folder}")
+                                                          f"{name} {folder}", keep=keep)
                 finally:
                     if handler is not None:
                         bpy.app.handlers.render_write.remove(handler)
@@ -1306,6 +1316,7 @@ def main(argv=None) -> int:
                 print(f"{name}: reference vs a second reference (seed {args.seed + 2000}): "
                       f"{info['noise_floor']['psnr_db']:.2f} dB", flush=True)
         (seq_dir / "render.json").write_text(json.dumps(info, indent=2) + "\n")
+        pending.unlink()
         print(f"{name}: done in {time.perf_counter() - t0:.1f} s", flush=True)
     return 0
 

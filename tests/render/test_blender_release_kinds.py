@@ -1,7 +1,7 @@
 """The release Cycles kinds of scripts/blender_sequences.py (issue 62): each kind builds and renders
 (32x32, 2 frames, 1-2 spp) into files ``layout=blender`` reads, its scene is drawn from the seed,
-``--ref-check``'s noise floor is the project's PSNR, the unlabeled split is noisy only, and the
-release splits' seeds are disjoint from each other and from every earlier Cycles split."""
+``--ref-check``'s noise floor is the project's PSNR, the unlabeled split is noisy only, a stopped
+sequence resumes keeping its frames, and the release splits' seeds are disjoint from each other and from every earlier Cycles split."""
 
 from __future__ import annotations
 
@@ -137,3 +137,15 @@ def test_every_kind_renders_into_the_blender_layout_and_the_noise_floor_is_the_p
     seq = tmp_path / "unlabeled" / names[1]
     assert not (seq / "reference").exists() and "reference" not in json.loads((seq / "render.json").read_text())
     assert not layout.open_sequence(seq).labeled
+
+    # a stopped run (render.pending.json holds its settings) resumes: frames on disk are kept
+    info = json.loads((seq / "render.json").read_text())
+    wanted = {k: info[k] for k in ("blender", "width", "height", "frames", "noisy", "builder")}
+    (seq / "render.pending.json").write_text(json.dumps(wanted))
+    (seq / "render.json").unlink()
+    (seq / "noisy" / "0002.exr").unlink()
+    kept = (seq / "noisy" / "0001.exr").stat().st_mtime_ns
+    run(python, str(SCRIPT), *common, "--split", "unlabeled", "--sequences", names[1])
+    info = json.loads((seq / "render.json").read_text())
+    assert info["resumed"] and len(info["seconds"]["noisy"]) == 1 and (seq / "noisy" / "0002.exr").exists()
+    assert (seq / "noisy" / "0001.exr").stat().st_mtime_ns == kept and not (seq / "render.pending.json").exists()

@@ -48,6 +48,91 @@ def imported_modules(path: Path) -> set[str]:
     return names
 
 
+def module_name(path: Path, package: Path = PACKAGE) -> str:
+    """The dotted name of a module file of ``package`` (a package's ``__init__.py``: the package)."""
+    parts = list(path.relative_to(package.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_file(name: str, package: Path = PACKAGE) -> Path | None:
+    """The file of the dotted module ``name`` of ``package`` (None: not a module of it)."""
+    base = package.parent.joinpath(*name.split("."))
+    return next((f for f in (base.with_suffix(".py"), base / "__init__.py") if f.is_file()), None)
+
+
+def import_graph(package: Path = PACKAGE) -> dict[str, set[str]]:
+    """``{module: the package's modules it imports}``, every import statement counted, those
+    inside functions too (a late import is still an edge): ``from a import b`` is module ``a.b``
+    where that is a module, else ``a``; relative imports are resolved."""
+    graph = {}
+    for path in sorted(package.rglob("*.py")):
+        here = module_name(path, package)
+        anchor = here if path.name == "__init__.py" else here.rpartition(".")[0]
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = anchor.split(".")[: len(anchor.split(".")) - node.level + 1]
+                    base = ".".join([*up, base] if base else up)
+                names = [f"{base}.{a.name}" if module_file(f"{base}.{a.name}", package) else base for a in node.names]
+            else:
+                continue
+            found.update(n for n in names if module_file(n, package))
+        graph[here] = found - {here}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of ``graph`` with more than one module (Tarjan's)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while not component or component[-1] != v:
+                component.append(stack.pop())
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_import_cycle_anywhere_in_the_package():
+    """No module of ``denoiser/`` reaches itself through imports, late ones inside functions included."""
+    assert not import_cycles(import_graph())
+
+
+def test_the_cycle_check_sees_a_late_import(tmp_path):
+    """The check above is not blind: two modules importing each other, one of them inside a
+    function and by a relative import, are one cycle; without the late import, none."""
+    package = tmp_path / "pkg"
+    (package / "sub").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "sub" / "__init__.py").write_text("")
+    (package / "sub" / "a.py").write_text("from pkg.sub.b import thing\n")
+    (package / "sub" / "b.py").write_text("thing = 1\n\ndef late():\n    from . import a\n")
+    assert import_cycles(import_graph(package)) == [["pkg.sub.a", "pkg.sub.b"]]
+    (package / "sub" / "b.py").write_text("thing = 1\n")
+    assert import_cycles(import_graph(package)) == []
+
+
 #: the private module that keeps old module paths importable: not part of the root's vocabulary
 ALIASES = "_aliases.py"
 ROOT_MODULES_AT_MOST = 10

@@ -255,7 +255,7 @@ def test_unet_matmul_heads_equal_conv_heads(upsample):
     """Traced with heads_as_matmul, the U-Net's heads are the same maps as its 1x1 convolutions
     (the level-0 head's upsampled part multiplied at half resolution, then upsampled:
     ``UNet.head0_before_upsampling``)."""
-    from denoiser.nn.graph_ops import heads_as_matmul, matmul_heads
+    from denoiser.nn.graph_mode import heads_as_matmul, matmul_heads
     from denoiser.nn.unet import UNet
 
     torch.manual_seed(0)

@@ -26,7 +26,7 @@ from conftest import extension_or_skip
 
 from denoiser.errors import UserError
 from denoiser.inference import ovext
-from denoiser.nn.graph_ops import kernels_as_op
+from denoiser.nn.graph_mode import kernels_as_op
 from denoiser.nn.kernels import apply_kernels
 from denoiser.nn.pyramid import PyramidFilter
 
@@ -85,7 +85,7 @@ def f32_graph_outputs(path, module, inputs: dict, op: str) -> list[np.ndarray]:
     import onnx
     import openvino as ov
 
-    from denoiser.nn.graph_ops import heads_as_matmul
+    from denoiser.nn.graph_mode import heads_as_matmul
 
     names = list(inputs)
     with heads_as_matmul(True), kernels_as_op(True), torch.no_grad():
@@ -473,7 +473,7 @@ def test_factored_head_matches_its_product(tmp_path, mode, hw, half, skip):
     """``denoiser::FactoredHead`` (the level-0 head's channels from its factors: ``weight @ skip +
     F.interpolate(z)``, align_corners False, planar out) against that computation in PyTorch; two
     images; 1 and 2 threads alike."""
-    from denoiser.nn.graph_ops import FactoredHeadOp
+    from denoiser.nn.unet import FactoredHeadOp
 
     align = False if mode == "bilinear" else None
 
@@ -520,7 +520,7 @@ def run_clamp_blend(path, base, previous, weight, threads: int = 2) -> np.ndarra
 
 
 def export_clamp_blend(path, k: float, *inputs):
-    from denoiser.nn.graph_ops import ClampBlendOp
+    from denoiser.nn.temporal import ClampBlendOp
 
     class Blend(torch.nn.Module):
         def forward(self, base, previous, weight):
@@ -630,7 +630,7 @@ def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t, last):
     same bits with 1 and 2 threads."""
     import onnx
 
-    from denoiser.nn.graph_ops import GuideGateOp
+    from denoiser.nn.temporal import GuideGateOp
     from denoiser.nn.temporal import TemporalRecurrence
 
     class Gate(torch.nn.Module):
@@ -914,7 +914,7 @@ def test_warp_history_matches_the_loop_over_pixels(tmp_path, hw, last):
     graphs': the last two); the same bits with 1 and 2 threads."""
     import openvino as ov
 
-    from denoiser.nn.graph_ops import WarpHistoryOp
+    from denoiser.nn.warp import WarpHistoryOp
 
     class Warp(torch.nn.Module):
         def forward(self, motion, keep, a, b, c, d):

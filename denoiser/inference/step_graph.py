@@ -49,7 +49,7 @@ from denoiser.buffers import CHANNELS, FRAME_INPUTS
 from denoiser.errors import UserError
 from denoiser.frames import random_frame
 from denoiser.inference import sigstack
-from denoiser.nn.graph_ops import heads_as_matmul, kernels_as_op
+from denoiser.nn.graph_mode import heads_as_matmul, kernels_as_op
 from denoiser.runner import Network, RecurrentRunner
 
 
@@ -112,7 +112,7 @@ def export_onnx(net: nn.Module, path: str | os.PathLike, opset: int = 17, trace_
     in f32, while 1x1 convolutions (the default) are what it runs fastest in bf16.
     ``fused_kernels``: the kernel filter, the input transforms' ``log1p`` and (with matmul heads)
     the level-0 head's upsampling as operations of the project's OpenVINO extension
-    (:func:`denoiser.nn.graph_ops.kernels_as_op`, :mod:`denoiser.inference.ovext`; same numbers): faster in
+    (:func:`denoiser.nn.graph_mode.kernels_as_op`, :mod:`denoiser.inference.ovext`; same numbers): faster in
     OpenVINO, and only OpenVINO with that extension can run the file.
     """
     import onnx

@@ -15,6 +15,8 @@ Parts, each in its own module:
 * :mod:`.temporal` - :class:`TemporalRecurrence` (history state, blend weights, resets);
 * :mod:`.denoiser` - :class:`Denoiser` with the one ``step`` used everywhere;
 * :mod:`.critic`   - :class:`PatchCritic` for adversarial distillation.
+* :mod:`.graph_mode` - whether a graph is being recorded, and the switches of its form;
+* :mod:`.graph_ops`  - the OpenVINO extension's operation schema (each export stub beside its code).
 
 Imports only the root vocabulary (:mod:`denoiser.nonfinite`, :mod:`denoiser.errors`,
 :mod:`denoiser.buffers`, :mod:`denoiser.runner`, ...) and itself; every other part may import

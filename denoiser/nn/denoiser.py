@@ -62,7 +62,7 @@ from torch import nn
 
 from denoiser.buffers import NETWORK_INPUTS
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import in_graph
+from denoiser.nn.graph_mode import in_graph
 from denoiser.nn.inputs import (
     GUIDE_CHANNELS,
     color_feature,

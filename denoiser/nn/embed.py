@@ -11,10 +11,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from denoiser.buffers import CHANNELS
-from denoiser.nn.graph_ops import EmbedNetOp, fused_kernels, matmul_heads
+from denoiser.nn.graph_mode import fused_kernels, matmul_heads
+from denoiser.nn.graph_ops import graph_node
 from denoiser.nn.inputs import color_feature
 from denoiser.nn.parts import conv_of_parts
 
@@ -49,8 +51,8 @@ class EmbedNet(nn.Module):
         it is (``sum C_i == C_in``): the first layer then runs per part with its slice of the
         weights and the results are summed (what the exported graph runs: no full-resolution
         concatenation of the inputs; the same numbers up to float rounding of the sum). In the
-        f32 graph with the fused operations (:func:`~denoiser.nn.graph_ops.matmul_heads` and
-        :func:`~denoiser.nn.graph_ops.fused_kernels`) the three layers are one
+        f32 graph with the fused operations (:func:`~denoiser.nn.graph_mode.matmul_heads` and
+        :func:`~denoiser.nn.graph_mode.fused_kernels`) the three layers are one
         ``denoiser::EmbedNet`` node. color_scale (parts only): ``[B, 1, 1, 1]``: the first part is
         the linear colour buffer ``[B, 3, H, W]`` float32, whose :func:`~denoiser.nn.inputs.color_feature`
         with this scale is the input (taken inside that node in the f32 graph).
@@ -73,3 +75,40 @@ class EmbedNet(nn.Module):
             y = self.layers(x.reshape(b * s, c, h, w))
             return y.reshape(b, s, self.out_channels, h, w).mean(dim=1)
         return self.layers(x)
+
+
+# ----------------------------------------------------------------------------- export stub
+
+
+class EmbedNetOp(torch.autograd.Function):
+    """:class:`denoiser.nn.embed.EmbedNet`'s per-pixel path on a list of input parts, recorded as one
+    ``denoiser::EmbedNet`` node (attributes ``negative_slope``, ``color_channels``): the three 1x1
+    layers per pixel, the hidden values never written at full resolution.
+
+    forward(negative_slope, color_channels, w0 ``[M, C]``, b0 ``[M]``, w1 ``[M, M]``, b1, w2 ``[N,
+    M]``, b2 ``[N]``, scale ``[B, 1, 1, 1]``, *parts ``[B, C_i, H, W]`` with ``sum C_i == C``) ->
+    ``[B, H, W, N]`` float32, channels-last (the layout the U-Net's first convolution reads; the
+    caller permutes it to ``[B, N, H, W]``). The first ``color_channels`` input channels are
+    linear colour: the node takes their :func:`denoiser.nn.inputs.color_feature` with ``scale``
+    first (0: none, ``scale`` unread).
+    """
+
+    @staticmethod
+    def forward(ctx, negative_slope, color_channels, w0, b0, w1, b1, w2, b2, scale, *parts):
+        x = torch.cat(parts, 1)
+        if color_channels:
+            x = torch.cat([torch.log1p(x[:, :color_channels].clamp_min(0) / scale), x[:, color_channels:]], 1)
+        x = x.permute(0, 2, 3, 1)
+        for w, b in ((w0, b0), (w1, b1), (w2, b2)):
+            x = F.leaky_relu(x @ w.t() + b, negative_slope)
+        return x.contiguous()
+
+    @staticmethod
+    def symbolic(g, negative_slope, color_channels, w0, b0, w1, b1, w2, b2, scale, *parts):
+        out = graph_node(g, "EmbedNet", w0, b0, w1, b1, w2, b2, scale, *parts, like=parts[0],
+                         negative_slope=float(negative_slope), color_channels=int(color_channels))
+        sizes = parts[0].type().varyingSizes()  # [B, H, W, N] (None where not known)
+        n = w2.type().varyingSizes()
+        if sizes is not None and len(sizes) == 4 and n is not None:
+            out.setType(parts[0].type().with_sizes([sizes[0], sizes[2], sizes[3], n[0]]))
+        return out

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from denoiser.nn.graph_ops import in_graph
+from denoiser.nn.graph_mode import in_graph
 from denoiser.nn.inputs import COLOR_EPS, POSINF
 from denoiser.nn.kernels import apply_kernels
 from denoiser.nn.pyramid import check_kernel_sizes

@@ -33,7 +33,8 @@ from __future__ import annotations
 
 import torch
 
-from denoiser.nn.graph_ops import ColorFeatureOp, GuideFeaturesOp, Log1pOp, fused_kernels, matmul_heads
+from denoiser.nn.graph_mode import fused_kernels, matmul_heads
+from denoiser.nn.graph_ops import graph_node
 from denoiser.nonfinite import POSINF, replace_tensor
 
 COLOR_EPS = 1e-3
@@ -72,8 +73,8 @@ def color_feature(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
 def color_feature_part(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """:func:`color_feature` of an input part of the U-Net's first convolution: x ``[B, C, H,
     W]``, scale ``[B, 1, 1, 1]`` -> ``[B, C, H, W]`` float32. In the f32 graph with the fused
-    operations (:func:`~denoiser.nn.graph_ops.matmul_heads` and
-    :func:`~denoiser.nn.graph_ops.fused_kernels`) one ``denoiser::ColorFeature`` node that writes
+    operations (:func:`~denoiser.nn.graph_mode.matmul_heads` and
+    :func:`~denoiser.nn.graph_mode.fused_kernels`) one ``denoiser::ColorFeature`` node that writes
     it channels-last, as the convolution reads it, permuted back here (no reorder between them)."""
     if fused_kernels() and matmul_heads():
         return ColorFeatureOp.apply(x, scale).permute(0, 3, 1, 2)
@@ -86,7 +87,7 @@ def albedo_feature(albedo: torch.Tensor) -> torch.Tensor:
 
 
 def log1p(x: torch.Tensor) -> torch.Tensor:
-    """``torch.log1p``; exported with the fused operations (:func:`~denoiser.nn.graph_ops.kernels_as_op`)
+    """``torch.log1p``; exported with the fused operations (:func:`~denoiser.nn.graph_mode.kernels_as_op`)
     as one ``denoiser::Log1p`` node of the OpenVINO extension (OpenVINO's own ``Log`` is a slow
     reference implementation on the CPU: 8-11 ms per 3-channel 1080p buffer on 2 threads)."""
     if fused_kernels():
@@ -142,3 +143,57 @@ def plain_guide_features(albedo: torch.Tensor, normal: torch.Tensor, depth: torc
     """:func:`guide_features` of sanitised buffers (``albedo``, ``normal`` ``[B, 3, H, W]``,
     ``depth`` ``[B, 1, H, W]``) -> ``[B, 7, H, W]``."""
     return torch.cat([albedo_feature(albedo), normal_feature(normal), depth_feature(depth)], dim=1)
+
+
+# ----------------------------------------------------------------------------- export stubs
+
+
+class ColorFeatureOp(torch.autograd.Function):
+    """:func:`denoiser.nn.inputs.color_feature` of a U-Net input part recorded as one
+    ``denoiser::ColorFeature`` node: forward(x ``[B, C, H, W]``, scale ``[B, 1, 1, 1]``) ->
+    ``[B, H, W, C]`` float32 channels-last (the layout the U-Net's first convolution reads; the
+    caller permutes it to ``[B, C, H, W]``)."""
+
+    @staticmethod
+    def forward(ctx, x, scale):
+        return torch.log1p(x.float().clamp_min(0) / scale).permute(0, 2, 3, 1).contiguous()
+
+    @staticmethod
+    def symbolic(g, x, scale):
+        out = graph_node(g, "ColorFeature", x, scale, like=x)
+        sizes = x.type().varyingSizes()  # [B, C, H, W] (None where not known)
+        if sizes is not None and len(sizes) == 4:
+            out.setType(x.type().with_sizes([sizes[0], sizes[2], sizes[3], sizes[1]]))
+        return out
+
+
+class GuideFeaturesOp(torch.autograd.Function):
+    """:func:`denoiser.nn.inputs.guide_features` recorded as one ``denoiser::GuideFeatures`` node:
+    forward(albedo ``[B, 3, H, W]``, normal ``[B, 3, H, W]``, depth ``[B, 1, H, W]`` (as given:
+    the node sanitises them), mean ``[B, 1, 1, 1]`` (:func:`~denoiser.nn.inputs.depth_mean`),
+    albedo_max, depth_far, posinf) -> ``[B, 7, H, W]`` float32 (the value: the plain features)."""
+
+    @staticmethod
+    def forward(ctx, albedo, normal, depth, mean, albedo_max, depth_far, posinf):
+        return plain_guide_features(*(sanitize(x) for x in (albedo, normal, depth)))
+
+    @staticmethod
+    def symbolic(g, albedo, normal, depth, mean, albedo_max, depth_far, posinf):
+        out = graph_node(g, "GuideFeatures", albedo, normal, depth, mean, like=albedo, albedo_max=float(albedo_max),
+                         depth_far=float(depth_far), posinf=float(posinf))
+        sizes = albedo.type().varyingSizes()
+        if sizes is not None and len(sizes) == 4:
+            out.setType(albedo.type().with_sizes([sizes[0], 7, sizes[2], sizes[3]]))
+        return out
+
+
+class Log1pOp(torch.autograd.Function):
+    """:func:`denoiser.nn.inputs.log1p` recorded as one ``denoiser::Log1p`` node (the value: ``torch.log1p``)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return torch.log1p(x)
+
+    @staticmethod
+    def symbolic(g, x):
+        return graph_node(g, "Log1p", x, like=x)

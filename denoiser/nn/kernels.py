@@ -15,7 +15,7 @@ so besides the weights ``[B, k*k, H, W]`` only O(C*H*W) is allocated (an ``unfol
 allocate ``[B, C*k*k, H*W]``). :func:`apply_kernels_unfold` is that unfold formulation, kept
 for the benchmark's comparison only.
 
-Traced or exported (:func:`denoiser.nn.graph_ops.in_graph`, the graph of ``denoiser-export``,
+Traced or exported (:func:`denoiser.nn.graph_mode.in_graph`, the graph of ``denoiser-export``,
 ONNX Runtime and OpenVINO), the same sum is recorded as a few large ops
 instead of k*k Python-level taps and the border masking's 2k slice assignments
 (:func:`apply_kernels_graph`): the k*k shifted views are slices of one zero-padded copy, the
@@ -34,7 +34,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from denoiser.nn.graph_ops import KernelApplyOp, fused_kernels, in_graph
+from denoiser.nn.graph_mode import fused_kernels, in_graph, unfused
+from denoiser.nn.graph_ops import graph_node, scale_attributes
 from denoiser.nonfinite import nan_to_num
 
 
@@ -250,3 +251,22 @@ def apply_kernels_unfold(x: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     weights = kernel_weights(logits)
     cols = F.unfold(x.float(), k, padding=k // 2).view(b, c, k * k, h, w)
     return (cols * weights.unsqueeze(1)).sum(dim=2)
+
+
+# ----------------------------------------------------------------------------- export stub
+
+
+class KernelApplyOp(torch.autograd.Function):
+    """:func:`denoiser.nn.kernels.apply_kernels_graph` recorded as one ``denoiser::KernelApply`` node.
+
+    forward(x ``[B, C, H, W]`` float32, logits ``[B, k*k, H, W]`` float32, scale float or None)
+    -> ``[B, C, H, W]`` float32, computed by the plain graph.
+    """
+
+    @staticmethod
+    def forward(ctx, x, logits, scale):
+        return unfused(apply_kernels_graph, x, logits, scale)
+
+    @staticmethod
+    def symbolic(g, x, logits, scale):
+        return graph_node(g, "KernelApply", x, logits, like=x, **scale_attributes(scale))

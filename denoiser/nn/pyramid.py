@@ -29,8 +29,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import PyramidFilterHeadOp, PyramidFilterOp, fused_kernels
+from denoiser.nn.graph_mode import fused_kernels, unfused
+from denoiser.nn.graph_ops import graph_node, scale_attributes
 from denoiser.nn.kernels import apply_kernels, scale_logits
+from denoiser.nn.parts import pointwise
 from denoiser.nn.unet import FactoredHead
 
 #: smallest normaliser used for division; below it the input pixel is passed through
@@ -143,3 +145,43 @@ def pyramid_filter(x: torch.Tensor, heads: Sequence[torch.Tensor], kernel_sizes:
             acc = F.interpolate(acc, size=filtered[i].shape[-2:], mode="bilinear",
                                 align_corners=False) + filtered[i]
         return normalize(acc, x1[:, :-1]), {"partition": partition}
+
+
+# ----------------------------------------------------------------------------- export stubs
+
+
+class PyramidFilterOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.pyramid.PyramidFilter.forward` recorded as one ``denoiser::PyramidFilter``
+    node (inputs x and the L heads; attributes ``kernel_sizes``, ``scale``, ``has_scale``)."""
+
+    @staticmethod
+    def forward(ctx, x, kernel_sizes, scale, *heads):
+        return unfused(pyramid_filter, x, heads, kernel_sizes, scale)[0]
+
+    @staticmethod
+    def symbolic(g, x, kernel_sizes, scale, *heads):
+        return graph_node(g, "PyramidFilter", x, *heads, like=x, kernel_sizes=list(kernel_sizes),
+                          **scale_attributes(scale))
+
+
+class PyramidFilterHeadOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.pyramid.PyramidFilter.forward` with head 0 given by its factors
+    (:class:`denoiser.nn.unet.FactoredHead`), recorded as one ``denoiser::PyramidFilterHead`` node:
+    head 0 is ``weight @ skip + interpolate(z, (H, W), mode)``, computed row by row where the
+    filter reads it instead of written at full resolution.
+
+    forward(x ``[B, 3, H, W]``, skip ``[B, H, W, C_s]`` channels-last, weight ``[L + k0^2, C_s]``,
+    z ``[B, L + k0^2, h, w]``, kernel_sizes, scale, mode, align, head_1 .. head_{L-1})
+    -> ``[B, 3, H, W]`` float32, computed by the plain graph.
+    """
+
+    @staticmethod
+    def forward(ctx, x, skip, weight, z, kernel_sizes, scale, mode, align, *heads):
+        head0 = pointwise(weight, None, skip.permute(0, 3, 1, 2)) + F.interpolate(
+            z, size=x.shape[-2:], mode=mode, align_corners=align)
+        return unfused(pyramid_filter, x, (head0, *heads), kernel_sizes, scale)[0]
+
+    @staticmethod
+    def symbolic(g, x, skip, weight, z, kernel_sizes, scale, mode, align, *heads):
+        return graph_node(g, "PyramidFilterHead", x, skip, weight, z, *heads, like=x,
+                          kernel_sizes=list(kernel_sizes), mode=mode, **scale_attributes(scale))

@@ -79,9 +79,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import ClampBlendOp, GuideGateOp, WarpHistoryOp, fused_kernels
+from denoiser.nn.graph_mode import fused_kernels, unfused, untraced
+from denoiser.nn.graph_ops import graph_node
 from denoiser.nn.inputs import GUIDE_CHANNELS, color_feature_part
-from denoiser.nn.warp import warp_all
+from denoiser.nn.warp import WarpHistoryOp, warp_all
 
 #: minimum bilinear coverage for a warped history value to count
 COVER_MIN = 1e-4
@@ -89,7 +90,7 @@ COVER_MIN = 1e-4
 STATE_KEYS = ("output", "color", "features", "guide")
 
 #: the state entries an exported graph's fused warp writes channels-last ([B, H, W, C]): the U-Net's
-#: first convolution reads them in that layout (denoiser.nn.graph_ops.WarpHistoryOp)
+#: first convolution reads them in that layout (denoiser.nn.warp.WarpHistoryOp)
 CHANNELS_LAST_KEYS = ("features", "guide")
 
 #: relative floor of the standard deviation in :func:`history_disagreement` (a flat neighbourhood)
@@ -157,7 +158,7 @@ def clamp_blend(base: torch.Tensor, previous: torch.Tensor, weight: torch.Tensor
     """The history clamp and blend: ``base + weight * (clamped - base)`` with ``clamped`` the
     :func:`neighbourhood_clamp` of ``previous`` to ``base``'s 3x3 neighbourhood. base, previous:
     ``[B, C, H, W]``; weight ``[B, 1, H, W]`` in [0, 1]; -> ``[B, C, H, W]`` float32. In a graph
-    recorded with the extension's operations (:func:`denoiser.nn.graph_ops.kernels_as_op`) it is
+    recorded with the extension's operations (:func:`denoiser.nn.graph_mode.kernels_as_op`) it is
     one ``denoiser::ClampBlend`` node."""
     if fused_kernels():
         return ClampBlendOp.apply(base.float(), previous.float(), weight.float(), float(k))
@@ -265,7 +266,7 @@ class TemporalRecurrence(nn.Module):
         as ``[B, H, W, 7]`` where the fused warp wrote it so (read by the fused gate, not permuted)."""
         if self.reject_threshold is None:
             return torch.ones_like(current[:, :1], dtype=torch.float32)
-        if fused_kernels():  # one denoiser::GuideGate node (denoiser.nn.graph_ops), the previous guide channels-last
+        if fused_kernels():  # one denoiser::GuideGate node (denoiser.nn.graph_ops: the schema), the previous guide channels-last
             if previous_last is None:
                 previous_last = previous.permute(0, 2, 3, 1)
             return GuideGateOp.apply(previous_last.float(), current.float(), self.reject_threshold)
@@ -295,7 +296,7 @@ class TemporalRecurrence(nn.Module):
         keep = keep.view(b, 1, 1, 1)
         # discarded history is never read (its sample positions lie off the image), so it
         # cannot leak, not even as NaN through 0 * x; its coverage is 0
-        if fused_kernels():  # one denoiser::WarpHistory node (denoiser.nn.graph_ops)
+        if fused_kernels():  # one denoiser::WarpHistory node (denoiser.nn.graph_ops: the schema)
             # the guide and features warped channels-last: the U-Net's first convolution reads them so
             last = tuple(k in CHANNELS_LAST_KEYS for k in STATE_KEYS)
             *values, valid = WarpHistoryOp.apply(motion.float(), keep, COVER_MIN, last,
@@ -362,3 +363,46 @@ class TemporalRecurrence(nn.Module):
         """State for the next step (tensors ``[B, C, H, W]``, see module docstring)."""
         features = torch.tanh(head[:, self._head["features"]].float())
         return {"output": output, "color": color, "features": features, "guide": guide}
+
+
+# ----------------------------------------------------------------------------- export stubs
+
+
+class ClampBlendOp(torch.autograd.Function):
+    """:func:`denoiser.nn.temporal.clamp_blend` recorded as one ``denoiser::ClampBlend`` node
+    (attribute ``k``); the value is the plain computation.
+
+    forward(base ``[B, C, H, W]``, previous ``[B, C, H, W]``, weight ``[B, 1, H, W]``, k float)
+    -> ``[B, C, H, W]`` float32.
+    """
+
+    @staticmethod
+    def forward(ctx, base, previous, weight, k):
+        return untraced(unfused, clamp_blend, base, previous, weight, k)
+
+    @staticmethod
+    def symbolic(g, base, previous, weight, k):
+        return graph_node(g, "ClampBlend", base, previous, weight, like=base, k=float(k))
+
+
+class GuideGateOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.temporal.TemporalRecurrence.gate` recorded as one ``denoiser::GuideGate``
+    node (attributes ``threshold``, ``previous_channels_last`` 1); the value is the plain computation.
+
+    forward(previous ``[B, H, W, 7]`` channels-last (as :class:`WarpHistoryOp` writes the warped
+    guide), current ``[B, 7, H, W]``, threshold float) -> ``[B, 1, H, W]`` float32 in [0, 1].
+    """
+
+    @staticmethod
+    def forward(ctx, previous, current, threshold):
+        return untraced(lambda: (2.0 - guide_disagreement(previous.permute(0, 3, 1, 2), current) / threshold
+                                 ).clamp(0.0, 1.0))
+
+    @staticmethod
+    def symbolic(g, previous, current, threshold):
+        out = graph_node(g, "GuideGate", previous, current, like=current, threshold=float(threshold),
+                         previous_channels_last=1)
+        sizes = current.type().varyingSizes()  # [B, 1, H, W] (None where not known)
+        if sizes is not None and len(sizes) == 4:
+            out.setType(current.type().with_sizes([sizes[0], 1, sizes[2], sizes[3]]))
+        return out

@@ -27,7 +27,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from denoiser.errors import ConfigError
-from denoiser.nn.graph_ops import FactoredHeadOp, fused_kernels, in_graph, matmul_heads
+from denoiser.nn.graph_mode import fused_kernels, in_graph, matmul_heads
+from denoiser.nn.graph_ops import graph_node
 from denoiser.nn.parts import conv_of_parts, pointwise, pointwise_of_parts
 
 
@@ -167,7 +168,7 @@ class FactoredHead:
     maps over channels and over pixels respectively, so they commute: the same numbers up to
     float rounding, with a quarter of that part's multiply-adds; the bias joins the
     half-resolution product). What a graph exported with matmul heads and the fused operations
-    (:func:`~denoiser.nn.graph_ops.kernels_as_op`) carries as ``heads[0]``: the pyramid filter
+    (:func:`~denoiser.nn.graph_mode.kernels_as_op`) carries as ``heads[0]``: the pyramid filter
     computes the rows of its channels where it reads them (``denoiser::PyramidFilterHead``), so
     the full-resolution head is never written; other readers take :meth:`tensor`.
 
@@ -217,3 +218,26 @@ def head_channels(head: torch.Tensor | FactoredHead, start: int, stop: int | Non
         head = head.select(start, stop)
         return head if factored else head.tensor()
     return head[:, start:stop]
+
+
+# ----------------------------------------------------------------------------- export stub
+
+
+class FactoredHeadOp(torch.autograd.Function):
+    """:meth:`denoiser.nn.unet.FactoredHead.tensor` recorded as one ``denoiser::FactoredHead`` node
+    (attribute ``mode``): forward(skip ``[B, H, W, C_s]`` channels-last, weight ``[C, C_s]``, z
+    ``[B, C, h, w]``, mode, align) -> ``[B, C, H, W]`` float32, ``weight @ skip +
+    interpolate(z)`` (the value: the plain computation)."""
+
+    @staticmethod
+    def forward(ctx, skip, weight, z, mode, align):
+        a = pointwise(weight, None, skip.permute(0, 3, 1, 2))
+        return a + F.interpolate(z, size=a.shape[-2:], mode=mode, align_corners=align)
+
+    @staticmethod
+    def symbolic(g, skip, weight, z, mode, align):
+        out = graph_node(g, "FactoredHead", skip, weight, z, like=z, mode=mode)
+        s, zs = skip.type().varyingSizes(), z.type().varyingSizes()  # [B, H, W, C_s], [B, C, h, w]
+        if s is not None and zs is not None and len(s) == 4 and len(zs) == 4:
+            out.setType(z.type().with_sizes([s[0], zs[1], s[1], s[2]]))
+        return out

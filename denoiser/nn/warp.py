@@ -12,7 +12,10 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from denoiser.nn.graph_mode import untraced
+from denoiser.nn.graph_ops import graph_node
 from denoiser.nn.inputs import sanitize
+from denoiser.nonfinite import POSINF
 
 #: motion is clamped to +-(MOTION_LIMIT * max(H, W)) pixels: anything beyond is off-screen
 #: anyway, and the clamp keeps grid coordinates small and finite.
@@ -103,3 +106,49 @@ def warp_all(buffers: Sequence[torch.Tensor], motion: torch.Tensor, keep: torch.
         warped = [F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
                   for x in buffers]
         return warped, coverage(sx, sy)
+
+
+# ----------------------------------------------------------------------------- export stub
+
+
+class WarpHistoryOp(torch.autograd.Function):
+    """The sampling of :meth:`denoiser.nn.temporal.TemporalRecurrence.warp` (before its gate)
+    recorded as one ``denoiser::WarpHistory`` node (attributes ``motion_limit``, ``posinf``,
+    ``outside``, ``cover_min``, ``channels_last``): the sample positions, bilinear weights and
+    coverage computed once for every buffer; the value is the plain computation.
+
+    forward(motion ``[B, 2, H, W]``, keep bool ``[B, 1, 1, 1]``, cover_min float, channels_last
+    tuple of bools (one per buffer), buffer_0 ``[B, C_0, H, W]``, ...) -> (each buffer warped and
+    divided by the coverage where it exceeds cover_min, else 0, float32, ``[B, C_i, H, W]``, or
+    ``[B, H, W, C_i]`` (contiguous) where channels_last[i] (the layout of a convolution's input:
+    the graph's permute back to ``[B, C_i, H, W]`` then moves nothing), ..., valid ``[B, 1, H,
+    W]``: the coverage there, else 0).
+    """
+
+    @staticmethod
+    def forward(ctx, motion, keep, cover_min, channels_last, *buffers):
+        def plain():
+            warped, cover = warp_all(buffers, motion, keep)
+            ok = cover > cover_min
+            safe = cover.clamp_min(cover_min)
+            values = (torch.where(ok, v / safe, 0.0) for v in warped)
+            return (*(v.permute(0, 2, 3, 1).contiguous() if last else v for v, last in zip(values, channels_last)),
+                    torch.where(ok, cover, 0.0))
+
+        return untraced(plain)
+
+    @staticmethod
+    def symbolic(g, motion, keep, cover_min, channels_last, *buffers):
+        keep_f = g.op("Cast", keep, to_i=1)  # float32: 1 keep, 0 discard
+        outs = graph_node(g, "WarpHistory", motion, keep_f, *buffers, like=motion, outputs=len(buffers) + 1,
+                          motion_limit=float(MOTION_LIMIT), posinf=float(POSINF), outside=float(OUTSIDE),
+                          cover_min=float(cover_min), channels_last=[int(bool(c)) for c in channels_last])
+        sizes = motion.type().varyingSizes()  # [B, C_i, H, W] (None where not known)
+        for out, like, last in zip(outs, [*buffers, None], [*channels_last, False]):
+            channels = like.type().varyingSizes()[1] if like is not None and like.type().varyingSizes() else 1
+            if sizes is not None and len(sizes) == 4:
+                shape = [sizes[0], sizes[2], sizes[3], channels] if last else [sizes[0], channels, sizes[2], sizes[3]]
+                out.setType(motion.type().with_sizes(shape))
+            else:
+                out.setType(motion.type())
+        return outs

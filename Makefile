@@ -10,7 +10,7 @@ PYTEST_ARGS ?=
 # summary still prints (issue 44; tests/test_signal_stack.py::test_make_test_survives_a_crashing_test).
 PYTEST_ISOLATION ?= -p xdist -n 1 --max-worker-restart=100
 
-.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val blender-venv
+.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val blender-venv release
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -42,9 +42,13 @@ ovext: setup
 #   compare    Fig. A.2 / A.3 (NPPD, WS, ONND, OIDN), after make demo -> reports/compare
 #   pareto     the accuracy-vs-time Pareto front -> reports/pareto
 #   paper      ablations, compare and pareto in order, their work against the budget -> reports/paper; then make readme
+#   release    the model release (issue 62): renders, teacher, 3 students, val, bench, ship -> denoiser/models, reports/release
+#              (hours: resumable, run it again after an interruption; docs/release.md)
 ARGS ?=
 demo ablations compare pareto: setup
 	$(VENV)/bin/denoiser-pipeline pipeline=$@ $(ARGS)
+release: setup blender-venv
+	$(VENV)/bin/denoiser-pipeline pipeline=release $(ARGS)
 paper: setup
 	$(VENV)/bin/denoiser-pipeline pipeline=paper $(ARGS) && $(MAKE) readme
 

@@ -65,7 +65,9 @@ class Context:
 def argv_of(stage: Mapping, job: Job, ctx: Context, threads: int | None) -> list[str]:
     """The command line of one job."""
     if stage.get("module"):
-        head = [ctx.python, "-m", str(stage["module"])]
+        head = [str(stage.get("python") or ctx.python), "-m", str(stage["module"])]
+    elif stage.get("script"):
+        head = [str(stage.get("python") or ctx.python), str(stage["script"])]
     else:
         head = [str(ctx.bin_dir / f"denoiser-{stage['command']}")]
     args = list(job.args) + list(job.extra)

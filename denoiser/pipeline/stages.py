@@ -5,6 +5,8 @@ stage is a mapping with these keys (all optional but one of ``command``, ``modul
 
 - ``command``: a console command of the package, ``train`` -> ``denoiser-train`` (also ``eval``,
   ``bench``, ``render``, ``pareto``, ``pipeline``); ``module``: ``python -m <module>`` instead;
+  ``script``: ``python <file>`` (a script of the checkout, e.g. ``scripts/blender_sequences.py``); ``python``:
+  the interpreter of this stage's ``module`` or ``script`` (e.g. ``.venv-blender/bin/python``, where ``bpy`` is);
   ``copy``: ``[[source, destination], ...]`` files or folders (a glob source copies every match
   into a destination folder), no command;
 - ``args``: the command's ``key=value`` overrides (a list value, ``${axes}``, is spread in place;
@@ -57,7 +59,7 @@ from denoiser.errors import ConfigError
 STAGE_KEYS = frozenset({
     "command", "module", "copy", "args", "matrix", "name", "run_dir", "ckpt", "checkpoints", "jobs",
     "threads", "reuse", "produces", "if_exists", "otherwise_remove", "on_collapse", "existing", "jobs_from",
-    "unless_exists",
+    "unless_exists", "script", "python",
 })
 
 
@@ -65,6 +67,27 @@ def optional(key: str, value) -> str:
     """``key=value``, or an empty string (an argument left out) when ``value`` is null: the
     resolver ``${opt:trainer.max_steps,${steps}}`` passes a knob only when it is set."""
     return "" if value is None else f"{key}={value}"
+
+
+def given(keys, overrides) -> list[str]:
+    """The pipeline's own command-line overrides (``${hydra:overrides.task}``) of ``keys``, as given:
+    a key ``data`` takes ``data=...``, a key ending in ``.`` (``data.``) every ``data.<key>=...``
+    (``+``/``~`` prefixes kept). The resolver ``${given:[data,data.,layout],${hydra:overrides.task}}``
+    passes a user's data on to every command of a pipeline; nothing given, nothing added, so the
+    defaults' command lines stay as they were."""
+    keys = [str(k) for k in keys]
+    out = []
+    for override in overrides or []:
+        key = str(override).split("=", 1)[0].lstrip("+~")
+        if any(key.startswith(k) if k.endswith(".") else key == k for k in keys):
+            out.append(str(override))
+    return out
+
+
+def unless(condition, arg: str) -> str:
+    """``arg``, or an empty string (left out) when ``condition`` is true: the resolver
+    ``${unless:${oidn},~baselines.oidn_fast}`` keeps a baseline out unless it is asked for."""
+    return "" if condition else str(arg)
 
 
 def concat(*lists) -> list:
@@ -79,6 +102,24 @@ def best(run_dir: str | Path) -> str:
         if (Path(run_dir) / name).is_file():
             return str(Path(run_dir) / name)
     return str(Path(run_dir) / RUN_CHECKPOINTS[-1])
+
+
+def best_on_val(metrics_csv: str | Path, runs: str | Path, prefix: str, column: str = "psnr") -> str:
+    """The checkpoint (:func:`best`) of the run under ``runs`` whose method, named ``<prefix>...`` in
+    ``denoiser-eval``'s ``metrics.csv`` of a val split, has the highest mean ``column`` (its
+    ``sequence == "mean"`` row): which seed ships (make release). ConfigError naming the file when it
+    holds no such method."""
+    import csv
+
+    path = Path(metrics_csv)
+    if not path.is_file():
+        return best(Path(runs) / f"{prefix}<best on val: {path} not written yet>")  # dry runs and planning
+    with open(path, newline="") as f:
+        means = {r["method"]: float(r[column]) for r in csv.DictReader(f)
+                 if r["method"].startswith(prefix) and r.get("sequence") == "mean" and r.get(column)}
+    if not means:
+        raise ConfigError(f"{path}: no method named {prefix}... with a mean {column} (the val stage's evaluation)")
+    return best(Path(runs) / max(sorted(means), key=means.get))
 
 
 @dataclass
@@ -120,8 +161,8 @@ def check_stage(name: str, stage: Mapping) -> None:
     unknown = sorted(set(stage) - STAGE_KEYS)
     if unknown:
         raise ConfigError(f"stages.{name}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(STAGE_KEYS))})")
-    if sum(bool(stage.get(k)) for k in ("command", "module", "copy")) != 1:
-        raise ConfigError(f"stages.{name}: give exactly one of command, module or copy")
+    if sum(bool(stage.get(k)) for k in ("command", "module", "script", "copy")) != 1:
+        raise ConfigError(f"stages.{name}: give exactly one of command, module, script or copy")
     if stage.get("on_collapse", "stop") not in ("stop", "warn"):
         raise ConfigError(f"stages.{name}.on_collapse: {stage['on_collapse']!r} (stop or warn)")
 

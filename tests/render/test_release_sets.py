@@ -69,3 +69,10 @@ def test_release_val_holds_families_train_never_sees_and_test_holds_only_test_fa
     assert {j.split for j in test_jobs} == {"test"} and len(test_jobs) >= 42
     assert {j.scene_name for j in test_jobs} == {j.scene_name for j in planned["demo"][1] if j.split == "test"}
     assert not {j.scene_name for j in test_jobs} & (trained | val)
+
+
+def test_the_joined_release_roots_share_no_sequence_name(planned):
+    """Training joins the roots (data.extra_roots), which refuses a sequence name in two of them."""
+    for split in ("train", "val", "unlabeled"):
+        names = [j.directory for n in RELEASE_TRAINING for j in planned[n][1] if j.split == split]
+        assert len(names) == len(set(names)), split

@@ -14,26 +14,16 @@
 
 namespace denoiser {
 
-#if defined(__AVX512F__)
-// dst[3 p + c] = src[c * plane + p] for 16 pixels p and 3 channels c: output vector k's lane j
-// is pixel (16 k + j) / 3's channel (16 k + j) % 3, taken from channels 0 and 1 by one
-// two-source permute and from channel 2 by a second.
-static inline void interleave3(const float* src, int64_t plane, float* dst) {
-    alignas(64) static const int32_t first[3][16] = {
-        {0, 16, 0, 1, 17, 0, 2, 18, 0, 3, 19, 0, 4, 20, 0, 5},
-        {21, 0, 6, 22, 0, 7, 23, 0, 8, 24, 0, 9, 25, 0, 10, 26},
-        {0, 11, 27, 0, 12, 28, 0, 13, 29, 0, 14, 30, 0, 15, 31, 0}};
-    alignas(64) static const int32_t second[3][16] = {
-        {0, 1, 16, 3, 4, 17, 6, 7, 18, 9, 10, 19, 12, 13, 20, 15},
-        {0, 21, 2, 3, 22, 5, 6, 23, 8, 9, 24, 11, 12, 25, 14, 15},
-        {26, 1, 2, 27, 4, 5, 28, 7, 8, 29, 10, 11, 30, 13, 14, 31}};
-    const __m512 c0 = _mm512_loadu_ps(src), c1 = _mm512_loadu_ps(src + plane), c2 = _mm512_loadu_ps(src + 2 * plane);
-    for (int k = 0; k < 3; ++k) {
-        const __m512 t = _mm512_permutex2var_ps(c0, _mm512_load_si512(first[k]), c1);
-        _mm512_storeu_ps(dst + 16 * k, _mm512_permutex2var_ps(t, _mm512_load_si512(second[k]), c2));
+// dst[3 p + c] = src[c * plane + p] for p < n, c < 3: a loop the compilers vectorise with the
+// ISA's two-source permutes (three vectors of pixels in, three interleaved out).
+static inline void interleave3(const float* __restrict src, int64_t plane, int64_t n, float* __restrict dst) {
+    const float *c0 = src, *c1 = src + plane, *c2 = src + 2 * plane;
+    for (int64_t p = 0; p < n; ++p) {
+        dst[3 * p] = c0[p];
+        dst[3 * p + 1] = c1[p];
+        dst[3 * p + 2] = c2[p];
     }
 }
-#endif
 
 class ColorFeature : public ov::op::Op {
 public:
@@ -88,12 +78,11 @@ public:
                 }
                 log1p_range(u.data(), y.data(), 0, C * W);
                 float* orow = O + (b * H + yy) * W * C;
-                int64_t px = 0;
-#if defined(__AVX512F__)
-                if (C == 3)  // 16 pixels' three channels interleaved in registers (two permutes per vector)
-                    for (; px + 16 <= W; px += 16) interleave3(y.data() + px, W, orow + px * 3);
-#endif
-                for (; px < W; ++px)
+                if (C == 3) {  // the three channels interleaved by vector permutes
+                    interleave3(y.data(), W, W, orow);
+                    continue;
+                }
+                for (int64_t px = 0; px < W; ++px)
                     for (int64_t c = 0; c < C; ++c) orow[px * C + c] = y[c * W + px];
             }
         });

@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <cstring>
 #include <string>
+#include <utility>
 #include <limits>
 #include <memory>
 #include <mutex>
@@ -24,9 +25,6 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
-#if defined(__AVX512F__)
-#include <immintrin.h>
-#endif
 
 namespace denoiser {
 
@@ -74,13 +72,23 @@ static void logit_scale_row(const float* z, int64_t n, int64_t plane, int64_t W,
     for (int64_t px = 0; px < W; ++px) s[px] = scale / std::sqrt(s[px] * (1.0f / n) + 1.0f);
 }
 
-constexpr int64_t S = 16;  // pixels per strip: one AVX-512 register of floats
+// The kernels' vector code is written once, on the GCC/Clang vector extensions (no intrinsics):
+// a Strip is S floats, S the lanes of the widest vector register the build's target has
+// (-march=native: 16 with AVX-512, 8 with AVX2 or AVX, else 4: SSE2, NEON), so each Strip
+// operation is one instruction on every ISA (a Strip wider than the registers would be kept in
+// memory and its selects expanded lane by lane). Used where the compilers' own vectorisation
+// leaves loops scalar: a strip's taps, the level-0 head's product, the transposes, the warp's
+// sampling and gathers. Results do not depend on S (each pixel is computed alone).
+#if defined(__AVX512F__)
+constexpr int64_t S = 16;
+#elif defined(__AVX__)
+constexpr int64_t S = 8;
+#else
+constexpr int64_t S = 4;
+#endif
 
-// S floats (or int32) as one value, a GCC/Clang vector extension: one AVX-512 register, two AVX2
-// ones. For the loop nests the compilers' own vectorisation leaves scalar (a strip's taps, the
-// level-0 head's product in pyramid_filter_head.hpp).
 #if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wpsabi"  // without AVX-512 a Strip is passed differently; none leaves the library
+#pragma GCC diagnostic ignored "-Wpsabi"  // a Strip's argument passing differs between ISAs; none leaves the library
 #endif
 typedef float Strip __attribute__((vector_size(S * sizeof(float))));
 typedef int32_t IntStrip __attribute__((vector_size(S * sizeof(int32_t))));
@@ -90,73 +98,98 @@ static inline Strip load_strip(const float* p) {
     return v;
 }
 static inline void store_strip(float* p, Strip v) { std::memcpy(p, &v, sizeof(v)); }
+static inline IntStrip load_int_strip(const int32_t* p) {
+    IntStrip v;
+    std::memcpy(&v, p, sizeof(v));
+    return v;
+}
+static inline void store_int_strip(int32_t* p, IntStrip v) { std::memcpy(p, &v, sizeof(v)); }
 
-#if defined(__AVX512F__)
-// r[i][j] <- r[j][i]: a block of 16 x 16 floats transposed in registers.
-static inline void transpose16_regs(__m512 r[16]) {
-    __m512 t[16];
-    for (int i = 0; i < 16; i += 2) {  // 2 x 2 blocks of single floats
-        t[i] = _mm512_unpacklo_ps(r[i], r[i + 1]);
-        t[i + 1] = _mm512_unpackhi_ps(r[i], r[i + 1]);
-    }
-    for (int i = 0; i < 16; i += 4) {  // 4 x 4 blocks: pairs of floats
-        r[i] = _mm512_shuffle_ps(t[i], t[i + 2], 0x44);
-        r[i + 1] = _mm512_shuffle_ps(t[i], t[i + 2], 0xEE);
-        r[i + 2] = _mm512_shuffle_ps(t[i + 1], t[i + 3], 0x44);
-        r[i + 3] = _mm512_shuffle_ps(t[i + 1], t[i + 3], 0xEE);
-    }
-    for (int i = 0; i < 4; ++i) {  // 128-bit lanes: rows i, i + 4, i + 8, i + 12
-        t[i] = _mm512_shuffle_f32x4(r[i], r[i + 4], 0x88);
-        t[i + 4] = _mm512_shuffle_f32x4(r[i], r[i + 4], 0xDD);
-        t[i + 8] = _mm512_shuffle_f32x4(r[i + 8], r[i + 12], 0x88);
-        t[i + 12] = _mm512_shuffle_f32x4(r[i + 8], r[i + 12], 0xDD);
-    }
-    for (int i = 0; i < 4; ++i) {
-        r[i] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0x88);
-        r[i + 8] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0xDD);
-        r[i + 4] = _mm512_shuffle_f32x4(t[i + 4], t[i + 12], 0x88);
-        r[i + 12] = _mm512_shuffle_f32x4(t[i + 4], t[i + 12], 0xDD);
-    }
+// The first n < S floats of p, the other lanes 0 (and their store): a row's last, partial strip.
+static inline Strip load_part(const float* p, int64_t n) {
+    float t[S] = {};
+    std::memcpy(t, p, static_cast<size_t>(n) * sizeof(float));
+    return load_strip(t);
+}
+static inline void store_part(float* p, Strip v, int64_t n) {
+    float t[S];
+    store_strip(t, v);
+    std::memcpy(p, t, static_cast<size_t>(n) * sizeof(float));
 }
 
-// dst[c * dst_stride + p] = src[p * src_stride + c] for a block of 16 x 16 floats.
-static inline void transpose16(const float* src, int64_t src_stride, float* dst, int64_t dst_stride) {
-    __m512 r[16];
-    for (int i = 0; i < 16; ++i) r[i] = _mm512_loadu_ps(src + i * src_stride);
-    transpose16_regs(r);
-    for (int i = 0; i < 16; ++i) _mm512_storeu_ps(dst + i * dst_stride, r[i]);
+// 0, 1, ..., S - 1
+static inline Strip lane_index() {
+    Strip v;
+    for (int64_t l = 0; l < S; ++l) v[l] = static_cast<float>(l);
+    return v;
 }
-#endif
+
+// floor per lane (torch's and std::floor's): t = trunc(x) through int32 (exact for |x| < 2^23,
+// where a float can have a fraction), minus 1 where that rounded up; |x| >= 2^23 and NaN unchanged.
+static inline Strip floor_strip(Strip x) {
+    const Strip t = __builtin_convertvector(__builtin_convertvector(x, IntStrip), Strip);
+    const Strip fl = t > x ? t - 1.0f : t;
+    const Strip ax = x < 0.0f ? -x : x;
+    return ax < 8388608.0f ? fl : x;
+}
+
+// Lane j of the result: lane j of a where bit D of j is clear, else lane j - D of b (HI: lane j + D
+// of a where clear, else lane j of b): rows i and i + D of a block swap their off-diagonal D x D
+// parts. The lane indices are constants, so each is one shuffle (or blend) of the ISA.
+template <int64_t D, bool HI, size_t... J>
+static inline Strip swap_halves(Strip a, Strip b, std::index_sequence<J...>) {
+    return __builtin_shufflevector(a, b, (HI ? ((J & D) ? S + J : J + D) : ((J & D) ? S + J - D : J))...);
+}
+
+// r[i][j] <- r[j][i]: a block of S x S floats transposed in registers, log2(S) rounds of S
+// shuffles (the off-diagonal halves swapped, then the quarters in each half, ...).
+template <int64_t D = S / 2>
+static inline void transpose_regs(Strip r[S]) {
+    for (int64_t i = 0; i < S; ++i)
+        if ((i & D) == 0) {
+            const Strip lo = swap_halves<D, false>(r[i], r[i + D], std::make_index_sequence<S>{});
+            const Strip hi = swap_halves<D, true>(r[i], r[i + D], std::make_index_sequence<S>{});
+            r[i] = lo, r[i + D] = hi;
+        }
+    if constexpr (D > 1) transpose_regs<D / 2>(r);
+}
+
+// dst[c * dst_stride + p] = src[p * src_stride + c] for a block of S x S floats.
+static inline void transpose_block(const float* src, int64_t src_stride, float* dst, int64_t dst_stride) {
+    Strip r[S];
+    for (int64_t i = 0; i < S; ++i) r[i] = load_strip(src + i * src_stride);
+    transpose_regs(r);
+    for (int64_t i = 0; i < S; ++i) store_strip(dst + i * dst_stride, r[i]);
+}
 
 // Rows of n pixels and C channels between channels-last (value px * C + c) and planar (c * stride
 // + px): TO_PLANAR copies channels-last src into planar dst, else planar src into channels-last dst.
-// AVX-512: 16 pixels and 16 channels at a time, transposed in registers (masked loads or stores
-// where C is not a multiple of 16).
+// S pixels and S channels at a time, transposed in registers (partial loads or stores where C is
+// not a multiple of S).
 template <bool TO_PLANAR>
 static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, int64_t stride) {
     int64_t done = 0;
-#if defined(__AVX512F__)
-    for (; done + 16 <= n; done += 16)
-        for (int64_t c0 = 0; c0 < C; c0 += 16) {
-            const int64_t nc = std::min<int64_t>(16, C - c0);
-            const __mmask16 lanes = static_cast<__mmask16>((1u << nc) - 1u);
-            __m512 r[16];
-            for (int i = 0; i < 16; ++i) {
+    for (; done + S <= n; done += S)
+        for (int64_t c0 = 0; c0 < C; c0 += S) {
+            const int64_t nc = std::min<int64_t>(S, C - c0);
+            Strip r[S];
+            for (int64_t i = 0; i < S; ++i) {
                 if constexpr (TO_PLANAR)
-                    r[i] = _mm512_maskz_loadu_ps(lanes, src + (done + i) * C + c0);
+                    r[i] = nc == S ? load_strip(src + (done + i) * C + c0) : load_part(src + (done + i) * C + c0, nc);
                 else
-                    r[i] = i < nc ? _mm512_loadu_ps(src + (c0 + i) * stride + done) : _mm512_setzero_ps();
+                    r[i] = i < nc ? load_strip(src + (c0 + i) * stride + done) : Strip{};
             }
-            transpose16_regs(r);
-            for (int i = 0; i < 16; ++i) {
+            transpose_regs(r);
+            for (int64_t i = 0; i < S; ++i) {
                 if constexpr (TO_PLANAR) {
-                    if (i < nc) _mm512_storeu_ps(dst + (c0 + i) * stride + done, r[i]);
+                    if (i < nc) store_strip(dst + (c0 + i) * stride + done, r[i]);
+                } else if (nc == S) {
+                    store_strip(dst + (done + i) * C + c0, r[i]);
                 } else {
-                    _mm512_mask_storeu_ps(dst + (done + i) * C + c0, lanes, r[i]);
+                    store_part(dst + (done + i) * C + c0, r[i], nc);
                 }
             }
         }
-#endif
     for (int64_t px = done; px < n; ++px)
         for (int64_t c = 0; c < C; ++c) {
             if constexpr (TO_PLANAR)

@@ -9,7 +9,7 @@
 //   log1p(max(x, 0) / scale) first (denoiser.nn.inputs.color_feature; the log1p as
 //   denoiser::Log1p computes it: log1p.hpp); color_channels 0: x as given, scale unread.
 //
-//   per pixel, 16 pixels at a time with the hidden values in registers. In the plain graph the
+//   per pixel, a strip of S pixels at a time (common.hpp) with the hidden values in registers. In the plain graph the
 //   three 1x1 convolutions each wrote and read a full-resolution tensor (M = N = 16 channels for
 //   the demo student: 133 MB at 1080p each, about 55 ms of its f32 step with the reorders of the
 //   inputs into the first one). The output is channels-last, the layout the U-Net's first
@@ -128,13 +128,11 @@ public:
                     for (int64_t o0 = 0; o0 < N; o0 += 64) {  // channels-last: pixel p's N values together
                         const int64_t no = std::min<int64_t>(64, N - o0);
                         for (int64_t o = 0; o < no; ++o) store_strip(tile + o * S, y[o0 + o]);
-#if defined(__AVX512F__)
-                        if (m == S && no % 16 == 0) {  // 16 x 16 blocks transposed in registers
-                            for (int64_t o = 0; o < no; o += 16)
-                                transpose16(tile + o * S, S, orow + px0 * N + o0 + o, N);
+                        if (m == S && no % S == 0) {  // S x S blocks transposed in registers
+                            for (int64_t o = 0; o < no; o += S)
+                                transpose_block(tile + o * S, S, orow + px0 * N + o0 + o, N);
                             continue;
                         }
-#endif
                         for (int64_t p = 0; p < m; ++p)
                             for (int64_t o = 0; o < no; ++o) orow[(px0 + p) * N + o0 + o] = tile[o * S + p];
                     }

@@ -42,15 +42,12 @@ static void log1p_range(const float* x, float* y, int64_t begin, int64_t end) {
     const float lo = std::numeric_limits<float>::min(), hi = std::numeric_limits<float>::max();
     bool outside = false;
     int64_t i = begin;
-#if defined(__AVX512F__)
-    __mmask16 bad = 0;
-    for (; i + 16 <= end; i += 16) {  // ordered compares: false for NaN
-        const __m512 u = _mm512_add_ps(_mm512_set1_ps(1.0f), _mm512_loadu_ps(x + i));
-        bad |= static_cast<__mmask16>(~(_mm512_cmp_ps_mask(u, _mm512_set1_ps(lo), _CMP_GE_OQ) &
-                                        _mm512_cmp_ps_mask(u, _mm512_set1_ps(hi), _CMP_LE_OQ)));
+    IntStrip bad = {};
+    for (; i + S <= end; i += S) {  // ordered compares: false for NaN
+        const Strip u = 1.0f + load_strip(x + i);
+        bad |= ~((u >= lo) & (u <= hi));
     }
-    outside = bad != 0;
-#endif
+    for (int64_t l = 0; l < S; ++l) outside = outside || bad[l] != 0;
     for (; i < end; ++i) {
         const float u = 1.0f + x[i];
         outside = outside || !(u >= lo && u <= hi);

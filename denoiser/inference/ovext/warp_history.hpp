@@ -13,7 +13,7 @@
 // The plain graph built the grid with a dozen full-resolution elementwise passes, sampled each
 // buffer with its own GridSample, divided and selected per buffer: here the sample positions,
 // bilinear weights and coverage of a row are computed once, and every channel of every buffer is
-// gathered from them (AVX-512: 16 pixels at a time, see gather_row). As torch's sampler, every in-image corner is
+// gathered from them (a strip of S pixels at a time, see gather_row). As torch's sampler, every in-image corner is
 // read whatever its weight (a NaN there comes through), and the position goes through the grid's
 // normalisation and back, so the weights are torch's.
 #pragma once
@@ -26,15 +26,23 @@ namespace denoiser {
 // image; the other corners are +1, +W, +W + 1, each read only where it lies in the image), the four
 // bilinear weights, which corners lie in the image (bit 0 nw, 1 ne, 2 sw, 3 se) and the coverage
 // where it counts (> cover_min), else 0.
+#if defined(__GNUC__) && !defined(__clang__)
+constexpr bool PICK = true;
+// lane j of the result: lane idx[j] of the 2 S lanes of a then b, idx[j] in [0, 2 S) (GCC's
+// shuffle with a variable selector: vpermt2ps with AVX-512, two vpermps and a blend with AVX2, tbl on NEON)
+static inline Strip pick2(Strip a, Strip b, IntStrip idx) { return __builtin_shuffle(a, b, idx); }
+#else
+constexpr bool PICK = false;  // Clang's shuffles take constant selectors only: the corners are loaded
+static inline Strip pick2(Strip a, Strip, IntStrip) { return a; }
+#endif
+
 struct WarpRow {
     std::vector<int32_t> index;
     std::vector<float> nw, ne, sw, se, cover;
     std::vector<int32_t> inside;
-    // per strip of 16 pixels (gather_row): the four corners' masks, and where the window starts (-1: gathers)
-    std::vector<uint16_t> masks;
+    // per strip of S pixels (gather_row): where the corners' window starts (-1: gathers)
     std::vector<int32_t> start;
-    explicit WarpRow(int64_t W)
-        : index(W), nw(W), ne(W), sw(W), se(W), cover(W), inside(W), masks(W / 16 * 4), start(W / 16) {}
+    explicit WarpRow(int64_t W) : index(W), nw(W), ne(W), sw(W), se(W), cover(W), inside(W), start(W / S) {}
 };
 
 // coverage of one axis: (1 - f) [0 <= i < size] + f [0 <= i + 1 < size], i = floor(s)
@@ -178,68 +186,45 @@ private:
         // the grid's normalisation, as denoiser.nn.warp.grid_from_positions and torch's sampler
         const float gx_scale = 2.0f / fW, gy_scale = 2.0f / fH;
         int64_t px = 0;
-#if defined(__AVX512F__)
-        {  // 16 pixels at a time, the same operations in the same order as the loop below
-            const __m512 zero = _mm512_setzero_ps(), onef = _mm512_set1_ps(1.0f), half = _mm512_set1_ps(0.5f);
-            const __m512 lim = _mm512_set1_ps(limit), nlim = _mm512_set1_ps(-limit), pinf = _mm512_set1_ps(m_posinf);
-            const __m512 inf = _mm512_set1_ps(std::numeric_limits<float>::infinity());
-            const __m512 ninf = _mm512_set1_ps(-std::numeric_limits<float>::infinity());
-            const __m512 wm1 = _mm512_set1_ps(fW - 1.0f), wm2 = _mm512_set1_ps(fW - 2.0f);
-            const __m512 hm1 = _mm512_set1_ps(fH - 1.0f), hm2 = _mm512_set1_ps(fH - 2.0f), mone = _mm512_set1_ps(-1.0f);
-            const __m512 gxs = _mm512_set1_ps(gx_scale), gys = _mm512_set1_ps(gy_scale);
-            const __m512 hW = _mm512_set1_ps(halfW), hH = _mm512_set1_ps(halfH), cmin = _mm512_set1_ps(m_cover_min);
-            const __m512 vy = _mm512_set1_ps(static_cast<float>(y)), outside = _mm512_set1_ps(m_outside);
-            const __m512 lanes = _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-            const __m512i Wi = _mm512_set1_epi32(static_cast<int32_t>(W));
-            auto clean = [&](__m512 v) {  // sanitised (NaN, -Inf -> 0, +Inf -> posinf), then clamped
-                v = _mm512_mask_mov_ps(v, _mm512_cmp_ps_mask(v, v, _CMP_UNORD_Q) | _mm512_cmp_ps_mask(v, ninf, _CMP_EQ_OQ), zero);
-                v = _mm512_mask_mov_ps(v, _mm512_cmp_ps_mask(v, inf, _CMP_EQ_OQ), pinf);
-                return _mm512_min_ps(_mm512_max_ps(v, nlim), lim);
+        {  // a strip of S pixels at a time, the same operations in the same order as the loop below
+            const Strip lanes = lane_index();
+            const Strip inf = Strip{} + std::numeric_limits<float>::infinity();
+            auto clean = [&](Strip v) {  // sanitised (NaN, -Inf -> 0, +Inf -> posinf), then clamped
+                v = (v != v) | (v == -inf) ? Strip{} : v;
+                v = v == inf ? Strip{} + m_posinf : v;
+                v = v > -limit ? v : Strip{} - limit;
+                return v < limit ? v : Strip{} + limit;
             };
-            auto axis = [&](__m512 s, __m512 m1, __m512 m2) {  // axis_coverage
-                const __m512 i = _mm512_roundscale_ps(s, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
-                const __m512 f = _mm512_sub_ps(s, i);
-                const __mmask16 a = _mm512_cmp_ps_mask(i, zero, _CMP_GE_OQ) & _mm512_cmp_ps_mask(i, m1, _CMP_LE_OQ);
-                const __mmask16 b = _mm512_cmp_ps_mask(i, mone, _CMP_GE_OQ) & _mm512_cmp_ps_mask(i, m2, _CMP_LE_OQ);
-                return _mm512_add_ps(_mm512_maskz_mov_ps(a, _mm512_sub_ps(onef, f)), _mm512_maskz_mov_ps(b, f));
+            auto axis = [&](Strip s, float m1, float m2) {  // axis_coverage
+                const Strip i = floor_strip(s), f = s - i;
+                return ((i >= 0.0f) & (i <= m1) ? 1.0f - f : Strip{}) + ((i >= -1.0f) & (i <= m2) ? f : Strip{});
             };
-            for (; px + 16 <= W; px += 16) {
-                const __m512 dx = clean(_mm512_loadu_ps(mx + px)), dy = clean(_mm512_loadu_ps(my + px));
-                const __m512 sx = kept ? _mm512_add_ps(_mm512_add_ps(lanes, _mm512_set1_ps(static_cast<float>(px))), dx)
-                                       : outside;
-                const __m512 sy = _mm512_add_ps(vy, dy);
-                const __m512 gx = _mm512_sub_ps(_mm512_mul_ps(_mm512_add_ps(sx, half), gxs), onef);
-                const __m512 gy = _mm512_sub_ps(_mm512_mul_ps(_mm512_add_ps(sy, half), gys), onef);
-                const __m512 ix = _mm512_sub_ps(_mm512_mul_ps(_mm512_add_ps(gx, onef), hW), half);
-                const __m512 iy = _mm512_sub_ps(_mm512_mul_ps(_mm512_add_ps(gy, onef), hH), half);
-                const __m512 x0 = _mm512_roundscale_ps(ix, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
-                const __m512 y0 = _mm512_roundscale_ps(iy, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
-                const __m512 e = _mm512_sub_ps(ix, x0), s = _mm512_sub_ps(iy, y0);
-                const __m512 ce = _mm512_sub_ps(onef, e), cs = _mm512_sub_ps(onef, s);
-                _mm512_storeu_ps(r.nw.data() + px, _mm512_mul_ps(ce, cs));
-                _mm512_storeu_ps(r.ne.data() + px, _mm512_mul_ps(e, cs));
-                _mm512_storeu_ps(r.sw.data() + px, _mm512_mul_ps(ce, s));
-                _mm512_storeu_ps(r.se.data() + px, _mm512_mul_ps(e, s));
-                const __mmask16 in_x0 = _mm512_cmp_ps_mask(x0, zero, _CMP_GE_OQ) & _mm512_cmp_ps_mask(x0, wm1, _CMP_LE_OQ);
-                const __mmask16 in_x1 = _mm512_cmp_ps_mask(x0, mone, _CMP_GE_OQ) & _mm512_cmp_ps_mask(x0, wm2, _CMP_LE_OQ);
-                const __mmask16 in_y0 = _mm512_cmp_ps_mask(y0, zero, _CMP_GE_OQ) & _mm512_cmp_ps_mask(y0, hm1, _CMP_LE_OQ);
-                const __mmask16 in_y1 = _mm512_cmp_ps_mask(y0, mone, _CMP_GE_OQ) & _mm512_cmp_ps_mask(y0, hm2, _CMP_LE_OQ);
-                __m512i bits = _mm512_maskz_mov_epi32(in_x0 & in_y0, _mm512_set1_epi32(1));
-                bits = _mm512_mask_or_epi32(bits, in_x1 & in_y0, bits, _mm512_set1_epi32(2));
-                bits = _mm512_mask_or_epi32(bits, in_x0 & in_y1, bits, _mm512_set1_epi32(4));
-                bits = _mm512_mask_or_epi32(bits, in_x1 & in_y1, bits, _mm512_set1_epi32(8));
-                _mm512_storeu_si512(r.inside.data() + px, bits);
-                const __mmask16 any = _mm512_test_epi32_mask(bits, bits);
+            for (; px + S <= W; px += S) {
+                const Strip dx = clean(load_strip(mx + px)), dy = clean(load_strip(my + px));
+                const Strip sx = kept ? (lanes + static_cast<float>(px)) + dx : Strip{} + m_outside;
+                const Strip sy = static_cast<float>(y) + dy;
+                const Strip gx = (sx + 0.5f) * gx_scale - 1.0f, gy = (sy + 0.5f) * gy_scale - 1.0f;
+                const Strip ix = (gx + 1.0f) * halfW - 0.5f, iy = (gy + 1.0f) * halfH - 0.5f;
+                const Strip x0 = floor_strip(ix), y0 = floor_strip(iy);
+                const Strip e = ix - x0, s = iy - y0;
+                store_strip(r.nw.data() + px, (1.0f - e) * (1.0f - s));
+                store_strip(r.ne.data() + px, e * (1.0f - s));
+                store_strip(r.sw.data() + px, (1.0f - e) * s);
+                store_strip(r.se.data() + px, e * s);
+                const IntStrip in_x0 = (x0 >= 0.0f) & (x0 <= fW - 1.0f), in_x1 = (x0 >= -1.0f) & (x0 <= fW - 2.0f);
+                const IntStrip in_y0 = (y0 >= 0.0f) & (y0 <= fH - 1.0f), in_y1 = (y0 >= -1.0f) & (y0 <= fH - 2.0f);
+                const IntStrip bits = (in_x0 & in_y0 & 1) | (in_x1 & in_y0 & 2) | (in_x0 & in_y1 & 4) | (in_x1 & in_y1 & 8);
+                store_int_strip(r.inside.data() + px, bits);
                 // where no corner is inside, x0 and y0 may be far off: the index is 0 there
-                const __m512i xi = _mm512_maskz_cvttps_epi32(any, x0), yi = _mm512_maskz_cvttps_epi32(any, y0);
-                _mm512_storeu_si512(r.index.data() + px, _mm512_add_epi32(_mm512_mullo_epi32(yi, Wi), xi));
-                const __m512 cover = _mm512_mul_ps(axis(sx, wm1, wm2), axis(sy, hm1, hm2));
-                const __m512 counted = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(cover, cmin, _CMP_GT_OQ), cover);
-                _mm512_storeu_ps(r.cover.data() + px, counted);
-                _mm512_storeu_ps(valid + px, counted);
+                const IntStrip xi = __builtin_convertvector(bits != 0 ? x0 : Strip{}, IntStrip);
+                const IntStrip yi = __builtin_convertvector(bits != 0 ? y0 : Strip{}, IntStrip);
+                store_int_strip(r.index.data() + px, yi * static_cast<int32_t>(W) + xi);
+                const Strip cover = axis(sx, fW - 1.0f, fW - 2.0f) * axis(sy, fH - 1.0f, fH - 2.0f);
+                const Strip counted = cover > m_cover_min ? cover : Strip{};
+                store_strip(r.cover.data() + px, counted);
+                store_strip(valid + px, counted);
             }
         }
-#endif
         for (; px < W; ++px) {
             const float dx = std::min(std::max(sanitized(mx[px], m_posinf), -limit), limit);
             const float dy = std::min(std::max(sanitized(my[px], m_posinf), -limit), limit);
@@ -268,10 +253,11 @@ private:
 
     // out[px] = (nw v_nw + ne v_ne + sw v_sw + se v_se) / cover where the coverage counts, else 0, for
     // each channel plane (HW floats; its output row in outs); a corner outside the image reads 0
-    // (torch's order of the sum, unfused). AVX-512, 16 pixels at a time: where their corners lie
-    // within 32 floats of one another (motion that varies by less than 15 pixels across them), the
-    // two rows' 32-float windows are loaded once per plane and the corners picked from them
-    // (vpermt2ps: a gather costs several times more); elsewhere, gathers.
+    // (torch's order of the sum, unfused). A strip of S pixels at a time: where their corners lie
+    // within 2 S floats of one another (motion that varies by less than S - 1 pixels across them),
+    // the two rows' windows of 2 S floats are loaded once per plane and the corners picked from
+    // them (pick2: one or two permutes, where a gather costs several times more); elsewhere, and
+    // without pick2, the corners are loaded one by one.
 #if defined(__GNUC__) && !defined(__clang__)
     __attribute__((optimize("fp-contract=off")))
 #endif
@@ -282,66 +268,63 @@ private:
 #endif
         const size_t np = planes.size();
         int64_t done = 0;  // pixels the vector loop covers
-#if defined(__AVX512F__)
-        // per strip of 16 pixels, once for every plane: the corners' masks and where their window starts
-        const int64_t strips = W / 16;
-        done = strips * 16;
-        uint16_t* masks = r.masks.data();  // kept in r: no allocation per row
-        int32_t* start = r.start.data();
-        const __m512i one = _mm512_set1_epi32(1), right = _mm512_set1_epi32(static_cast<int32_t>(W)),
-                      below = _mm512_set1_epi32(static_cast<int32_t>(W + 1));
-        const __m512 zero = _mm512_setzero_ps();
+        // per strip of S pixels, once for every plane: where the corners' window starts (-1: gathers)
+        const int64_t strips = W / S;
+        done = strips * S;
+        int32_t* start = r.start.data();  // kept in r: no allocation per row
         for (int64_t j = 0; j < strips; ++j) {
-            const int64_t px = j * 16;
-            const __mmask16 ok = _mm512_cmpneq_ps_mask(_mm512_loadu_ps(r.cover.data() + px), zero);
-            const __m512i in = _mm512_loadu_si512(r.inside.data() + px);
-            __mmask16* m = masks + j * 4;
-            for (int corner = 0; corner < 4; ++corner)
-                m[corner] = ok & _mm512_test_epi32_mask(in, _mm512_set1_epi32(1 << corner));
-            const __mmask16 any = m[0] | m[1] | m[2] | m[3];
-            const __m512i idx = _mm512_loadu_si512(r.index.data() + px);
-            const int32_t lo = any ? _mm512_mask_reduce_min_epi32(any, idx) : 0;
-            const int32_t hi = any ? _mm512_mask_reduce_max_epi32(any, idx) : 0;
-            start[j] = hi - lo <= 30 && lo >= 0 && static_cast<int64_t>(lo) + W + 32 <= HW ? lo : -1;
+            const int64_t px = j * S;
+            int32_t lo = std::numeric_limits<int32_t>::max(), hi = std::numeric_limits<int32_t>::min();
+            for (int64_t l = 0; l < S; ++l)
+                if (r.cover[px + l] != 0.0f && r.inside[px + l] != 0) {
+                    lo = std::min(lo, r.index[px + l]);
+                    hi = std::max(hi, r.index[px + l]);
+                }
+            if (lo > hi) lo = hi = 0;
+            start[j] = PICK && hi - lo <= 2 * S - 2 && lo >= 0 && static_cast<int64_t>(lo) + W + 2 * S <= HW ? lo : -1;
         }
         // plane by plane (a few memory streams at a time, not two rows of every plane at once)
         for (size_t k = 0; k < np; ++k) {
             const float* plane = planes[k];
             float* out = outs[k];
             for (int64_t j = 0; j < strips; ++j) {
-                const int64_t px = j * 16;
-                const __mmask16* m = masks + j * 4;
-                const __m512 cover = _mm512_loadu_ps(r.cover.data() + px);
-                const __mmask16 ok = _mm512_cmpneq_ps_mask(cover, zero);
-                if (ok == 0) {
-                    _mm512_storeu_ps(out + px, zero);
+                const int64_t px = j * S;
+                const Strip cover = load_strip(r.cover.data() + px);
+                const IntStrip ok = cover != 0.0f;
+                bool none = true;
+                for (int64_t l = 0; l < S; ++l) none = none && ok[l] == 0;
+                if (none) {
+                    store_strip(out + px, Strip{});
                     continue;
                 }
-                const __m512i idx = _mm512_loadu_si512(r.index.data() + px);
-                __m512 a, b, c, d;
-                if (start[j] >= 0) {
+                const IntStrip in = load_int_strip(r.inside.data() + px) & ok;
+                const IntStrip idx = load_int_strip(r.index.data() + px);
+                Strip a, b, c, d;
+                if (start[j] >= 0) {  // the corners picked from two rows' windows of 2 S floats
                     const int32_t lo = start[j];
-                    const __m512i rel = _mm512_sub_epi32(idx, _mm512_set1_epi32(lo)), rel1 = _mm512_add_epi32(rel, one);
-                    const __m512 t0 = _mm512_loadu_ps(plane + lo), t1 = _mm512_loadu_ps(plane + lo + 16);
-                    const __m512 b0 = _mm512_loadu_ps(plane + lo + W), b1 = _mm512_loadu_ps(plane + lo + W + 16);
-                    a = _mm512_maskz_permutex2var_ps(m[0], t0, rel, t1);
-                    b = _mm512_maskz_permutex2var_ps(m[1], t0, rel1, t1);
-                    c = _mm512_maskz_permutex2var_ps(m[2], b0, rel, b1);
-                    d = _mm512_maskz_permutex2var_ps(m[3], b0, rel1, b1);
+                    const IntStrip rel = idx - lo, rel1 = rel + 1;
+                    const Strip t0 = load_strip(plane + lo), t1 = load_strip(plane + lo + S);
+                    const Strip b0 = load_strip(plane + lo + W), b1 = load_strip(plane + lo + W + S);
+                    a = (in & 1) != 0 ? pick2(t0, t1, rel) : Strip{};
+                    b = (in & 2) != 0 ? pick2(t0, t1, rel1) : Strip{};
+                    c = (in & 4) != 0 ? pick2(b0, b1, rel) : Strip{};
+                    d = (in & 8) != 0 ? pick2(b0, b1, rel1) : Strip{};
                 } else {
-                    a = _mm512_mask_i32gather_ps(zero, m[0], idx, plane, 4);
-                    b = _mm512_mask_i32gather_ps(zero, m[1], _mm512_add_epi32(idx, one), plane, 4);
-                    c = _mm512_mask_i32gather_ps(zero, m[2], _mm512_add_epi32(idx, right), plane, 4);
-                    d = _mm512_mask_i32gather_ps(zero, m[3], _mm512_add_epi32(idx, below), plane, 4);
+                    for (int64_t l = 0; l < S; ++l) {
+                        const int32_t i = idx[l], m = in[l];
+                        a[l] = (m & 1) ? plane[i] : 0.0f;
+                        b[l] = (m & 2) ? plane[i + 1] : 0.0f;
+                        c[l] = (m & 4) ? plane[i + W] : 0.0f;
+                        d[l] = (m & 8) ? plane[i + W + 1] : 0.0f;
+                    }
                 }
-                __m512 v = _mm512_mul_ps(a, _mm512_loadu_ps(r.nw.data() + px));
-                v = _mm512_add_ps(v, _mm512_mul_ps(b, _mm512_loadu_ps(r.ne.data() + px)));
-                v = _mm512_add_ps(v, _mm512_mul_ps(c, _mm512_loadu_ps(r.sw.data() + px)));
-                v = _mm512_add_ps(v, _mm512_mul_ps(d, _mm512_loadu_ps(r.se.data() + px)));
-                _mm512_storeu_ps(out + px, _mm512_maskz_div_ps(ok, v, cover));
+                Strip v = a * load_strip(r.nw.data() + px);
+                v = v + b * load_strip(r.ne.data() + px);
+                v = v + c * load_strip(r.sw.data() + px);
+                v = v + d * load_strip(r.se.data() + px);
+                store_strip(out + px, ok != 0 ? v / cover : Strip{});
             }
         }
-#endif
         for (int64_t px = done; px < W; ++px) {
             const float cover = r.cover[px];
             const int32_t in = r.inside[px];

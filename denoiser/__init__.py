@@ -18,8 +18,9 @@ checked by tests/test_house.py):
 * ``commands/``   one module per console script                     -> everything; nothing imports it
 * ``conf/``       the Hydra configs (YAML), shipped in the package
 
-Modules that moved from the root into a wing still import by their old paths (checkpoints and
-old configs name them): :mod:`denoiser._aliases`, installed below.
+In a source checkout the configs (``conf/``, beside the package) import as ``denoiser.conf``:
+:mod:`denoiser._conf_mount`, called below. A checkpoint of an earlier layout that names a class by
+an old module path loads through :data:`denoiser.checkpoint.OLD_TARGETS`.
 
 Conventions (stated once, used everywhere):
 
@@ -34,6 +35,6 @@ Conventions (stated once, used everywhere):
 
 __version__ = "0.1.0"
 
-from denoiser import _aliases
+from denoiser import _conf_mount
 
-_aliases.install()
+_conf_mount.mount()

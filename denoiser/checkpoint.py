@@ -90,6 +90,28 @@ def resume_weights_only(path: str | os.PathLike | None, trust: bool = False, tru
 #: the files of a run directory a loader takes, in order of preference
 RUN_CHECKPOINTS = ("checkpoints/best.ckpt", "checkpoints/last.ckpt")
 
+#: ``_target_`` prefixes that checkpoints of earlier layouts store, and where those classes live now:
+#: the training loss and transfer were root modules before ``lit/`` (``tests/fixtures/student_v0.ckpt``,
+#: written at d77d64e, stores ``denoiser.losses.DenoiseLoss``). Only stored configs are mapped;
+#: ``conf/`` and new code name the current paths.
+OLD_TARGETS = {"denoiser.losses.": "denoiser.lit.losses.", "denoiser.transfer.": "denoiser.lit.transfer."}
+
+
+def current_targets(cfg: Any) -> Any:
+    """A stored config (mappings, lists, values) with each ``_target_`` that starts with a key of
+    :data:`OLD_TARGETS` at its current path; everything else as given (a new object where changed)."""
+    if isinstance(cfg, Mapping):
+        out = {key: current_targets(value) for key, value in cfg.items()}
+        target = out.get("_target_")
+        if isinstance(target, str):
+            old = next((o for o in OLD_TARGETS if target.startswith(o)), None)
+            if old is not None:
+                out["_target_"] = OLD_TARGETS[old] + target[len(old):]
+        return out
+    if isinstance(cfg, list | tuple):
+        return type(cfg)(current_targets(value) for value in cfg)
+    return cfg
+
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """``path`` itself, or for a training run directory the checkpoint it is evaluated with:

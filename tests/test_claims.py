@@ -372,7 +372,7 @@ def test_readme_check_catches_a_changed_recipe_in_every_file_of_blocks(tmp_path)
 
 def test_what_readme_check_leaves_unmeasured_no_pipeline_runs_and_no_measured_module_imports():
     """scripts/readme_check.py's UNMEASURED modules cannot change a block: no measured Python file
-    imports one (at any depth of its syntax tree, or by its old name: denoiser/_aliases.py) or names
+    imports one (at any depth of its syntax tree) or names
     one in a string (``python -m <module>``), no measured config names one (a _target_, a pipeline
     stage's module), and no pipeline stage runs one as its console command."""
     import ast
@@ -384,11 +384,9 @@ def test_what_readme_check_leaves_unmeasured_no_pipeline_runs_and_no_measured_mo
     spec = importlib.util.spec_from_file_location("readme_check", ROOT / "scripts" / "readme_check.py")
     check = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(check)
-    from denoiser._aliases import MOVED
 
     off = {p.removesuffix(".py").replace("/", ".") for p in check.UNMEASURED if p.endswith(".py")}
     assert "denoiser.commands.netstats" in off and all(importlib.util.find_spec(m) for m in off)
-    off |= {old for old, new in MOVED.items() if new in off}  # denoiser.history_diagnosis
 
     def measured(path: Path) -> bool:
         rel = path.relative_to(ROOT).as_posix()
@@ -410,7 +408,7 @@ def test_what_readme_check_leaves_unmeasured_no_pipeline_runs_and_no_measured_mo
         if not measured(path):
             continue
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Constant) and path.name != "_aliases.py":  # the alias table itself
+            if isinstance(node, ast.Constant):
                 assert node.value not in off, f"{path}:{node.lineno} names {node.value}"
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]

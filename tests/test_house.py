@@ -7,8 +7,9 @@
 * the buffer vocabulary is written once (:mod:`denoiser.buffers`);
 * one recurrent runner (:mod:`denoiser.runner`): no module loops over a network's ``step`` by
   itself, and every consumer's steps reach ``Denoiser.step`` through the runner;
-* checkpoints written by earlier layouts still load, and give the same outputs; module paths
-  they or old configs may name still import (:mod:`denoiser._aliases`).
+* no module of the package reaches itself through imports (late ones inside functions counted);
+* checkpoints written by earlier layouts still load, and give the same outputs (the old module
+  paths they store: :data:`denoiser.checkpoint.OLD_TARGETS`); no import hook stays on ``sys.meta_path``.
 """
 
 from __future__ import annotations
@@ -133,8 +134,7 @@ def test_the_cycle_check_sees_a_late_import(tmp_path):
     assert import_cycles(import_graph(package)) == []
 
 
-#: the private module that keeps old module paths importable: not part of the root's vocabulary
-ALIASES = "_aliases.py"
+#: private modules (a leading underscore: the checkout's conf/ mount) are not part of the root's vocabulary
 ROOT_MODULES_AT_MOST = 10
 #: what each part of the package may import besides itself; ``root`` is the modules at the
 #: package root and ``denoiser.conf`` (the shipped configs' folder). ``commands`` may import
@@ -161,7 +161,7 @@ def part_of(module: str) -> str | None:
 
 
 def test_the_root_holds_at_most_ten_modules():
-    root = sorted(p.name for p in PACKAGE.glob("*.py") if p.name not in ("__init__.py", ALIASES))
+    root = sorted(p.name for p in PACKAGE.glob("*.py") if not p.name.startswith("_"))
     assert len(root) <= ROOT_MODULES_AT_MOST, f"{len(root)} modules at the root, move some into a wing: {root}"
 
 
@@ -348,62 +348,41 @@ def test_a_checkpoint_of_the_first_layout_still_loads_and_gives_the_same_outputs
 # ----------------------------------------------------------------------------- old module paths
 
 
-def test_every_old_module_path_imports_the_module_at_its_new_path():
-    """In a fresh interpreter (old names imported first, before their new ones): each old name
-    of the alias table is the same module object as its new path, loaded from this package (not
-    from a stale copy elsewhere on the path), and no longer a file at the root."""
-    from denoiser._aliases import MOVED
-
-    assert MOVED
-    code = ("import importlib, sys, denoiser._aliases as a\n"
-            "for old, new in a.MOVED.items():\n"
-            "    module = importlib.import_module(old)\n"
-            "    assert module is importlib.import_module(new) is sys.modules[old] is sys.modules[new], old\n"
-            "    assert module.__name__ == new, (old, module.__name__)\n"
-            "    print(old, module.__file__)\n"
-            "from denoiser import ovext\n"
-            "from denoiser.inference import ovext as moved\n"
-            "assert ovext is moved\n")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+def test_importing_the_package_leaves_no_import_hook():
+    """``import denoiser`` (and the configs' package) adds nothing to ``sys.meta_path``, and an old
+    root module path is no longer importable: stored old paths are mapped where checkpoints load."""
+    code = ("import sys\nbefore = list(sys.meta_path)\nimport denoiser, denoiser.conf\n"
+            "assert sys.meta_path == before, sys.meta_path\nimport importlib.util\n"
+            "assert importlib.util.find_spec('denoiser.losses') is None\nprint(denoiser.conf.CONF_DIR)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd=PACKAGE.parent)
     assert run.returncode == 0, run.stderr[-3000:]
-    files = dict(line.split(" ", 1) for line in run.stdout.splitlines())
-    assert set(files) == set(MOVED)
-    for old, file in files.items():
-        assert Path(file).resolve().is_relative_to(PACKAGE), (old, file)
-        assert not (PACKAGE / (old.split(".")[1] + ".py")).exists() and not (PACKAGE / old.split(".")[1]).exists()
-    for old, new in MOVED.items():  # and in this process, in either order
-        assert importlib.import_module(new) is importlib.import_module(old)
+    assert Path(run.stdout.strip()) == PACKAGE.parent / "conf"
 
 
-def test_an_unknown_module_is_still_an_import_error():
-    with pytest.raises(ModuleNotFoundError):
-        importlib.import_module("denoiser.no_such_module")
+def test_stored_old_targets_map_to_the_current_paths():
+    from denoiser.checkpoint import OLD_TARGETS, current_targets
+
+    stored = {"loss": {"_target_": "denoiser.losses.DenoiseLoss", "weights": [1, 2]},
+              "transfer": [{"_target_": "denoiser.transfer.L1ChannelTransfer"}], "net": {"_target_": "denoiser.nn.x"}}
+    assert current_targets(stored) == {"loss": {"_target_": "denoiser.lit.losses.DenoiseLoss", "weights": [1, 2]},
+                                       "transfer": [{"_target_": "denoiser.lit.transfer.L1ChannelTransfer"}],
+                                       "net": {"_target_": "denoiser.nn.x"}}
+    assert stored["loss"]["_target_"] == "denoiser.losses.DenoiseLoss"  # the stored config is left as it was
+    for new in OLD_TARGETS.values():
+        importlib.import_module(new.rstrip("."))
 
 
-def test_old_targets_resolve_through_hydra():
-    from hydra.utils import get_class, instantiate
-
-    from denoiser.lit.losses import DenoiseLoss
-    from denoiser.lit.transfer import L1ChannelTransfer
-    from denoiser.methods.baselines import NoisyInput
-
-    assert get_class("denoiser.losses.DenoiseLoss") is DenoiseLoss
-    assert get_class("denoiser.transfer.L1ChannelTransfer") is L1ChannelTransfer
-    assert type(instantiate({"_target_": "denoiser.losses.DenoiseLoss"})) is DenoiseLoss
-    assert type(instantiate({"_target_": "denoiser.baselines.NoisyInput"})) is NoisyInput
-
-
-def test_the_configs_name_the_new_paths():
-    """Every ``_target_`` under conf resolves, and none names a moved module's old path."""
+def test_the_configs_name_the_current_paths():
+    """Every ``_target_`` under conf resolves, and none names an old path of :data:`OLD_TARGETS`."""
     from hydra.utils import get_object
 
-    from denoiser._aliases import new_name
+    from denoiser.checkpoint import OLD_TARGETS
     from denoiser.conf import CONF_DIR
 
     targets = {t for p in Path(CONF_DIR).rglob("*.yaml")
                for t in re.findall(r"_target_:\s*([A-Za-z_][\w.]*)", p.read_text())}
     assert targets
-    assert not {t: new_name(t) for t in targets if new_name(t)}
+    assert not {t for t in targets if t.startswith(tuple(OLD_TARGETS))}
     for target in sorted(targets):
         get_object(target)
 

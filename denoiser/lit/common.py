@@ -30,6 +30,7 @@ import torch
 from hydra.utils import instantiate
 
 from denoiser.buffers import NETWORK_INPUTS
+from denoiser.checkpoint import current_targets
 from denoiser.configs import build_net, plain
 from denoiser.metrics import MetricAccumulator, combine_sequence_sums, tonemap
 
@@ -130,10 +131,11 @@ class DenoiserModule(pl.LightningModule):
 
     @staticmethod
     def _factory(cfg: Callable | Mapping | None) -> Callable | None:
-        """A ``_partial_: true`` config (or an already built callable) -> callable, or None."""
+        """A ``_partial_: true`` config (or an already built callable) -> callable, or None; a
+        stored config's old ``_target_`` paths are mapped (:func:`denoiser.checkpoint.current_targets`)."""
         if cfg is None or callable(cfg):
             return cfg
-        return instantiate(plain(cfg))
+        return instantiate(current_targets(plain(cfg)))
 
     # ----------------------------------------------------------------- running the net
 

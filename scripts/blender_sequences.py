@@ -325,7 +325,7 @@ def build_probe(frames: int):
 BUILDERS = {"orbit": build_orbit, "slide": build_slide, "probe": build_probe}
 
 
-#: camera of the fast-motion sequences: static, looking along +Y (the image plane is parallel to
+#: camera of the fast motion sequences: static, looking along +Y (the image plane is parallel to
 #: the XZ plane, so a motion in X/Z at a fixed depth is the same number of pixels everywhere)
 MOVING_CAMERA = {"location": (0.0, -6.0, 1.4), "lens": 35.0, "sensor": 36.0}
 MOVING_SPEED = (8.0, 15.0)      # px per frame, at the rendered width

@@ -1,9 +1,10 @@
 """docs/guide.md's "Your own renders" block, run line by line as the guide prints it: a tiny Cycles
 dataset rendered with denoiser-render-blender from scenes built here with bpy (64x64: the recipe's
 crop, 4 frames: its window), trained on (fast_dev_run, then a few steps), evaluated against the noisy
-input and OIDN on val and test, and denoised. The lines are read from the guide, so the guide and
-this test cannot drift; only the placeholders are substituted, and the references' spp and the
-steps made smaller (:data:`SMALLER`)."""
+input and OIDN on val and test, and denoised, in a folder that also holds the demo's
+``data/demo_motion`` (as a checkout after ``make demo``: experiment=demo would join it). The lines
+are read from the guide, so the guide and this test cannot drift; only the placeholders are
+substituted, and the references' spp and the steps made smaller (:data:`SMALLER`)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from helpers.blender import blender_python_or_skip, build_scene
+from helpers.eval_data import write_dataset
 
 from denoiser.measure import read_csv
 from denoiser.report import ledger
@@ -55,6 +57,9 @@ def test_the_guides_own_data_commands_run_as_written(tmp_path):
     places |= {"<first>-<last>": "1-4", "<renders>": str(tmp_path / "renders"), "<run>": str(tmp_path / "run"),
                "<reports>": str(tmp_path / "reports"), "<denoised>": str(tmp_path / "denoised"), "<shot_c>": "shot_c"}
     env = {**os.environ, "DENOISER_BLENDER_PYTHON": str(python)}
+    env.pop("DENOISER_DATA", None)
+    for split in ("val", "unlabeled"):  # a checkout after make demo: the demo's data/demo_motion (native layout)
+        write_dataset(tmp_path / "data" / "demo_motion", split, sequences=1, frames=4, size=32)
     project_ledger = ledger.LEDGER.read_bytes()
     for line in guide_lines():
         for placeholder, value in places.items():

@@ -1,8 +1,6 @@
-"""The measurement kit every benchmark uses: FLOPs, the matmul peak, peak memory, timings and
-their medians, and tables (Markdown and CSV).
+"""Measurement: peak memory, clocks and FLOPs, what every benchmark measures with.
 
 * FLOPs: :func:`count_flops` (one recurrent step with history, shapes only);
-* the machine's matmul peak: :func:`matmul_peak`;
 * peak memory: :class:`PeakRss` (of a block in this process: sampled, or the kernel's
   high-water mark; see there which applies when) and :func:`run_process` (of a whole child
   process);
@@ -10,18 +8,15 @@ their medians, and tables (Markdown and CSV).
   :func:`time_steps` (recurrent steps through the runner), :func:`round_robin` (several
   methods' steps interleaved: each repeat times every method once, in a rotated order),
   :func:`summarize` (median, min, max), :func:`median_interval` (the median of repeated ratios
-  with a distribution-free confidence interval) and :func:`fastest`;
-* tables: :func:`markdown_table`, :func:`write_csv` / :func:`read_csv`.
+  with a distribution-free confidence interval) and :func:`fastest`.
 
-Used by ``denoiser-bench``, ``denoiser-eval`` and the tools ``netstats``, ``bench_networks``,
-``bench_data``, ``bench_longseq`` and ``bench_render`` (:mod:`denoiser.commands`).
+The machine a measurement ran on (CPU model, ISA, matmul peak) is :mod:`denoiser.machine`; the
+tables results are written as (Markdown, CSV) are :mod:`denoiser.tables`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
-import io
 import math
 import os
 import statistics
@@ -30,12 +25,9 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
-from denoiser.atomic import atomic_write_text
-from denoiser.errors import UserError
 from denoiser.runner import RecurrentRunner, Stepper
 
 # ----------------------------------------------------------------------------- memory
@@ -319,80 +311,7 @@ def fastest(clocks: Sequence[Clock]) -> Clock:
     return min(clocks, key=lambda c: c.wall)
 
 
-# ----------------------------------------------------------------------------- compute
-
-
-#: the CPU flags the benchmark tables record (what the vector units and bf16 paths can use)
-ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_fp16")
-
-
-def cpu_model() -> str:
-    """The CPU's model name from ``/proc/cpuinfo``, else :func:`platform.processor` or the machine
-    type: what every timing report names its machine by."""
-    import platform
-
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def cpu_signature(cpuinfo: str | None = None) -> str:
-    """``<vendor> family <f> model <m>`` from ``/proc/cpuinfo`` (``unknown`` when unreadable): tells
-    apart CPUs that a virtual machine names alike (``Intel(R) Xeon(R) Processor``)."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            return "unknown"
-    fields: dict[str, str] = {}
-    for line in cpuinfo.splitlines():
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
-    if "vendor_id" not in fields:
-        return "unknown"
-    return f"{fields['vendor_id']} family {fields.get('cpu family', '?')} model {fields.get('model', '?')}"
-
-
-def cpu_isa(cpuinfo: str | None = None) -> dict[str, bool]:
-    """``{flag: present}`` for :data:`ISA_FLAGS` from ``/proc/cpuinfo`` (all False when unreadable)."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
-    flags: set[str] = set()
-    for line in cpuinfo.splitlines():
-        if line.startswith("flags"):
-            flags.update(line.split(":", 1)[1].split())
-            break
-    return {f: f in flags for f in ISA_FLAGS}
-
-
-def has_bf16(isa: dict[str, bool] | None = None) -> bool:
-    """Whether the CPU computes bfloat16 natively (AVX512-BF16 or AMX-BF16; :func:`cpu_isa`):
-    elsewhere a bf16 product runs on a slow reference path (minutes for a 2048 matmul)."""
-    isa = cpu_isa() if isa is None else isa
-    return bool(isa.get("avx512_bf16") or isa.get("amx_bf16"))
-
-
-def matmul_peak(size: int = 2048, repeats: int = 5, dtype: torch.dtype = torch.float32, warmup: int = 2) -> float:
-    """GFLOP/s of a ``size`` x ``size`` matrix product ``torch.mm`` on the CPU in ``dtype``
-    (fastest of ``repeats`` after ``warmup`` untimed products): the machine's practical peak.
-    The defaults (2048, two warm-up products, best of 5) are what every benchmark uses; a
-    1024 product, once warmed up only once, read 163-199 GFLOP/s on the same idle 2 cores."""
-    a, b = torch.randn(size, size).to(dtype), torch.randn(size, size).to(dtype)
-    for _ in range(warmup):
-        torch.mm(a, b)
-    runs = []
-    for _ in range(repeats):
-        with Clock() as clock:
-            torch.mm(a, b)
-        runs.append(clock.wall)
-    return 2 * size**3 / summarize(runs)["min"] / 1e9
+# ----------------------------------------------------------------------------- FLOPs
 
 
 def count_flops(net: torch.nn.Module, height: int, width: int, batch: int = 1) -> int:
@@ -416,75 +335,3 @@ def count_flops(net: torch.nn.Module, height: int, width: int, batch: int = 1) -
         with FlopCounterMode(display=False) as counter:
             runner(frame)
     return counter.get_total_flops()
-
-
-# ----------------------------------------------------------------------------- tables
-
-
-def _cell(value) -> str:
-    if isinstance(value, float):
-        return "" if math.isnan(value) else repr(value)
-    return "" if value is None else str(value)
-
-
-def write_csv(path: str | os.PathLike, rows: Sequence[Mapping], columns: Sequence[str] | None = None) -> Path:
-    """Write ``rows`` (dicts) as CSV with ``columns`` (default: keys in first-seen order); NaN -> empty."""
-    if columns is None:
-        columns = []
-        for r in rows:
-            columns.extend(k for k in r if k not in columns)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    for r in rows:
-        writer.writerow([_cell(r.get(c)) for c in columns])
-    return atomic_write_text(path, buf.getvalue())
-
-
-def _parse(value: str):
-    if value == "":
-        return float("nan")
-    try:
-        return int(value)
-    except ValueError:
-        pass
-    try:
-        return float(value)
-    except ValueError:
-        return value
-
-
-def read_csv(path: str | os.PathLike) -> list[dict]:
-    """Rows of a CSV written by :func:`write_csv` (numbers parsed, empty cells -> NaN)."""
-    path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: CSV file does not exist")
-    with open(path, newline="") as fh:
-        return [{k: _parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
-
-
-def format_value(value, fmt: str | None = None) -> str:
-    """One table cell: floats with ``fmt`` (default 4 significant digits), NaN as an en dash."""
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "–"
-        return format(value, fmt or ".4g")
-    return "" if value is None else str(value)
-
-
-def markdown_table(rows: Sequence[Mapping], columns: Sequence[str], formats: Mapping[str, str] | None = None,
-                   headers: Mapping[str, str] | None = None, align: bool = False) -> str:
-    """A Markdown table of ``rows`` (dicts) with ``columns``: the first column left-aligned, the
-    others right-aligned. ``formats``: column -> format spec for floats (:func:`format_value`;
-    strings are written as they are); ``headers``: column -> title; ``align``: pad every column
-    to its widest cell, so the table also reads well as plain text (console output)."""
-    formats = dict(formats or {})
-    headers = dict(headers or {})
-    lines = [[headers.get(c, c) for c in columns]]
-    lines += [[format_value(r.get(c), formats.get(c)) for c in columns] for r in rows]
-    widths = [max(3, *(len(line[i]) for line in lines)) if align else 0 for i in range(len(columns))]
-    rule = ["-" * max(3, w + 2) if i == 0 else "-" * max(3, w + 1) + ":" for i, w in enumerate(widths)]
-    cells = [[c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(line, widths))] for line in lines]
-    text = ["| " + " | ".join(cells[0]) + " |", "|" + "|".join(rule) + "|"]
-    text += ["| " + " | ".join(line) + " |" for line in cells[1:]]
-    return "\n".join(text) + "\n"

@@ -14,9 +14,10 @@ from helpers.eval_data import write_dataset
 
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
-from denoiser.measure import PeakRss, read_csv, time_steps
+from denoiser.measure import PeakRss, time_steps
 from denoiser.report.plot_tradeoff import pareto_front, pareto_front_of_rows
 from denoiser.runner import Stepper
+from denoiser.tables import read_csv
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +113,7 @@ def test_bench_end_to_end(setup, tmp_path):
     front = pareto_front_of_rows(table, (24, 40))
     assert front and set(front) <= {"student", "OIDN-fast"}
     # the per-CPU record: the run's ratios into a CSV (once, however often added) and its table
-    from denoiser.measure import cpu_signature
+    from denoiser.machine import cpu_signature
     from denoiser.report.cpu_speed import main as cpu_speed
 
     csv, md = tmp_path / "cpu_speed.csv", tmp_path / "cpu_speed.md"
@@ -191,7 +192,7 @@ def test_default_student_for_the_ratio():
 
 
 def test_cpu_isa_flags():
-    from denoiser.measure import cpu_isa, has_bf16
+    from denoiser.machine import cpu_isa, has_bf16
 
     info = "processor : 0\nflags\t\t: fpu sse avx2 avx512f avx512_bf16 amx_tile\nbugs : x\n"
     flags = cpu_isa(info)
@@ -202,7 +203,7 @@ def test_cpu_isa_flags():
 
 def test_cpu_signature_and_class():
     """A virtual machine's CPUs read alike by name; the signature and the vector class tell them apart."""
-    from denoiser.measure import cpu_isa, cpu_signature
+    from denoiser.machine import cpu_isa, cpu_signature
     from denoiser.report.cpu_speed import cpu_class
 
     info = ("processor\t: 0\nvendor_id\t: GenuineIntel\ncpu family\t: 6\nmodel\t\t: 167\n"

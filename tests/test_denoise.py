@@ -201,7 +201,7 @@ def test_default_precision_is_the_faster_one_measured(setup, tmp_path, capsys):
     from denoiser.checkpoint import load_denoiser
     from denoiser.frames import random_frame
     from denoiser.inference.backends import faster_precision
-    from denoiser.measure import has_bf16
+    from denoiser.machine import has_bf16
 
     _, seq, ckpt = setup
     denoise([f"ckpt={ckpt}", f"input={seq}", f"output={tmp_path / 'out'}", "backend=openvino", "threads=1"])

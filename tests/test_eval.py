@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from helpers.eval_data import write_dataset
 
 from denoiser.errors import UserError
-from denoiser.measure import read_csv
+from denoiser.tables import read_csv
 
 VENV_BIN = Path(sys.executable).parent
 

@@ -132,7 +132,7 @@ def test_denoiser_eval_with_baselines_compare(tmp_path):
 
     from denoiser.commands.evaluate import run
     from denoiser.data.synthetic import write_synthetic_sequence
-    from denoiser.measure import read_csv
+    from denoiser.tables import read_csv
 
     write_synthetic_sequence(tmp_path / "data/test/seq_000", frames=3, width=32, height=32, samples=4, seed=0)
     base = ["data=tiny", f"data.root={tmp_path / 'data'}", "baselines=compare", "~baselines.oidn_balanced",

@@ -43,7 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from denoiser.atomic import atomic_write_text
 from denoiser.errors import ConfigError, UserError
-from denoiser.measure import markdown_table, median_interval, read_csv
+from denoiser.measure import median_interval
 from denoiser.metrics import COLUMNS
 from denoiser.report import ledger
 from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
@@ -59,6 +59,7 @@ from denoiser.report.summary import (
     sequence_values,
     tree_hash,
 )
+from denoiser.tables import markdown_table, read_csv
 
 #: the README copies the lines between these markers (scripts/readme_results.py --marker ablations)
 BEGIN, END = "<!-- ablations:begin -->", "<!-- ablations:end -->"

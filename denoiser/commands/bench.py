@@ -95,23 +95,19 @@ from denoiser.buffers import FRAME_INPUTS
 from denoiser.configs import plain
 from denoiser.errors import ConfigError
 from denoiser.frames import resize_frame
+from denoiser.machine import cpu_isa, cpu_model, cpu_signature, matmul_peak
 from denoiser.measure import (
     PeakRss,
     StagedStep,
     count_flops,
-    cpu_isa,
-    cpu_model,
-    cpu_signature,
-    markdown_table,
-    matmul_peak,
     median_interval,
     recurrent_steps,
     round_robin,
     summarize,
-    write_csv,
 )
 from denoiser.report.evaluation import eval_means
 from denoiser.runner import Stepper
+from denoiser.tables import markdown_table, write_csv
 
 # ----------------------------------------------------------------------------- frames
 

@@ -30,7 +30,8 @@ from tqdm.auto import tqdm
 
 from denoiser.configs import compose_config, instantiate_config
 from denoiser.data.synthetic import write_synthetic_sequence
-from denoiser.measure import Clock, markdown_table, summarize
+from denoiser.measure import Clock, summarize
+from denoiser.tables import markdown_table
 
 
 def make_dataset(root: Path, sequences: int, frames: int, size: int) -> None:

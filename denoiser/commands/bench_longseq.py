@@ -39,7 +39,8 @@ from tqdm import tqdm
 from denoiser.commands.app import hydra_runtime
 from denoiser.configs import plain
 from denoiser.errors import ConfigError
-from denoiser.measure import markdown_table, run_process
+from denoiser.measure import run_process
+from denoiser.tables import markdown_table
 
 
 def write_frames(directory: Path, frames: int, size: int, seed: int = 0) -> Path:

@@ -60,7 +60,8 @@ from contextlib import nullcontext
 from omegaconf import DictConfig, OmegaConf
 
 from denoiser.errors import ConfigError, first_line
-from denoiser.measure import Clock, PeakRss, clock_steps, markdown_table, summarize
+from denoiser.measure import Clock, PeakRss, clock_steps, summarize
+from denoiser.tables import markdown_table
 
 
 def _backend(name):
@@ -288,7 +289,8 @@ def run(cfg: DictConfig) -> list[dict]:
 
     from denoiser.configs import build_net, compose_net_config
     from denoiser.inference.backends import backend_names
-    from denoiser.measure import count_flops, has_bf16, matmul_peak
+    from denoiser.machine import has_bf16, matmul_peak
+    from denoiser.measure import count_flops
 
     names = [*backend_names(), *(v for v in VARIANTS if v not in BACKEND_VARIANTS)]
     unknown = [v for v in cfg.variants if v not in names]

@@ -26,10 +26,11 @@ from __future__ import annotations
 import numpy as np
 from omegaconf import DictConfig
 
-from denoiser.measure import Clock, fastest, markdown_table
+from denoiser.measure import Clock, fastest
 from denoiser.render.motion import backward_motion
 from denoiser.render.passes import FrameRenderer
 from denoiser.render.spec import build_scene
+from denoiser.tables import markdown_table
 
 LADDER = ["area_light", "indirect", "textures", "glossy", "transmission", "env_light", "camera_motion",
           "object_motion", "dof", "motion_blur"]

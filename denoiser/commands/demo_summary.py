@@ -46,7 +46,6 @@ from omegaconf import DictConfig
 
 from denoiser.atomic import atomic_write_text
 from denoiser.errors import ConfigError, UserError
-from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS
 from denoiser.report import ledger
 from denoiser.report.figure_tables import figure_sections
@@ -66,6 +65,7 @@ from denoiser.report.summary import (
     sequence_values,
     tree_hash,
 )
+from denoiser.tables import markdown_table, read_csv
 
 
 def markers(name: str) -> tuple[str, str]:

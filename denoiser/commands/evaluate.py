@@ -56,13 +56,13 @@ from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.checkpoint import checkpoint_paths, load_denoiser
 from denoiser.data.evalset import open_test_split
 from denoiser.errors import ConfigError
-from denoiser.measure import markdown_table, write_csv
 from denoiser.methods.baselines import NetworkMethod, build_baselines
 from denoiser.metrics import METRICS
 from denoiser.report import ledger
 from denoiser.report.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
 from denoiser.report.plot_crops import save_crops
 from denoiser.report.summary import git_commit, tree_hash
+from denoiser.tables import markdown_table, write_csv
 
 log = logging.getLogger(__name__)
 

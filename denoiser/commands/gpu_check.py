@@ -113,8 +113,9 @@ def inference_rows(cfg: DictConfig, peaks: dict, deadline: float, report: Report
     from denoiser.frames import random_frame
     from denoiser.inference.backends import load_backend
     from denoiser.inference.cuda_backend import cuda_event_times, step_traffic
-    from denoiser.measure import count_flops, markdown_table, summarize
+    from denoiser.measure import count_flops, summarize
     from denoiser.runner import RecurrentRunner
+    from denoiser.tables import markdown_table
 
     inf = cfg.inference
     h, w = (int(v) for v in inf.size)
@@ -211,7 +212,8 @@ def train_step_rows(cfg: DictConfig, deadline: float, report: Report) -> list[di
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
     from denoiser.lit.losses import DenoiseLoss
-    from denoiser.measure import markdown_table, summarize
+    from denoiser.measure import summarize
+    from denoiser.tables import markdown_table
 
     ts = cfg.train_step
     b, t, s = int(ts.batch), int(ts.window), int(ts.crop)
@@ -324,7 +326,7 @@ def overall_table(metrics_md: str) -> str:
 
 def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report) -> None:
     """``ckpt`` evaluated on this machine's CPU (CUDA hidden) on the first split of ``root`` there is."""
-    from denoiser.measure import cpu_model
+    from denoiser.machine import cpu_model
 
     split = next((s for s in ("test", "val", "train") if (root / s).is_dir()), "train")
     overrides = ["data=demo", f"data.root={root}", f"split={split}", f"ckpt={{gpu_student: {ckpt}}}",
@@ -349,7 +351,7 @@ def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report)
 
 def run(cfg: DictConfig) -> dict:
     from denoiser.inference.cuda_backend import device_report, gpu_peaks
-    from denoiser.measure import write_csv
+    from denoiser.tables import write_csv
 
     out = Path(cfg.out)
     report = Report(out / "gpu.md", keep=bool(cfg.keep_report))

@@ -38,7 +38,7 @@ from pathlib import Path
 from denoiser.atomic import atomic_write_text
 from denoiser.commands.app import CommandParser, report_user_error
 from denoiser.errors import UserError
-from denoiser.measure import cpu_model
+from denoiser.machine import cpu_model
 from denoiser.pipeline.timings import newest
 from denoiser.report.summary import git_commit
 

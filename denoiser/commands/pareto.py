@@ -33,7 +33,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from denoiser.atomic import atomic_write_text
 from denoiser.errors import ConfigError, UserError
-from denoiser.measure import count_flops, markdown_table, read_csv, write_csv
+from denoiser.measure import count_flops
 from denoiser.report.evaluation import eval_means
 from denoiser.report.pareto import (
     cache_key,
@@ -48,6 +48,7 @@ from denoiser.report.pareto import (
 )
 from denoiser.report.plot_tradeoff import plot_accuracy_vs_time
 from denoiser.report.summary import git_commit
+from denoiser.tables import markdown_table, read_csv, write_csv
 
 NAN = float("nan")
 

@@ -44,7 +44,6 @@ from omegaconf import DictConfig, ListConfig
 from denoiser.atomic import atomic_write_text
 from denoiser.commands.app import hydra_runtime
 from denoiser.errors import ConfigError, UserError
-from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS
 from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
 from denoiser.report.summary import (
@@ -58,6 +57,7 @@ from denoiser.report.summary import (
     sequence_values,
     split_seed,
 )
+from denoiser.tables import markdown_table, read_csv
 
 
 def check_config(cfg: DictConfig) -> tuple[str, list[str], dict[str, dict[str, str]]]:

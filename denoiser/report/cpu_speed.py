@@ -30,7 +30,7 @@ from pathlib import Path
 
 from denoiser.atomic import atomic_write_text
 from denoiser.errors import UserError
-from denoiser.measure import markdown_table, read_csv, write_csv
+from denoiser.tables import markdown_table, read_csv, write_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the committed record and its rendering

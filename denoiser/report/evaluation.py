@@ -19,9 +19,9 @@ import torch
 
 from denoiser.data.evalset import read_frame, sequence_reference
 from denoiser.errors import ConfigError, UserError
-from denoiser.measure import markdown_table, read_csv
 from denoiser.metrics import COLUMNS, MetricAccumulator, flip_exposure, psnr
 from denoiser.report.plot_crops import crop_box, to_display
+from denoiser.tables import markdown_table, read_csv
 
 
 class Evaluation:

@@ -23,9 +23,9 @@ from collections.abc import Mapping, Sequence
 from itertools import pairwise
 
 from denoiser.errors import ConfigError
-from denoiser.measure import markdown_table
 from denoiser.metrics import COLUMNS
 from denoiser.report.summary import format_mean_std, group_timing
+from denoiser.tables import markdown_table
 
 
 def _rows(spec: Mapping) -> list[tuple[str, str]]:

@@ -356,7 +356,7 @@ TABLE_HEADERS = {"name": "frames of", "mean": "warp err ×1e3 ↓", "kept": "pix
 
 def summary_table(results: Mapping[str, WarpError], align: bool = True) -> str:
     """Markdown table of :func:`summary_rows` (one row per stream, the mean warp error first)."""
-    from denoiser.measure import markdown_table
+    from denoiser.tables import markdown_table
 
     return markdown_table(summary_rows(results), ["name", "mean", "kept", "frames", "mask"], TABLE_FORMATS,
                           TABLE_HEADERS, align=align)

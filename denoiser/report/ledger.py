@@ -44,8 +44,8 @@ from pathlib import Path
 
 from denoiser.conf import CONF_DIR
 from denoiser.errors import UserError
-from denoiser.measure import write_csv
 from denoiser.report.summary import hash_bytes
+from denoiser.tables import write_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the committed ledger of this checkout

@@ -28,9 +28,9 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 from denoiser.errors import ConfigError
-from denoiser.measure import markdown_table
 from denoiser.metrics import COLUMNS
 from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED, PairedInterval, paired_interval
+from denoiser.tables import markdown_table
 
 #: columns summarised, in table order (header, decimals, direction: denoiser.metrics.COLUMNS)
 SUMMARY_COLUMNS = ("psnr", "psnr_all", "psnr_f2", "ssim", "tpsnr", "flip", "relmse")

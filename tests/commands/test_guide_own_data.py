@@ -19,8 +19,8 @@ import pytest
 from helpers.blender import blender_python_or_skip, build_scene
 from helpers.eval_data import write_dataset
 
-from denoiser.measure import read_csv
 from denoiser.report import ledger
+from denoiser.tables import read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 GUIDE = ROOT / "docs" / "guide.md"

@@ -2,8 +2,8 @@
 ``scripts/blender_sequences.py`` (the project's own scenes) and ``scripts/blender_render.py`` (a
 user's ``.blend`` file, ``denoiser-render-blender``). Needs only ``bpy`` and the standard library.
 
-The settings the results depend on (:data:`RENDER_SETTINGS`, docs/guide.md "Rendering your own
-scenes"): no adaptive sampling (every pixel gets the same spp, so the noise level is the one the
+The settings the results depend on (:data:`RENDER_SETTINGS`, docs/guide.md "Render settings and
+passes"): no adaptive sampling (every pixel gets the same spp, so the noise level is the one the
 network was trained for), Cycles' denoiser off (``Combined`` is the raw Monte Carlo estimate), a box
 pixel filter one pixel wide (a sample stays in its pixel: the noise is not spatially correlated),
 animated seed (fresh noise every frame, as a real-time renderer's), no compositor or sequencer

@@ -13,8 +13,8 @@ defaults to the file's name. Arguments are ``key=value`` (or ``--key=value``); `
 Blender runs in its own venv (``bpy`` needs Python 3.11; ``make blender-venv`` builds
 ``.venv-blender``): this command checks the arguments, runs ``scripts/blender_render.py`` with
 ``blender_python`` and then reads the first frame back through the blender layout. That script sets
-the render settings the results depend on (``scripts/blender_cycles.py``; docs/guide.md, "Rendering
-your own scenes") on the opened file, prints each one it changed, never saves the file, and refuses
+the render settings the results depend on (``scripts/blender_cycles.py``; docs/guide.md, "Render
+settings and passes") on the opened file, prints each one it changed, never saves the file, and refuses
 with one line a scene that has motion blur on or no camera. Resumable: frames on disk are kept.
 """
 

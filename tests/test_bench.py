@@ -92,7 +92,7 @@ def test_bench_end_to_end(setup, tmp_path):
     # versions and the thread count each engine reports (threads=1 asked of all), in the CSV, JSON and report
     import json
 
-    from denoiser.commands.bench import engine_versions
+    from denoiser.report.bench_report import engine_versions
 
     versions = engine_versions()
     doc = json.loads((out / "bench.json").read_text())
@@ -184,7 +184,7 @@ def test_bench_networks_measures_in_a_subprocess(capsys):
 
 
 def test_default_student_for_the_ratio():
-    from denoiser.commands.bench import default_student
+    from denoiser.report.speedup import default_student
 
     assert default_student(["teacher", "student_distilled", "student_no_kd"]) == "student_distilled"
     assert default_student(["teacher", "tiny"]) == "teacher"
@@ -279,7 +279,7 @@ def test_speedups_are_paired_per_round_and_precision_matched():
     """Each row's speed-up is the median of the per-round ratios OIDN time / its time (computed
     here by hand), with the min-max as interval at 7 rounds; the student's fp32 rows come first
     and are labelled like with like, its bf16 rows are labelled as bf16 against OIDN's fp32."""
-    from denoiser.commands.bench import add_speedups, precision_order, ratio_rows
+    from denoiser.report.speedup import add_speedups, precision_order, ratio_rows
 
     def row(backend, dtype, times, kind="checkpoint", method="s"):
         return {"method": method, "backend": backend, "dtype": dtype, "device": "cpu", "height": 8, "width": 8,

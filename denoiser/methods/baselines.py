@@ -26,11 +26,13 @@ from __future__ import annotations
 
 import contextlib
 from collections import OrderedDict
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from denoiser.errors import ConfigError
+from denoiser.measure import StagedStep
 from denoiser.runner import Method, Network, RecurrentRunner, is_network
 
 #: OIDN quality names -> pyoidn constants (resolved lazily, pyoidn is an optional extra)
@@ -230,3 +232,66 @@ def build_baselines(nodes) -> OrderedDict[str, Method]:
                                   f"(denoiser.runner.Method); it lacks {', '.join(missing)}")
             methods[method.label] = method
     return methods
+
+
+# ----------------------------------------------------------------------------- timing OIDN (denoiser-bench)
+
+
+def oidn_dtype(isa: dict[str, bool]) -> str:
+    """The precision OIDN's CPU device computes in here: fp16 with AMX-FP16 (OIDN >= 2.4), else fp32."""
+    return "fp16" if isa.get("amx_fp16") else "fp32"
+
+
+
+def oidn_harness_steps(method, frames: list[dict]) -> StagedStep:
+    """The benchmark's path to an OIDN baseline: each frame's buffers are put in OIDN's ``[H, W, 3]``
+    layout before the clock starts (our frames are planar ``[1, C, H, W]``; a renderer hands OIDN
+    interleaved pixels), the timed call is ``method.denoise_arrays`` (the clamping copies into
+    OIDN's shared images, the filter, the output copy)."""
+    def stage(k: int):
+        frame = frames[k % len(frames)]
+        arrays = [_hwc(frame[b]) for b in ("color", "albedo", "normal")]
+        return lambda: method.denoise_arrays(*arrays)
+
+    return stage
+
+
+
+def oidn_direct_steps(quality: str, threads: int, frames: list[dict]) -> tuple[StagedStep, Callable[[], int], Callable[[], None]]:
+    """OIDN called directly through pyoidn, the reference for the harness's OIDN path: one device
+    (``numThreads`` = ``threads``) and one RT filter (``hdr``, ``quality``) bound once to four
+    ``[H, W, 3]`` float32 arrays; staging writes frame ``k`` into them (clamped as the baseline
+    clamps) untimed, the timed call is ``filter.execute()`` alone: no copies.
+
+    Returns ``(entry, threads read back, close)``."""
+    import pyoidn.filter as oidn_filter
+    from pyoidn.device import Device
+
+    h, w = frames[0]["color"].shape[-2:]
+    images = {n: np.zeros((h, w, 3), np.float32) for n in ("color", "albedo", "normal", "output")}
+    device = Device()
+    device.set_int("numThreads", int(threads))
+    device.commit()
+    flt = oidn_filter.Filter(device, oidn_filter.OIDN_FILTER_TYPE_RT)
+    for name, arr in images.items():
+        flt.set_image(name, arr, oidn_filter.OIDN_FORMAT_FLOAT3)
+    flt.set_bool("hdr", True)
+    flt.set_quality({"fast": oidn_filter.OIDN_QUALITY_FAST, "balanced": oidn_filter.OIDN_QUALITY_BALANCED,
+                     "high": oidn_filter.OIDN_QUALITY_HIGH}[quality])
+    flt.commit()
+    if device.get_error():
+        raise RuntimeError(f"OIDN (direct) set-up failed: {device.get_error()}")
+
+    def stage(k: int):
+        frame = frames[k % len(frames)]
+        np.maximum(_hwc(frame["color"]), 0.0, out=images["color"])
+        np.clip(_hwc(frame["albedo"]), 0.0, 1.0, out=images["albedo"])
+        images["normal"][...] = _hwc(frame["normal"])
+        return flt.execute
+
+    def close():
+        flt.release()
+        device.release()
+
+    threads_used = int(device.get_int("numThreads"))  # read back once: close() releases the device
+    return stage, lambda: threads_used, close

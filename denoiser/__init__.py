@@ -4,7 +4,7 @@ Layout: the package root holds the shared vocabulary (at most thirteen modules, 
 each imported from anywhere, importing only each other and :mod:`denoiser.conf`):
 :mod:`~denoiser.buffers`, :mod:`~denoiser.nonfinite`, :mod:`~denoiser.errors`,
 :mod:`~denoiser.atomic`, :mod:`~denoiser.configs`, :mod:`~denoiser.checkpoint`,
-:mod:`~denoiser.release`, :mod:`~denoiser.runner`, :mod:`~denoiser.frames`,
+:mod:`~denoiser.release`, :mod:`~denoiser.recurrent`, :mod:`~denoiser.frames`,
 :mod:`~denoiser.metrics`, :mod:`~denoiser.measure`, :mod:`~denoiser.machine`,
 :mod:`~denoiser.tables`. Everything else
 lives in a wing, and a wing imports only the wings named after it (docs/architecture.md;

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from denoiser.runner import RecurrentRunner, Stepper
+from denoiser.recurrent import RecurrentRunner, Stepper
 
 # ----------------------------------------------------------------------------- memory
 
@@ -318,7 +318,7 @@ def count_flops(net: torch.nn.Module, height: int, width: int, batch: int = 1) -
     """FLOPs (convolutions and matrix products) of one recurrent step with history of ``net`` on
     a ``batch x C x height x width`` frame.
 
-    Steps through :class:`~denoiser.runner.RecurrentRunner` (a reset step, then the counted
+    Steps through :class:`~denoiser.recurrent.RecurrentRunner` (a reset step, then the counted
     one) under ``FakeTensorMode``: shapes only, no arithmetic and no memory for activations,
     so even 1080p counts in about a second; the count depends only on the shapes.
     """

@@ -68,7 +68,7 @@ def fp16_output_error(net, frames: int = 3, size: int = 48, seed: int = 0) -> fl
     import torch
 
     from denoiser.buffers import FRAME_INPUTS
-    from denoiser.runner import RecurrentRunner
+    from denoiser.recurrent import RecurrentRunner
 
     g = torch.Generator().manual_seed(seed)
     shapes = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}

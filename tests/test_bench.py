@@ -15,8 +15,8 @@ from helpers.eval_data import write_dataset
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
 from denoiser.measure import PeakRss, time_steps
+from denoiser.recurrent import Stepper
 from denoiser.report.plot_tradeoff import pareto_front, pareto_front_of_rows
-from denoiser.runner import Stepper
 from denoiser.tables import read_csv
 
 

@@ -1,4 +1,4 @@
-"""The network and evaluation-method contracts as ``typing.Protocol`` s (``denoiser.runner``):
+"""The network and evaluation-method contracts as ``typing.Protocol`` s (``denoiser.recurrent``):
 every network config builds a :class:`Network`, every baseline is a :class:`Method`, and the
 consumers refuse what is not, with one line naming it."""
 
@@ -15,7 +15,7 @@ from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.methods.baselines import NetworkMethod, NoisyInput, OidnDenoiser, StepperMethod, build_baselines
 from denoiser.methods.onnd import OnlineCrossRegression
-from denoiser.runner import NETWORK_MEMBERS, Method, Network, Stepper, Temporal, is_network
+from denoiser.recurrent import NETWORK_MEMBERS, Method, Network, Stepper, Temporal, is_network
 
 NETS = sorted(p.stem for p in (Path(CONF_DIR) / "net").glob("*.yaml"))
 
@@ -86,5 +86,5 @@ class NoReset:
 def test_a_baseline_that_is_not_a_method_is_one_line_naming_its_key():
     with pytest.raises(ConfigError) as err:
         build_baselines({"mine": {"_target_": f"{__name__}.NoReset"}})
-    assert str(err.value) == ("baselines.mine: a NoReset is not an evaluation method (denoiser.runner.Method); "
+    assert str(err.value) == ("baselines.mine: a NoReset is not an evaluation method (denoiser.recurrent.Method); "
                               "it lacks reset")

@@ -17,7 +17,7 @@ from denoiser.inference.cuda_backend import (
     cuda_event_times,
     device_report,
 )
-from denoiser.runner import RecurrentRunner
+from denoiser.recurrent import RecurrentRunner
 
 #: max |difference| / max |reference| per precision over the sequence (measured on the CPU:
 #: fp32 3.7e-7, bf16 3.6e-3; fp16 has 3 more mantissa bits than bf16: its figure awaits a GPU run)

@@ -18,8 +18,8 @@ from denoiser.configs import build_net, compose_net_config
 from denoiser.data.synthetic import write_synthetic_sequence
 from denoiser.errors import ConfigError, UserError
 from denoiser.frames import random_frame
+from denoiser.recurrent import RecurrentRunner
 from denoiser.report.history_diagnosis import EDGE_PX, Capture, diagnose, regions, statistics
-from denoiser.runner import RecurrentRunner
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "fixtures" / "student_v0.ckpt"

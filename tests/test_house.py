@@ -5,7 +5,7 @@
   ``pipeline``, ``commands``), and each wing imports only the parts :data:`MAY_IMPORT` lists for it;
 * library code never imports a command (``denoiser/commands`` imports the library, not back);
 * the buffer vocabulary is written once (:mod:`denoiser.buffers`);
-* one recurrent runner (:mod:`denoiser.runner`): no module loops over a network's ``step`` by
+* one recurrent runner (:mod:`denoiser.recurrent`): no module loops over a network's ``step`` by
   itself, and every consumer's steps reach ``Denoiser.step`` through the runner;
 * no module of the package reaches itself through imports (late ones inside functions counted);
 * checkpoints written by earlier layouts still load, and give the same outputs (the old module
@@ -31,7 +31,7 @@ from denoiser.nn.denoiser import Denoiser
 
 PACKAGE = Path(denoiser.__file__).resolve().parent
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
-RUNNER = (PACKAGE / "runner.py").resolve()
+RUNNER = (PACKAGE / "recurrent.py").resolve()
 
 
 def modules(under: Path = PACKAGE, skip: tuple[str, ...] = ()) -> list[Path]:
@@ -262,7 +262,7 @@ def loop_step_calls(path: Path):
 def test_only_the_runner_loops_over_step():
     found = [f"{p.relative_to(PACKAGE)}:{line}" for p in modules() if p.resolve() != RUNNER
              for line in loop_step_calls(p)]
-    assert not found, f"step the network through denoiser.runner instead: {found}"
+    assert not found, f"step the network through denoiser.recurrent instead: {found}"
 
 
 def test_the_static_check_sees_a_loop(tmp_path):
@@ -336,7 +336,7 @@ def test_a_checkpoint_of_the_first_layout_still_loads_and_gives_the_same_outputs
     the commands moved to ``denoiser/commands``), ``student_v0_io.pt`` holds its outputs on two
     recurrent frames. Rule for later changes: a config key missing from a stored config means
     the behaviour from before that key existed."""
-    from denoiser.runner import RecurrentRunner
+    from denoiser.recurrent import RecurrentRunner
 
     net = tiny_net()
     io = torch.load(FIXTURES / "student_v0_io.pt", weights_only=True)

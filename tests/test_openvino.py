@@ -24,7 +24,7 @@ from denoiser.frames import random_frame
 from denoiser.inference import ovext
 from denoiser.inference.backends import OpenVinoBackend, TorchBackend
 from denoiser.inference.step_graph import OpenVinoStep, export_onnx
-from denoiser.runner import RecurrentRunner
+from denoiser.recurrent import RecurrentRunner
 
 F32_RTOL = 1e-4
 BF16_RTOL = 0.03

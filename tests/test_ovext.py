@@ -704,7 +704,9 @@ class FakeBuild:
         self.monkeypatch.setenv("CXX", str(script))
 
     def runs(self) -> list[str]:
-        return self.log.read_text().splitlines() if self.log.exists() else []
+        """The builds the script ran (not the queries of its target macros, ``-dM -E``)."""
+        lines = self.log.read_text().splitlines() if self.log.exists() else []
+        return [line for line in lines if "-dM" not in line.split()]
 
     def status(self):
         ovext._status.cache_clear()
@@ -850,6 +852,37 @@ def test_march_native_only_where_the_cpu_flags_are_known(fake, monkeypatch, cpui
     monkeypatch.setattr(ovext, "CPUINFO", fake.tmp / "other")
     (fake.tmp / "other").write_text("flags\t\t: fpu sse2\n")
     assert fake.status()[0].parent != path.parent  # another CPU: another key
+
+
+def test_the_cache_key_holds_the_dispatch_targets(fake, monkeypatch):
+    """The vector ISAs the compiler targets are part of the key: the same compiler, flags and CPU
+    flags with another target (a compiler upgrade that resolves -march=native differently) is
+    another build, not the cached library."""
+    fake.compiler(BUILDS)
+    monkeypatch.setattr(ovext, "dispatch_targets", lambda cxx, flags: "avx2 avx fma sse2")
+    path, reason = fake.status()
+    assert reason is None and len(fake.runs()) == 1
+    assert fake.status()[0] == path and len(fake.runs()) == 1  # the same targets: the cached library
+    monkeypatch.setattr(ovext, "dispatch_targets", lambda cxx, flags: "avx512f avx512bw avx512vl avx2 avx fma sse2")
+    other, reason = fake.status()
+    assert reason is None and other.parent != path.parent and len(fake.runs()) == 2
+
+
+def test_dispatch_targets_are_the_widest_the_cpu_has():
+    """With -march=native the compiler targets the CPU's widest vector ISA (what the kernels'
+    strips are as wide as: common.hpp), read from its own macros; an unknown compiler says nothing."""
+    cxx = ovext.compiler()
+    if cxx is None or ovext._cpu_flags() is None:
+        pytest.skip("no C++ compiler, or no CPU flags in /proc/cpuinfo")
+    cpu = set(ovext._cpu_flags().split(":", 1)[1].split())
+    native = ovext.dispatch_targets(cxx, (*ovext.FLAGS, ovext.NATIVE)).split()
+    for isa in ("avx512f", "avx2", "fma", "sse2"):
+        if isa in cpu:
+            assert isa in native, (isa, native)
+    if "avx512f" not in cpu:
+        assert "avx512f" not in native
+    assert "avx512f" not in ovext.dispatch_targets(cxx, ovext.FLAGS).split()  # the default target: portable
+    assert ovext.dispatch_targets(str(Path(cxx).with_name("no-such-compiler")), ovext.FLAGS) == ""
 
 
 def warp_history_loop(motion, keep, buffers, cover_min=1e-4):

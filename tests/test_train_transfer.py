@@ -14,7 +14,7 @@ from denoiser.nn.filters import SingleKernelFilter
 from denoiser.nn.inputs import GUIDE_CHANNELS
 from denoiser.nn.kernels import kernel_weights
 from denoiser.nn.pyramid import PyramidFilter
-from denoiser.runner import RecurrentRunner
+from denoiser.recurrent import RecurrentRunner
 
 STUDENT = ["net.embed.hidden=4", "net.embed.out_channels=4", "net.unet.encoder=[4,6,8]",
            "net.unet.bottleneck=8", "net.unet.decoder=[6,4]"]

@@ -165,7 +165,7 @@ def test_denoiser_with_the_triton_filter_matches(tf):
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
     from denoiser.inference.cuda_backend import CudaBackend
-    from denoiser.runner import RecurrentRunner
+    from denoiser.recurrent import RecurrentRunner
 
     torch.manual_seed(0)
     net = build_net(compose_net_config("tiny", "student")).eval()

@@ -132,7 +132,7 @@ def run_net(job: dict) -> dict:
 
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
-    from denoiser.runner import Stepper
+    from denoiser.recurrent import Stepper
 
     torch.set_flush_denormal(True)
     net = build_net(compose_net_config(job["net"])).eval()

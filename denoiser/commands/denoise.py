@@ -39,7 +39,7 @@ directory (``denoise_precision.json``) and a resumed run keeps it, so that resum
 Other backends default to f32. With ``device=cuda``: ``cuda`` and
 ``cuda_compiled`` (:mod:`denoiser.inference.cuda_backend`: weights cast once to ``precision`` f32, bf16 or
 fp16, the Triton filter; ``cuda_compiled`` replays a CUDA graph per frame size; docs/gpu.md).
-Every backend steps through the one recurrent runner (:class:`~denoiser.runner.RecurrentRunner`).
+Every backend steps through the one recurrent runner (:class:`~denoiser.recurrent.RecurrentRunner`).
 
 Report (``report=true``, the default): at the end, ``report.json`` and ``report.md`` in ``output``: the
 run (frames, seconds, frames/s, backend, precision, threads) and, when the input has motion, the
@@ -71,8 +71,8 @@ from tqdm.auto import tqdm
 from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, ExrError
+from denoiser.recurrent import RecurrentRunner
 from denoiser.report.flicker import FlickerMeter, denoise_report, read_motion
-from denoiser.runner import RecurrentRunner
 
 log = logging.getLogger(__name__)
 

@@ -114,7 +114,7 @@ def inference_rows(cfg: DictConfig, peaks: dict, deadline: float, report: Report
     from denoiser.inference.backends import load_backend
     from denoiser.inference.cuda_backend import cuda_event_times, step_traffic
     from denoiser.measure import count_flops, summarize
-    from denoiser.runner import RecurrentRunner
+    from denoiser.recurrent import RecurrentRunner
     from denoiser.tables import markdown_table
 
     inf = cfg.inference

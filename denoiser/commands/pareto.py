@@ -148,8 +148,8 @@ def baseline_rows(cfg: DictConfig, sizes: list[tuple[int, int]], threads: int, c
 
     from denoiser.measure import summarize, time_steps
     from denoiser.methods.baselines import build_baselines
+    from denoiser.recurrent import Stepper
     from denoiser.report.pareto import timing_frames
-    from denoiser.runner import Stepper
 
     torch.set_num_threads(threads)
 

@@ -2,7 +2,7 @@
 
 * :mod:`~denoiser.inference.backends`: how a network is prepared and stepped (PyTorch eager,
   channels-last, autocast, ``torch.compile``, ONNX Runtime, OpenVINO), each returning a
-  :class:`~denoiser.runner.Stepper`;
+  :class:`~denoiser.recurrent.Stepper`;
 * :mod:`~denoiser.inference.cuda_backend`: the CUDA backends (cast weights, CUDA graphs) and the
   GPU's measurements;
 * :mod:`~denoiser.inference.triton_filter`: the pyramid filter as Triton kernels;

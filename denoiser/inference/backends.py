@@ -1,9 +1,9 @@
 """Inference backends: how a network is prepared and stepped (PyTorch eager, channels-last,
 autocast, ``torch.compile``, ONNX Runtime, OpenVINO f32/bf16; CUDA variants where a GPU is present).
 
-A backend's ``prepare(net, example, threads)`` returns a :class:`~denoiser.runner.Stepper`, whose
+A backend's ``prepare(net, example, threads)`` returns a :class:`~denoiser.recurrent.Stepper`, whose
 ``step(frame, state, reset) -> (output, state)`` the recurrent runner
-(:mod:`denoiser.runner`) drives over a sequence. ``available()`` says why a backend cannot
+(:mod:`denoiser.recurrent`) drives over a sequence. ``available()`` says why a backend cannot
 run here (None when it can); ``dtype`` is the precision of its convolutions (``fp32``,
 ``bf16``, ``fp16``) for the tables.
 
@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 from denoiser.errors import ConfigError, first_line
-from denoiser.runner import Stepper
+from denoiser.recurrent import Stepper
 
 #: the config group of the backends: ``conf/backends/<name>.yaml``
 GROUP = "backends"

@@ -25,7 +25,7 @@ buffers and copy-in run without a graph, which is how the tests check the semant
 :func:`cuda_event_times` times steps with CUDA events (device time between the step's first and
 last kernel, no host round trip inside); :func:`device_report` names the GPU, driver, torch and
 CUDA versions. (They live here rather than in :mod:`denoiser.measure` while that module is being
-reworked; they use its :class:`~denoiser.runner.RecurrentRunner` contract and :func:`~denoiser.measure.summarize`.)
+reworked; they use its :class:`~denoiser.recurrent.RecurrentRunner` contract and :func:`~denoiser.measure.summarize`.)
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from collections.abc import Mapping
 import torch
 
 from denoiser.errors import ConfigError
-from denoiser.runner import RecurrentRunner, Stepper
+from denoiser.recurrent import RecurrentRunner, Stepper
 
 #: ``precision=`` -> weight dtype
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
@@ -114,7 +114,7 @@ class CudaBackend:
         return (lambda: torch.cuda.synchronize(self.device)) if self._cuda() else (lambda: None)
 
     def prepare(self, net: torch.nn.Module, example: Mapping[str, torch.Tensor] | None, threads: int) -> Stepper:
-        """A :class:`~denoiser.runner.Stepper` of ``net``: ``step(frame {buffer: [B, C, H, W]},
+        """A :class:`~denoiser.recurrent.Stepper` of ``net``: ``step(frame {buffer: [B, C, H, W]},
         state) -> (output [B, 3, H, W] float32 on the device, state)``."""
         net = self.prepare_net(net)
 
@@ -251,7 +251,7 @@ class CudaGraphBackend(CudaBackend):
 
 def cuda_event_times(stepper: Stepper, frames: list[dict], warmup: int, repeats: int) -> list[float]:
     """Milliseconds of each of ``repeats`` recurrent steps after ``warmup`` steps, by CUDA events
-    recorded on the current stream around each step (through :class:`~denoiser.runner.RecurrentRunner`;
+    recorded on the current stream around each step (through :class:`~denoiser.recurrent.RecurrentRunner`;
     ``frames`` ``{buffer: [B, C, H, W]}``, cycled, best already on the device; reset at step 0).
     One synchronisation after the last step: the steps run back to back, as in a renderer."""
     runner = RecurrentRunner(stepper.step)

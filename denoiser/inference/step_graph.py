@@ -50,7 +50,7 @@ from denoiser.errors import UserError
 from denoiser.frames import random_frame
 from denoiser.inference import sigstack
 from denoiser.nn.graph_mode import heads_as_matmul, kernels_as_op
-from denoiser.runner import Network, RecurrentRunner
+from denoiser.recurrent import Network, RecurrentRunner
 
 
 def state_keys(net: Network) -> list[str]:
@@ -181,7 +181,7 @@ class OnnxStep:
         """``frame``: ``{buffer: [B, C, H, W]}`` tensors or arrays -> ``(output array, state)``.
 
         ``state=None`` (or ``reset=True``) starts a sequence: zero state and the graph's reset
-        input set (the runner's contract, :mod:`denoiser.runner`)."""
+        input set (the runner's contract, :mod:`denoiser.recurrent`)."""
         feed = graph_feed(frame, state, reset, self.keys, self.channels, self.inputs)
         results = self.session.run(None, feed)
         named = dict(zip(self.outputs, results))

@@ -77,7 +77,7 @@ from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.nn.filters import SingleKernelFilter
 from denoiser.nn.pyramid import PyramidFilter
-from denoiser.runner import RecurrentRunner
+from denoiser.recurrent import RecurrentRunner
 
 #: plan index of a student channel without a counterpart in the teacher: an output channel keeps
 #: the student's initialization, an input channel gets zero weights (rules 2, 3)

@@ -15,7 +15,7 @@ the first frame of a sequence and at camera cuts. ``output`` is ``[1, 3, H, W]``
   thread count is set explicitly (``numThreads``), by default to ``torch.get_num_threads()``
   so OIDN and PyTorch get the same cores. OIDN is a single-frame denoiser: ``reset`` is ignored;
 * :class:`NetworkMethod` runs a trained :class:`~denoiser.nn.denoiser.Denoiser` recurrently
-  through :class:`~denoiser.runner.RecurrentRunner` (state carried, discarded at resets).
+  through :class:`~denoiser.recurrent.RecurrentRunner` (state carried, discarded at resets).
 
 OIDN input conventions: color is clamped to >= 0 (HDR input must be non-negative), albedo to
 [0, 1] (OIDN's documented range; some renderers exceed 1), normals are passed as they are
@@ -33,7 +33,7 @@ import torch
 
 from denoiser.errors import ConfigError
 from denoiser.measure import StagedStep
-from denoiser.runner import Method, Network, RecurrentRunner, is_network
+from denoiser.recurrent import Method, Network, RecurrentRunner, is_network
 
 #: OIDN quality names -> pyoidn constants (resolved lazily, pyoidn is an optional extra)
 OIDN_QUALITIES = ("fast", "balanced", "high")
@@ -166,7 +166,7 @@ class NetworkMethod:
     """A trained denoiser run recurrently, frame by frame, with its state carried.
 
     Args:
-        net: a :class:`~denoiser.runner.Network` module (eval mode is set here).
+        net: a :class:`~denoiser.recurrent.Network` module (eval mode is set here).
         label: display name.
         device: torch device to run on; frames are moved there.
     """
@@ -176,7 +176,7 @@ class NetworkMethod:
     def __init__(self, net: Network, label: str, device: str | torch.device = "cpu"):
         if not is_network(net) or not isinstance(net, torch.nn.Module):
             raise ConfigError(f"{label}: a {type(net).__name__} is not a denoising network module "
-                              "(denoiser.runner.Network: step, feature_channels, multiple, temporal)")
+                              "(denoiser.recurrent.Network: step, feature_channels, multiple, temporal)")
         self.net = net.eval().to(device)
         self.label = label
         self.device = torch.device(device)
@@ -194,7 +194,7 @@ class NetworkMethod:
 
 
 class StepperMethod:
-    """A backend's prepared network (:class:`~denoiser.runner.Stepper`: eager, ONNX Runtime,
+    """A backend's prepared network (:class:`~denoiser.recurrent.Stepper`: eager, ONNX Runtime,
     OpenVINO f32/bf16, ...) as an evaluation method, stepped through the recurrent runner, so
     its quality is measured through the same backend and precision as its time
     (``denoiser-bench``). Outputs come back as ``[1, 3, H, W]`` float32 CPU tensors."""
@@ -219,7 +219,7 @@ class StepperMethod:
 def build_baselines(nodes) -> OrderedDict[str, Method]:
     """The methods of a ``baselines`` config node (``{key: {_target_: ...} | None}``, see
     ``conf/baselines/default.yaml``), in order, by their ``label``; None entries are skipped.
-    A target that is not a :class:`~denoiser.runner.Method` is a one-line ConfigError naming its key."""
+    A target that is not a :class:`~denoiser.recurrent.Method` is a one-line ConfigError naming its key."""
     from denoiser.configs import instantiate_config
 
     methods: OrderedDict[str, Method] = OrderedDict()
@@ -229,7 +229,7 @@ def build_baselines(nodes) -> OrderedDict[str, Method]:
             if not isinstance(method, Method):
                 missing = [m for m in ("label", "recurrent", "reset", "__call__") if not hasattr(method, m)]
                 raise ConfigError(f"baselines.{key}: a {type(method).__name__} is not an evaluation method "
-                                  f"(denoiser.runner.Method); it lacks {', '.join(missing)}")
+                                  f"(denoiser.recurrent.Method); it lacks {', '.join(missing)}")
             methods[method.label] = method
     return methods
 

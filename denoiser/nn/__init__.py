@@ -19,7 +19,7 @@ Parts, each in its own module:
 * :mod:`.graph_ops`  - the OpenVINO extension's operation schema (each export stub beside its code).
 
 Imports only the root vocabulary (:mod:`denoiser.nonfinite`, :mod:`denoiser.errors`,
-:mod:`denoiser.buffers`, :mod:`denoiser.runner`, ...) and itself; every other part may import
+:mod:`denoiser.buffers`, :mod:`denoiser.recurrent`, ...) and itself; every other part may import
 it (``inference``, ``methods``, ``report``, ``lit``, the commands), ``data`` and ``render`` do not.
 
 See ``docs/architecture.md`` for how the parts fit together.

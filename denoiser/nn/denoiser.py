@@ -73,7 +73,7 @@ from denoiser.nn.inputs import (
 )
 from denoiser.nn.kernels import apply_kernels
 from denoiser.nn.unet import head_channels
-from denoiser.runner import unroll
+from denoiser.recurrent import unroll
 
 #: where the filter averages radiance: linear (unbiased), or log-compressed (module docstring)
 FILTER_DOMAINS = ("linear", "log")
@@ -280,7 +280,7 @@ class Denoiser(nn.Module):
 
     def forward(self, frames: dict, state: dict | None = None, reset: torch.Tensor | None = None,
                 detach_every: int = 0):
-        """Unroll :meth:`step` over a window (:func:`denoiser.runner.unroll`).
+        """Unroll :meth:`step` over a window (:func:`denoiser.recurrent.unroll`).
 
         frames: batch dict with ``[B, T, C, H, W]`` tensors (``samples [B, T, S, 3, H, W]``);
             other keys are ignored. reset: bool ``[B, T]``; None uses ``frames["reset"]`` if

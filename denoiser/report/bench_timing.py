@@ -22,9 +22,9 @@ from denoiser.frames import resize_frame
 from denoiser.machine import cpu_isa
 from denoiser.measure import PeakRss, StagedStep, count_flops, recurrent_steps, round_robin, summarize
 from denoiser.methods.baselines import oidn_direct_steps, oidn_dtype, oidn_harness_steps
+from denoiser.recurrent import Stepper
 from denoiser.report.bench_report import engine_versions
 from denoiser.report.speedup import add_speedups, harness_check, precision_order
-from denoiser.runner import Stepper
 
 
 def load_frames(data_cfg: DictConfig, split: str, sequence: str | None, count: int,

@@ -2,7 +2,7 @@
 
 Issue 33: under fast object motion a student's output on frames 2+ was no better than its noisy
 input. This module runs a checkpoint over a sequence through the one recurrent runner
-(:class:`~denoiser.runner.RecurrentRunner`) up to a chosen frame and records, for that frame,
+(:class:`~denoiser.recurrent.RecurrentRunner`) up to a chosen frame and records, for that frame,
 what the temporal recurrence did (:mod:`denoiser.nn.temporal`): the predicted blend weights
 ``a`` (history color into the filter input) and ``b`` (history output into the output), the
 disocclusion gate, the bilinear coverage, and the warped history itself, read through
@@ -40,7 +40,7 @@ from denoiser.atomic import atomic_save_figure, atomic_write_text
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import UserError, first_line
 from denoiser.metrics import mse_to_psnr, tonemap
-from denoiser.runner import RecurrentRunner
+from denoiser.recurrent import RecurrentRunner
 
 #: px: a pixel moves when its motion differs from the frame's median motion by more than this
 MOVING_PX = 0.5

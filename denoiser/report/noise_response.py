@@ -71,7 +71,7 @@ def response(net, dataset, source, factors: Sequence[float], grey_inputs: bool =
     sequence in grey (:func:`grey_frame`)."""
     from denoiser.data.evalset import read_frame
     from denoiser.metrics import psnr
-    from denoiser.runner import RecurrentRunner
+    from denoiser.recurrent import RecurrentRunner
 
     frames = [read_frame(dataset, source, i) for i in range(source.frames)]
     if grey_inputs:

@@ -21,7 +21,8 @@ of the U-Net input, written channels-last as its first convolution reads them (t
 The extension is C++ against the headers and libraries the ``openvino`` wheel ships. It is
 compiled on first use, with the machine's C++ compiler (``$CXX``, else ``g++``/``c++``) and
 ``-march=native``, into a per-user cache keyed by the source, the OpenVINO version, the compiler,
-its flags, the machine type and the CPU's flags (``$DENOISER_CACHE/ovext``, where
+its flags, the vector ISAs it targets with them (:func:`dispatch_targets`: the kernels' vector
+code is written once and compiled for the widest, see ``common.hpp``), the machine type and the CPU's flags (``$DENOISER_CACHE/ovext``, where
 ``$DENOISER_CACHE`` is the root of the project's caches, else ``$XDG_CACHE_HOME/denoiser``, else
 ``~/.cache/denoiser``); later uses load the cached library. The cache trusts nothing it did not build:
 
@@ -83,6 +84,13 @@ LIBRARY = "libdenoiser_openvino.so"
 FAILED = "build-failed"
 
 
+#: the compiler's macros naming the vector ISAs it targets (``-dM -E``), as they appear in the
+#: cache key and the build's message: the kernels' strip width follows them (``common.hpp``)
+TARGET_MACROS = {"__AVX512F__": "avx512f", "__AVX512BW__": "avx512bw", "__AVX512VL__": "avx512vl",
+                 "__AVX2__": "avx2", "__AVX__": "avx", "__FMA__": "fma", "__SSE2__": "sse2",
+                 "__ARM_NEON": "neon", "__ARM_FEATURE_SVE": "sve", "__ARM_FEATURE_FMA": "fma"}
+
+
 class _Unavailable(RuntimeError):
     """The extension cannot be used; the message is the reason, one line."""
 
@@ -124,6 +132,28 @@ def _cpu_flags() -> str | None:
             return next((line.strip() for line in fh if line.startswith("flags")), None)
     except OSError:
         return None
+
+
+def dispatch_targets(cxx: str, flags: tuple[str, ...]) -> str:
+    """The vector ISAs ``cxx`` compiles for with ``flags`` (the :data:`TARGET_MACROS` its
+    preprocessor defines, e.g. ``avx2 avx fma sse2``): what the kernels' vector code becomes, in
+    the cache key. ``""`` where the compiler cannot say (it does not run, prints no macros, or runs
+    past ``$DENOISER_OVEXT_TIMEOUT``)."""
+    target = [f for f in flags if f.startswith(("-m", "-f"))]
+    timeout = _timeout()
+    try:  # in its own process group, all of it killed at the timeout (as _compile)
+        proc = subprocess.Popen([cxx, *target, "-dM", "-E", "-x", "c++", os.devnull], stdout=subprocess.PIPE,
+                                stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    except OSError:
+        return ""
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        return ""
+    defined = {line.split()[1] for line in out.splitlines() if line.startswith("#define ") and len(line.split()) > 1}
+    return " ".join(dict.fromkeys(name for macro, name in TARGET_MACROS.items() if macro in defined))
 
 
 def _openvino_libs(root: Path) -> list[Path]:
@@ -243,9 +273,10 @@ def _build() -> Path:
     tools = _toolchain()
     cpu = _cpu_flags()
     flags = (*FLAGS, NATIVE) if cpu else FLAGS
+    targets = dispatch_targets(tools.cxx, flags)
     key = hashlib.sha256()
     sources = (p.name.encode() + b"\0" + p.read_bytes() for p in SOURCES)
-    for part in (*sources, tools.version, tools.cxx, " ".join(flags), platform.machine(), cpu or ""):
+    for part in (*sources, tools.version, tools.cxx, " ".join(flags), targets, platform.machine(), cpu or ""):
         key.update(part if isinstance(part, bytes) else part.encode())
         key.update(b"\0")
     root = cache_root()
@@ -262,7 +293,9 @@ def _build() -> Path:
                            "build again)")
     timeout = _timeout()
     how = "" if cpu else f", without {NATIVE}: {CPUINFO} names no CPU flags"
-    print(f"building the OpenVINO extension {SOURCE.name} (once per machine{how}) ...", file=sys.stderr, flush=True)
+    isa = f" for {targets}" if targets else ""
+    print(f"building the OpenVINO extension {SOURCE.name}{isa} (once per machine{how}) ...", file=sys.stderr,
+          flush=True)
     try:
         with atomic_path(target, ".so") as tmp:
             _compile([tools.cxx, *flags, f"-I{tools.openvino / 'include'}", str(SOURCE), "-o", str(tmp),

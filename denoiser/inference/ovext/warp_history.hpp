@@ -26,16 +26,6 @@ namespace denoiser {
 // image; the other corners are +1, +W, +W + 1, each read only where it lies in the image), the four
 // bilinear weights, which corners lie in the image (bit 0 nw, 1 ne, 2 sw, 3 se) and the coverage
 // where it counts (> cover_min), else 0.
-#if defined(__GNUC__) && !defined(__clang__)
-constexpr bool PICK = true;
-// lane j of the result: lane idx[j] of the 2 S lanes of a then b, idx[j] in [0, 2 S) (GCC's
-// shuffle with a variable selector: vpermt2ps with AVX-512, two vpermps and a blend with AVX2, tbl on NEON)
-static inline Strip pick2(Strip a, Strip b, IntStrip idx) { return __builtin_shuffle(a, b, idx); }
-#else
-constexpr bool PICK = false;  // Clang's shuffles take constant selectors only: the corners are loaded
-static inline Strip pick2(Strip a, Strip, IntStrip) { return a; }
-#endif
-
 struct WarpRow {
     std::vector<int32_t> index;
     std::vector<float> nw, ne, sw, se, cover;

@@ -1,0 +1,79 @@
+"""The OpenVINO extension's portable SIMD layer (``denoiser/inference/ovext/simd.hpp``) on each ISA
+a compiler here can target: ``ovext_simd_check.cpp`` (the transposes and relayouts, floor, 2^u,
+partial loads, the variable shuffle against plain loops) built and run for the compiler's default
+target (SSE2 on x86: 4 lanes), for ``-march=native`` (the extension's build: 8 lanes with AVX2,
+16 with AVX-512), for AVX-512 where the CPU has it (else only compiled), and for aarch64 NEON
+under QEMU where Debian's ``g++-aarch64-linux-gnu`` and ``qemu-user`` are installed."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from denoiser.inference import ovext
+
+CHECK = Path(__file__).with_name("ovext_simd_check.cpp")
+HEADERS = ovext.SOURCE.parent
+
+
+def lanes(targets: str) -> int:
+    """The strip width simd.hpp picks for these dispatch targets."""
+    names = targets.split()
+    return 16 if "avx512f" in names else 8 if "avx" in names else 4
+
+
+def build(cxx: str, flags: list[str], out: Path) -> Path:
+    proc = subprocess.run([cxx, "-O3", "-std=c++17", *flags, f"-I{HEADERS}", str(CHECK), "-o", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return out
+
+
+def run_check(cmd: list[str]) -> str:
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc.stdout.strip()
+
+
+@pytest.fixture(scope="module")
+def cxx():
+    found = ovext.compiler()
+    if found is None:
+        pytest.skip("no C++ compiler ($CXX, g++ or c++)")
+    return found
+
+
+def cpu_flags() -> set[str]:
+    line = ovext._cpu_flags()
+    return set(line.split(":", 1)[1].split()) if line else set()
+
+
+@pytest.mark.parametrize("target", ["default", "native"])
+def test_simd_layer_matches_plain_loops(tmp_path, cxx, target):
+    flags = [] if target == "default" else [ovext.NATIVE]
+    if target == "native" and not cpu_flags():
+        pytest.skip("no CPU flags in /proc/cpuinfo: the extension is not built with -march=native here")
+    width = lanes(ovext.dispatch_targets(cxx, tuple(flags)))
+    assert run_check([str(build(cxx, flags, tmp_path / "check"))]) == f"ok S={width}"
+
+
+def test_simd_layer_on_avx512(tmp_path, cxx):
+    """AVX-512 (x86-64-v4): 16 lanes; run where the CPU has it, else compiled only."""
+    if "avx512f" not in ovext.dispatch_targets(cxx, ("-march=x86-64-v4",)).split():
+        pytest.skip(f"{cxx} does not target AVX-512 with -march=x86-64-v4")
+    binary = build(cxx, ["-march=x86-64-v4"], tmp_path / "check512")
+    if "avx512f" not in cpu_flags():
+        pytest.skip("built for AVX-512; this CPU cannot run it")
+    assert run_check([str(binary)]) == "ok S=16"
+
+
+def test_simd_layer_on_neon_under_qemu(tmp_path):
+    cross, qemu = shutil.which("aarch64-linux-gnu-g++"), shutil.which("qemu-aarch64")
+    if cross is None or qemu is None:
+        pytest.skip("no aarch64 cross compiler and QEMU (apt-get install g++-aarch64-linux-gnu qemu-user)")
+    assert "neon" in ovext.dispatch_targets(cross, ()).split()
+    binary = build(cross, ["-static"], tmp_path / "check_arm")
+    assert run_check([qemu, str(binary)]) == "ok S=4"

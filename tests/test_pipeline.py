@@ -118,7 +118,7 @@ def test_a_stage_with_an_unknown_key_or_nothing_to_run_is_one_line(tree):
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
     assert "stages.render: unknown key(s) jbos" in proc.stderr
     proc = pipeline(tree, "pipeline=demo", "stages.render.command=null", check=False)
-    assert proc.returncode == 2 and "stages.render: give exactly one of command, module or copy" in proc.stderr
+    assert proc.returncode == 2 and "stages.render: give exactly one of command, module, script or copy" in proc.stderr
 
 
 # --- make demo through the command ---------------------------------------------------------------

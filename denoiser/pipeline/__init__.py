@@ -8,7 +8,7 @@ Importing the package registers the OmegaConf resolvers of the pipeline configs:
 dir>}`` (the checkpoint a training run is evaluated with), ``${best_on_val:<metrics.csv>,<runs>,<prefix>}``
 (that of the run whose method is best on a val evaluation), ``${opt:key,${value}}`` (``key=value``,
 or no argument when the value is null), ``${concat:[a],${list}}``, ``${given:[keys],${hydra:overrides.task}}``
-(the pipeline's own overrides of those keys, passed on) and ``${unless:${flag},arg}``
+(the pipeline's own overrides of those keys, passed on), ``${eq:a,b}`` and ``${unless:${flag},arg}``
 (:mod:`denoiser.pipeline.stages`).
 """
 
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from omegaconf import OmegaConf
 
-from denoiser.pipeline.stages import best, best_on_val, concat, given, optional, unless
+from denoiser.pipeline.stages import best, best_on_val, concat, equal, given, optional, unless
 
 OmegaConf.register_new_resolver("best", best, replace=True)
 OmegaConf.register_new_resolver("best_on_val", best_on_val, replace=True)
@@ -24,3 +24,4 @@ OmegaConf.register_new_resolver("opt", optional, replace=True)
 OmegaConf.register_new_resolver("concat", concat, replace=True)
 OmegaConf.register_new_resolver("given", given, replace=True)
 OmegaConf.register_new_resolver("unless", unless, replace=True)
+OmegaConf.register_new_resolver("eq", equal, replace=True)

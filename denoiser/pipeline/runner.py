@@ -257,6 +257,9 @@ def run_pipeline(cfg, ctx: Context | None = None) -> Path | None:
             if stage.get("unless_exists") and Path(stage["unless_exists"]).exists():
                 ctx.say(f"==> [{name}] skipped: {stage['unless_exists']} exists")
                 continue
+            if "when" in stage and not stage["when"]:
+                ctx.say(f"==> [{name}] skipped: its when is false")
+                continue
             stage_jobs = [] if stage.get("copy") else expand(name, stage)
             jobs_of[name] = stage_jobs
             if stage.get("existing"):

@@ -34,7 +34,9 @@ stage is a mapping with these keys (all optional but one of ``command``, ``modul
   lines and no checkpoint they name is newer (``pipeline_inputs.txt``, written last);
 - ``if_exists``: run the stage only when this path exists; ``otherwise_remove``: paths removed when
   it does not (no stale table of an earlier run in a report); ``unless_exists``: skip the stage
-  when this path exists (make demo's teacher, whatever its steps, instead of a shorter one);
+  when this path exists (make demo's teacher, whatever its steps, instead of a shorter one); ``when``: run the
+  stage only when this is true (``${eq:${teacher},own}``); a stage skipped so still gives its jobs'
+  ``ckpt`` to later stages' ``checkpoints`` (make demo's ``teacher=release``);
 - ``on_collapse``: ``stop`` (default) or ``warn`` when a training job leaves ``COLLAPSED``;
 - ``existing``: the jobs are training runs another pipeline made (``make demo``'s students, say):
   nothing runs, each ``run_dir`` must hold ``DONE`` (else one line: the path and this message), and
@@ -59,7 +61,7 @@ from denoiser.errors import ConfigError
 STAGE_KEYS = frozenset({
     "command", "module", "copy", "args", "matrix", "name", "run_dir", "ckpt", "checkpoints", "jobs",
     "threads", "reuse", "produces", "if_exists", "otherwise_remove", "on_collapse", "existing", "jobs_from",
-    "unless_exists", "script", "python",
+    "unless_exists", "script", "python", "when",
 })
 
 
@@ -88,6 +90,11 @@ def unless(condition, arg: str) -> str:
     """``arg``, or an empty string (left out) when ``condition`` is true: the resolver
     ``${unless:${oidn},~baselines.oidn_fast}`` keeps a baseline out unless it is asked for."""
     return "" if condition else str(arg)
+
+
+def equal(a, b) -> bool:
+    """Whether ``a`` and ``b`` are the same value (as strings): the resolver ``${eq:${teacher},own}``."""
+    return str(a) == str(b)
 
 
 def concat(*lists) -> list:

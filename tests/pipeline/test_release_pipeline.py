@@ -57,3 +57,17 @@ def test_the_release_experiments_join_every_root_of_the_release(experiment):
     assert cfg.data.root.endswith("data/release") and roots[:2] == [cfg.data.root + "_motion", cfg.data.root + "_hires"]
     assert roots[2] == {"root": cfg.data.root + "_cycles", "layout": "blender"} and cfg.data.extra_share is None
     assert cfg.data.use_unlabeled is (experiment == "release_distill")
+
+
+def test_make_demo_distils_from_the_release_teacher_without_its_teacher_stage(tmp_path):
+    def dry(*args):
+        return subprocess.run([str(VENV_BIN / "denoiser-pipeline"), "pipeline=demo", "dry_run=true", *args],
+                              capture_output=True, text=True, check=True).stdout
+
+    own, release = dry(), dry("teacher=release")
+    assert any(line.startswith("[teacher]") for line in own.splitlines()) and "model.teacher_ckpt=reports/demo/runs/teacher/checkpoints/" in own
+    assert not any(line.startswith("[teacher]") for line in release.splitlines()) and "==> [teacher] skipped" in release
+    students = [line for line in release.splitlines() if line.startswith("[students]") and "demo_distill" in line]
+    assert len(students) == 3 and all("model.teacher_ckpt=release:teacher" in s and "reports/demo_release/runs/" in s
+                                      for s in students)
+    assert "teacher: release:teacher" in next(line for line in release.splitlines() if line.startswith("[eval]"))

@@ -62,8 +62,9 @@ TEST_SPLIT = "test"
 PROVENANCE = "evaluation.json"
 #: a user's ledger, beside their data root (:func:`default_ledger`)
 LEDGER_NAME = "test_ledger.csv"
-#: datasets the project renders besides its render sets: ``make blender``'s (BLENDER_DATA)
-PROJECT_EXTRA_DATASETS = ("blender",)
+#: datasets the project renders besides its render sets, with scripts/blender_sequences.py: ``make blender``'s
+#: (the Makefile's BLENDER_DATA) and ``make release``'s Cycles set (conf/pipeline/release.yaml's ``cycles``)
+PROJECT_EXTRA_DATASETS = ("blender", "release_cycles")
 
 
 def project_datasets() -> set[str]:

@@ -6,10 +6,12 @@ a user's data root for any other."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 from conftest import compose_command, tiny_checkpoint
 from helpers.eval_data import write_dataset
+from omegaconf import OmegaConf
 
 from denoiser.report import ledger
 
@@ -18,6 +20,11 @@ def test_the_project_datasets_are_the_render_sets_and_make_blenders():
     """A render set's data root and make blender's are the project's; the same names elsewhere,
     or another folder under the checkout's data/, are a user's."""
     assert {"demo", "demo_motion", "demo_compare", "blender"} <= ledger.project_datasets()
+    makefile = (ledger.ROOT / "Makefile").read_text()
+    blender_data = re.search(r"^BLENDER_DATA\s*\?=\s*(\S+)", makefile, re.MULTILINE)[1]
+    release_cycles = OmegaConf.to_container(OmegaConf.load(ledger.ROOT / "conf" / "pipeline" / "release.yaml"))["cycles"]
+    for made in (blender_data, release_cycles):     # make blender's and make release's Cycles sets
+        assert made.startswith(("data/", "${data_root}/")) and made.rsplit("/", 1)[1] in ledger.project_datasets()
     data = ledger.ROOT / "data"
     assert ledger.default_ledger(data / "demo") == ledger.LEDGER
     assert ledger.default_ledger(data / "blender") == ledger.LEDGER

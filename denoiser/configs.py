@@ -178,6 +178,18 @@ MAX_DIRNAME = 80
 _UNSAFE = re.compile(r"[^A-Za-z0-9._=,+-]+")
 
 
+def group_options(group: str) -> str:
+    """The options of the config group ``group`` (``data``, ``hydra/launcher``: a folder of ``conf/``),
+    sorted and joined by ``|``: the group lists of a command's ``--help`` (``${options:data}``),
+    written from the folders, not by hand. ConfigError for a group that is no folder of ``conf/``."""
+    from denoiser.conf import CONF_DIR
+
+    folder = Path(CONF_DIR) / group
+    if not folder.is_dir():
+        raise ConfigError(f"{folder}: no such config group")
+    return "|".join(sorted(p.stem for p in folder.glob("*.yaml")))
+
+
 def job_dirname(overrides: str, limit: int = MAX_DIRNAME) -> str:
     """A folder name from a multirun job's ``hydra.job.override_dirname`` (``ablation=k3,model.optimizer.lr=0.001``):
     every run of characters other than letters, digits and ``._=,+-`` (``/``, spaces, quotes,

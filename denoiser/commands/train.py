@@ -26,11 +26,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from denoiser.commands.app import guarded, hydra_runtime
 from denoiser.conf import CONF_DIR
-from denoiser.configs import instantiate_config, job_dirname
+from denoiser.configs import group_options, instantiate_config, job_dirname
 from denoiser.errors import ConfigError
 
 # conf/train.yaml's hydra.sweep.subdir: a multirun job's folder named from its overrides
 OmegaConf.register_new_resolver("job_dirname", job_dirname, replace=True)
+# conf/train.yaml's --help: each group's options, read from its folder (${options:<group>})
+OmegaConf.register_new_resolver("options", group_options, replace=True)
 
 #: prefix of the final validation metrics logged together with the hyperparameters
 FINAL_PREFIX = "final/"

@@ -146,7 +146,7 @@ class ProcessRun:
 def run_process(argv: Sequence[str]) -> ProcessRun:
     """Run ``argv`` to its end (stdout discarded) and read its peak RSS from the kernel
     (``os.wait4``): the third way to find a peak, for a whole command (interpreter, imports,
-    every read and write), e.g. ``bench_longseq``'s runs of ``denoiser-denoise``."""
+    every read and write), e.g. ``memory_longseq``'s runs of ``denoiser-denoise``."""
     import subprocess
 
     with Clock() as clock:

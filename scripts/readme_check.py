@@ -62,7 +62,7 @@ MEASURED = ("denoiser/", "conf/", "scripts/blender_sequences.py", "scripts/blend
 #: (tests/test_claims.py checks both), with their configs: benchmarks of what no block shows (data
 #: loading, long sequences, network variants, the renderer), the parameter and FLOP count, export and
 #: denoise (a trained network applied to a user's frames), the val table, render_blender (a user's .blend file)
-TOOLS = ("bench_data", "bench_longseq", "bench_networks", "bench_render", "netstats", "export", "denoise", "val_table",
+TOOLS = ("data_throughput", "memory_longseq", "bench_networks", "effect_cost", "netstats", "export", "denoise", "val_table",
          "render_blender")
 #: under MEASURED but unable to change a trained network or a block's numbers
 UNMEASURED = (

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from denoiser.commands.bench_render import LADDER, bench_scene
+from denoiser.commands.effect_cost import LADDER, bench_scene
 from denoiser.conf import CONF_DIR
 from denoiser.errors import ConfigError, UserError
 from denoiser.render import build
@@ -203,11 +203,11 @@ def test_unknown_light_keys_and_shape_params_are_errors(mi):
 def test_bench_prints_one_row_per_effect(mi, capsys):
     from hydra import compose, initialize_config_dir
 
-    from denoiser.commands.bench_render import run
+    from denoiser.commands.effect_cost import run
     from denoiser.conf import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose("bench_render", overrides=["width=16", "height=16", "spp=1", "ref_spp=4",
+        cfg = compose("effect_cost", overrides=["width=16", "height=16", "spp=1", "ref_spp=4",
                                                  "effects=[area_light,indirect,glossy]"])
     run(cfg)
     out = capsys.readouterr().out

@@ -19,6 +19,9 @@ ablations``) at its end. It reads
   (:func:`denoiser.measure.median_interval`);
 * each run directory (``run_dirs``, else ``<report>/runs/<variant>_s<seed>``): steps, best val
   PSNR, collapse marker and the teacher it was taught by;
+* OIDN (``oidn``, ``OIDN-fast``) when metrics.csv has it (``make ablations`` on your own data,
+  ``oidn=true``): a row of each table, a column of every variant's paired difference against it on
+  ``decide_metric``, and a sentence on the full recipe against it;
 
 and writes ``summary.md``: the run id, the commit the evaluation ran at (``<report>/eval/evaluation.json``;
 the summary's own, said so, without one), seeds, teacher and test-split hash, then between
@@ -269,19 +272,33 @@ def ablation_lines(cfg: DictConfig, ablations: dict, per_sequence: dict, metrics
 # ----------------------------------------------------------------------------- tables
 
 
-def quality_table(names: list[str], groups: dict, per_sequence: dict, reference: str, metrics: list[str]) -> str:
+def quality_table(names: list[str], groups: dict, per_sequence: dict, reference: str, metrics: list[str],
+                  oidn: str | None = None, decide: str = "psnr") -> str:
     """Variant, seeds, every metric's mean ± std over seeds, then every metric's paired difference
-    against the reference with its interval and verdict."""
+    against the reference with its interval and verdict; with ``oidn`` (a method of the evaluation),
+    its row (its difference against the reference) and a column of every variant's ``decide``
+    difference against it."""
     rows = []
-    for name in names:
+    for name in names + ([oidn] if oidn else []):
         g = groups[name]
-        row = {"variant": name, "seeds": len(g["seeds"]), **{m: format_mean_std(g, m, COLUMNS[m].digits) for m in metrics}}
+        row = {"variant": name, "seeds": len(g["seeds"]) if name != oidn else "",
+               **{m: format_mean_std(g, m, COLUMNS[m].digits) for m in metrics}}
         if name != reference:
             row.update({f"d_{m}": difference_cell(per_sequence, name, reference, m) for m in metrics})
+        if oidn and name != oidn:
+            row["d_oidn"] = difference_cell(per_sequence, name, oidn, decide)
         rows.append(row)
     headers = {**{m: COLUMNS[m].header for m in metrics},
-               **{f"d_{m}": f"Δ {COLUMNS[m].label} vs {reference} [95%]" for m in metrics}}
-    return markdown_table(rows, ["variant", "seeds", *metrics, *(f"d_{m}" for m in metrics)], headers=headers)
+               **{f"d_{m}": f"Δ {COLUMNS[m].label} vs {reference} [95%]" for m in metrics},
+               "d_oidn": f"Δ {COLUMNS[decide].label} vs {oidn} [95%]"}
+    columns = ["variant", "seeds", *metrics, *(f"d_{m}" for m in metrics)] + (["d_oidn"] if oidn else [])
+    return markdown_table(rows, columns, headers=headers)
+
+
+def oidn_line(per_sequence: dict, reference: str, oidn: str, column: str) -> str:
+    """``"- The full recipe (none) is ahead of OIDN-fast on PSNR dB: +1.20 [+0.90, +1.50] (± 0.30, 8 sequences)."``"""
+    return "- " + verdict_text(per_sequence, reference, oidn, column, oidn)[1].replace(
+        reference, f"The full recipe ({reference})", 1) + "."
 
 
 def time_table(names: list[str], timed: dict, seeds: list[int], reference: str, backends: list[str],
@@ -387,6 +404,8 @@ def run(cfg: DictConfig) -> Path:
     figure_names, ablation_names = [ref, *figure], [ref, *ablations]
     names = [ref, *figure, *ablations]
     groups, per_sequence = evaluated_groups(metrics_csv, names, seeds)
+    oidn = str(cfg.oidn) if cfg.get("oidn") and str(cfg.oidn) in groups else None
+    decide = str(cfg.decide_metric)
     size = (int(cfg.bench_size[0]), int(cfg.bench_size[1]))
     timed, why = bench_times(bench_csv, size)
     configured = [bench_label(str(b), {k[1] for k in timed} | set(why)) for b in cfg.backends]
@@ -396,7 +415,7 @@ def run(cfg: DictConfig) -> Path:
     n_seq = statistics.median(len(per_sequence[n].get(str(cfg.decide_metric), {})) for n in names)
     evaluated = ledger.read_provenance(metrics_csv.parent)
     lines = [
-        "# Ablations summary (the paper's Fig. A.1 and distillation ablations on the demo's held-out scenes)",
+        f"# Ablations summary (the paper's Fig. A.1 and distillation ablations on the held-out scenes of `{test_dir}`)",
         "",
         f"- run id: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')}",
         commit_line(evaluated),
@@ -421,7 +440,7 @@ def run(cfg: DictConfig) -> Path:
     if figure:
         h, w = size
         lines += [f"**{cfg.figure.title}** ({', '.join(f'{k}: {v}' for k, v in figure.items())})", "",
-                  quality_table(figure_names, groups, per_sequence, ref, metrics).rstrip(), "",
+                  quality_table(figure_names, groups, per_sequence, ref, metrics, oidn, decide).rstrip(), "",
                   (f"Time per {w}x{h} frame (denoiser-bench, median over interleaved rounds, seed {seeds[0]}'s "
                   f"networks; cost: {ref}'s median minus the variant's, in ms and %, and the ratio paired per round "
                   "with its distribution-free interval where the per-round times are there):"), "",
@@ -435,8 +454,10 @@ def run(cfg: DictConfig) -> Path:
             lines += [f"Backends not timed: {'; '.join(skipped)}.", ""]
     if ablations:
         lines += ["**The distillation ablations and the kernel variants** (each against the full recipe)", "",
-                  quality_table(ablation_names, groups, per_sequence, ref, metrics).rstrip(), "",
+                  quality_table(ablation_names, groups, per_sequence, ref, metrics, oidn, decide).rstrip(), "",
                   *ablation_lines(cfg, ablations, per_sequence, metrics, runs), ""]
+    if oidn:
+        lines += [oidn_line(per_sequence, ref, oidn, decide), ""]
     lines += [*run_notes(runs), END, ""]
     if figure:
         lines += [f"## {cfg.figure.title}: crops", "", *crop_lines(cfg, report, figure, per_sequence, seeds)]

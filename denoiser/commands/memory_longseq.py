@@ -2,10 +2,10 @@
 
 ::
 
-    python -m denoiser.commands.bench_longseq                       # 100 and 1000 frames at 64x64, net=student
-    python -m denoiser.commands.bench_longseq frames=[100,1000] size=64 net=student threads=2
+    python -m denoiser.commands.memory_longseq                       # 100 and 1000 frames at 64x64, net=student
+    python -m denoiser.commands.memory_longseq frames=[100,1000] size=64 net=student threads=2
 
-A Hydra app over ``conf/bench_longseq.yaml``. What it does:
+A Hydra app over ``conf/memory_longseq.yaml``. What it does:
 
 1. writes ``max(frames)`` synthetic 64x64 frames once into a temporary directory (real EXR
    files with every buffer and a ``sequence.json``, :mod:`denoiser.data.synthetic`); the
@@ -122,7 +122,7 @@ def table(rows: list[dict], size: int, net: str) -> str:
 
 
 def run(cfg: DictConfig) -> list[dict]:
-    """The ``bench_longseq`` task: prints the table; exit status 1 when the peak grew by more than
+    """The ``memory_longseq`` task: prints the table; exit status 1 when the peak grew by more than
     ``tolerance_mb``. Returns the rows."""
     frames = [int(n) for n in cfg.frames]
     if len(frames) < 2 or min(frames) < 1:
@@ -140,7 +140,7 @@ def run(cfg: DictConfig) -> list[dict]:
 def main() -> None:
     from denoiser.commands.app import hydra_command
 
-    hydra_command(run, "bench_longseq")()
+    hydra_command(run, "memory_longseq")()
 
 
 if __name__ == "__main__":

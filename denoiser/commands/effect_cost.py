@@ -1,12 +1,12 @@
-"""Cost of each simulated effect: ``python -m denoiser.commands.bench_render``.
+"""Cost of each simulated effect: ``python -m denoiser.commands.effect_cost``.
 
 ::
 
-    python -m denoiser.commands.bench_render
-    python -m denoiser.commands.bench_render width=64 height=64 effects=[area_light,indirect,glossy]
-    python -m denoiser.commands.bench_render effects=[area_light] scenes=all
+    python -m denoiser.commands.effect_cost
+    python -m denoiser.commands.effect_cost width=64 height=64 effects=[area_light,indirect,glossy]
+    python -m denoiser.commands.effect_cost effects=[area_light] scenes=all
 
-A Hydra app over ``conf/bench_render.yaml``. One Cornell-room scene; effects are switched on one at a time, cumulatively, in the order of
+A Hydra app over ``conf/effect_cost.yaml``. One Cornell-room scene; effects are switched on one at a time, cumulatively, in the order of
 ``LADDER``. For every step frame 0 is rendered first and reported as ``frame 0``; then
 seconds per frame of the noisy pass (``spp``) and of the auxiliary buffers + motion vectors
 (each the fastest of frames 1-3, scene loading included), and of the reference pass
@@ -143,7 +143,7 @@ def scene_noise(mi, names: list[str], width: int, height: int, spp: int, ref_spp
 
 
 def run(cfg: DictConfig) -> list[dict]:
-    """The ``bench_render`` task: print the effect table (and the scenes' noise); returns its rows."""
+    """The ``effect_cost`` task: print the effect table (and the scenes' noise); returns its rows."""
     from tqdm import tqdm
 
     from denoiser.render.variant import activate, active_variant
@@ -168,7 +168,7 @@ def run(cfg: DictConfig) -> list[dict]:
 def main() -> None:
     from denoiser.commands.app import hydra_command
 
-    hydra_command(run, "bench_render")()
+    hydra_command(run, "effect_cost")()
 
 
 if __name__ == "__main__":

@@ -2,10 +2,10 @@
 
 ::
 
-    python -m denoiser.commands.bench_data
-    python -m denoiser.commands.bench_data size=512 crop=128 window=8 sequences=2 frames=16 workers=[0,2]
+    python -m denoiser.commands.data_throughput
+    python -m denoiser.commands.data_throughput size=512 crop=128 window=8 sequences=2 frames=16 workers=[0,2]
 
-A Hydra app over ``conf/bench_data.yaml``. Writes synthetic native-layout sequences
+A Hydra app over ``conf/data_throughput.yaml``. Writes synthetic native-layout sequences
 (:mod:`denoiser.data.synthetic`, all buffers plus reference, float32, zip) into a temporary
 directory, composes ``conf/data/default.yaml`` (root, cache and worker overrides) and times
 whole training epochs of the real ``SequenceDataModule.train_dataloader()`` (random crops,
@@ -93,7 +93,7 @@ def table(rows: list[dict], cfg) -> str:
 
 
 def run(cfg: DictConfig) -> list[dict]:
-    """The ``bench_data`` task: measure and print the table; returns the rows."""
+    """The ``data_throughput`` task: measure and print the table; returns the rows."""
     rows = measure_loader(int(cfg.size), int(cfg.crop), int(cfg.window), int(cfg.sequences), int(cfg.frames),
                           [int(w) for w in cfg.workers], int(cfg.batch), int(cfg.repeat))
     print(table(rows, cfg), end="")
@@ -103,7 +103,7 @@ def run(cfg: DictConfig) -> list[dict]:
 def main() -> None:
     from denoiser.commands.app import hydra_command
 
-    hydra_command(run, "bench_data")()
+    hydra_command(run, "data_throughput")()
 
 
 if __name__ == "__main__":

@@ -103,8 +103,12 @@ def test_pinhole_without_dof_thin_lens_with_dof(mi):
 
 
 def test_every_ladder_step_builds_and_loads(mi):
+    """Each step of the effect-cost ladder (denoiser/commands/effect_cost.py) builds a spec that
+    declares exactly the effects up to it, and the scene loads in Mitsuba with its shapes."""
     for i in range(len(LADDER)):
-        _load(mi, bench_scene(LADDER[: i + 1]))
+        spec, scene = _load(mi, bench_scene(LADDER[: i + 1]))
+        assert set(spec.effects.names()) == set(LADDER[: i + 1]), LADDER[i]
+        assert len(scene.shapes()) >= 2, LADDER[i]
 
 
 def test_randomization_is_seeded():

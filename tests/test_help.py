@@ -131,7 +131,7 @@ def test_train_help_shows_the_current_choices(monkeypatch, capsys):
 
 
 #: the argparse commands (``python -m denoiser.commands.<name>``, no config of their own)
-ARGPARSE_COMMANDS = ("noise_response", "diagnose_history", "albedo_bound", "paper_summary", "nn_fingerprint")
+ARGPARSE_COMMANDS = ("noise_response", "diagnose_history", "albedo_bound", "paper_budget", "nn_fingerprint")
 
 
 @pytest.mark.parametrize("name", ARGPARSE_COMMANDS)

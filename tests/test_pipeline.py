@@ -269,7 +269,7 @@ def test_paper_runs_each_pipeline_as_a_stage_and_adds_up_their_work(tree):
     calls = pipeline(tree, "pipeline=paper", "dry_run=true").stdout.splitlines()
     assert [line.split("]")[0][1:] for line in calls] == ["ablations", "compare", "pareto", "summary"]
     assert calls[0].endswith("denoiser-pipeline pipeline=ablations")
-    assert "denoiser.commands.paper_summary paper=reports/paper/timings.md" in calls[3]
+    assert "denoiser.commands.paper_budget paper=reports/paper/timings.md" in calls[3]
 
 
 @pytest.mark.parametrize("name", ["demo", "ablations", "compare", "pareto", "paper"])

@@ -1,4 +1,4 @@
-"""Stage times of the pipelines (denoiser/pipeline/timings.py) and make paper's budget (denoiser/commands/paper_summary.py): a resumed pipeline's table keeps
+"""Stage times of the pipelines (denoiser/pipeline/timings.py) and make paper's budget (denoiser/commands/paper_budget.py): a resumed pipeline's table keeps
 the seconds of the run that did a reused step, and the budget adds up the stages' work."""
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ def test_a_table_from_before_the_run_column_is_carried_over(tmp_path):
     assert rows((tmp_path / "timings.md").read_text())["work"][0] == "731"
 
 
-def paper_summary(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "denoiser.commands.paper_summary", "--paper",
+def paper_budget(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "denoiser.commands.paper_budget", "--paper",
                            str(tmp_path / "paper.md"), "--reports", str(tmp_path / "reports"), "--out",
                            str(tmp_path / "summary.md"), *args], capture_output=True, text=True, check=False)
 
@@ -85,7 +85,7 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
     (tmp_path / "reports" / "pareto" / "timings.md").write_text(
         "| stage | seconds | run |\n|---|---:|---|\n| sweep | 2000 | run y |\n| total | 2100 | run y: wall time |\n"
         "| work | 2900 | every stage's seconds |\n")
-    proc = paper_summary(tmp_path)
+    proc = paper_budget(tmp_path)
     assert proc.returncode == 2 and proc.stderr == (   # the stages' results are part of the summary
         f"error: {tmp_path / 'reports' / 'ablations' / 'summary.md'}: not found (the ablations stage's results; run make paper)\n")
     for name, file in (("ablations", "summary.md"), ("compare", "summary.md"), ("pareto", "pareto.md")):
@@ -94,7 +94,7 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
             f"# {name}\n\n- run id: R-{name}\n- commit: C-{name}\n\n<!-- {name}:begin -->\n| {name} table |\n"
             f"<!-- {name}:end -->\n\n![{name} picture]({name}.png)\n")
     (tmp_path / "reports" / "pareto" / "pareto.csv").write_text("job,kind\n0,network\n1,network\noidn,baseline\n")
-    proc = paper_summary(tmp_path)
+    proc = paper_budget(tmp_path)
     assert proc.returncode == 0, proc.stderr
     text = (tmp_path / "summary.md").read_text()
     for name, file in (("ablations", "summary.md"), ("compare", "summary.md"), ("pareto", "pareto.md")):
@@ -109,13 +109,13 @@ def test_paper_summary_adds_up_the_stages_work_against_the_budget(tmp_path):
     assert table["pareto"][:3] == ["2900", "0.81 h", "3000"]      # its work row
     assert table["all"][:3] == ["7150", "1.99 h", "6700"]
     assert "within the budget of 6.00 h" in block and "- commit: " in text and "- run id: " in text  # the default budget
-    proc = paper_summary(tmp_path, "--budget-hours", "1")
+    proc = paper_budget(tmp_path, "--budget-hours", "1")
     assert "over the budget of 1.00 h by 0.99 h (2.0x)" in (tmp_path / "summary.md").read_text()
     (tmp_path / "paper.md").write_text("| stage | seconds |\n|---|---|\n| ablations | 95 |\n")
-    proc = paper_summary(tmp_path)
+    proc = paper_budget(tmp_path)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1
     assert proc.stderr.startswith("error: ") and "no row for stage(s) compare, pareto" in proc.stderr
-    proc = paper_summary(tmp_path, "budget_hours=lots")   # key=value, a bad value: one line too
+    proc = paper_budget(tmp_path, "budget_hours=lots")   # key=value, a bad value: one line too
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "budget-hours" in proc.stderr
 
 

@@ -5,7 +5,7 @@ Hydra composes ``conf/<config_name>.yaml`` with the command line, then ``task(cf
 A :class:`~denoiser.errors.UserError` becomes one line on stderr and exit code 2; the full
 traceback is shown only with ``DENOISER_DEBUG=1``. The commands that take no config
 (``python -m denoiser.commands.noise_response``, ``diagnose_history``, ``albedo_bound``,
-``paper_summary``) parse with :class:`CommandParser` (argparse, ``key=value`` accepted) and end a
+``paper_budget``) parse with :class:`CommandParser` (argparse, ``key=value`` accepted) and end a
 UserError with :func:`report_user_error` the same way.
 
 The configs ship inside the package (:data:`denoiser.conf.CONF_DIR`), so a plain

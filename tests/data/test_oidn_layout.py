@@ -58,7 +58,7 @@ def items(root: Path, layout_name: str, **fields) -> list[dict]:
 
 
 def test_oidn_named_files_read_into_the_native_layouts_buffers(same_pixels):
-    native, oidn, written = same_pixels
+    native, oidn, _ = same_pixels
     (a,), (b,) = items(native, "native"), items(oidn, "oidn")
     assert b["sequence"] == "val/shot" and b["color"].shape == (3, 3, 32, 32)
     for buffer in ("color", "albedo", "normal", "depth", "reference"):

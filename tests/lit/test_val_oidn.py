@@ -4,16 +4,14 @@ OidnDenoiser and the project's metric give on the same frames."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
+from helpers.train_args import FAST
 from hydra import compose, initialize_config_dir
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from denoiser.conf import CONF_DIR
 from denoiser.data.synthetic import write_synthetic_sequence
-from helpers.train_args import FAST
 
 pytest.importorskip("pyoidn")
 
@@ -43,8 +41,8 @@ def test_a_training_run_logs_the_val_splits_oidn_fast_psnr_once_computed(tmp_pat
     assert len(calls) == 1                                       # computed at the first validation only
 
     # the value: OIDN-fast on the val frames (whole 32x32 frames, warm-up 2), the project's PSNR
-    from denoiser.data.dataset import SequenceDataset, index_split
     from denoiser.configs import instantiate_config
+    from denoiser.data.dataset import SequenceDataset, index_split
 
     layout = instantiate_config(cfg.data.layout, "layout")
     item = SequenceDataset(index_split(layout, root, "val"), layout, list(cfg.data.buffers))[0]

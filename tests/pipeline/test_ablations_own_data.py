@@ -13,9 +13,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers.train_args import NARROW
 
 from denoiser.data.synthetic import write_synthetic_sequence
-from helpers.train_args import NARROW
 
 pytest.importorskip("pyoidn")
 

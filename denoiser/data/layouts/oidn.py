@@ -63,7 +63,7 @@ class _Sequence:
 def _spp(version: str) -> int | None:
     """Samples per pixel of a noisy version (``0004spp``, ``0004``), None for a reference name."""
     v = version.lower()
-    return None if v in REFERENCE_NAMES else int(v[:-3] if v.endswith("spp") else v)
+    return None if v in REFERENCE_NAMES else int(v.removesuffix("spp"))
 
 
 def _specs(buffers: Mapping[str, object]) -> dict[str, BufferSpec]:

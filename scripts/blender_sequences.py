@@ -1085,8 +1085,9 @@ RELEASE_SPLITS = {
 #: release splits rendered without references
 RELEASE_NOISY_ONLY = ("unlabeled",)
 #: sequences of the release set rendered at 256x256 (the rest at 128x128): two of train (motion_1041,
-#: textures_1042), what the ~3 h Cycles share of the release budget leaves at --ref-spp 512 (issue 62's
-#: timing renders: an 8-frame 128x128 sequence is 54-142 s on 2 cores at 256 spp, 106-262 s at 512)
+#: textures_1042), what the ~3 h Cycles share of the release budget leaves at --ref-spp 384 (issue 62's
+#: timing renders, split timing: an 8-frame 128x128 sequence of a training kind is 54-142 s on 2 cores
+#: at 256 spp, 106-262 s at 512; train + val + unlabeled about 2.2 h at 384 spp, 2.8 h at 512)
 RELEASE_LARGE = frozenset(RELEASE_SPLITS["train"][-2:])
 
 

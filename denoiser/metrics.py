@@ -103,11 +103,11 @@ METRICS: dict[str, Metric] = {
     "psnr": Metric("PSNR dB", 2),
     "ssim": Metric("SSIM", 4),
     "tpsnr": Metric("tPSNR dB", 2),
+    "warp": Metric("warp err ×1e3", 3, lower_is_better=True),
+    "warp_ref": Metric("warp err of reference ×1e3", 3, lower_is_better=True),
     "flip": Metric("FLIP", 4, lower_is_better=True),
     "relmse": Metric("relMSE", 4, lower_is_better=True),
     "smape": Metric("SMAPE", 4, lower_is_better=True),
-    "warp": Metric("warp err ×1e3", 3, lower_is_better=True),
-    "warp_ref": Metric("warp err of reference ×1e3", 3, lower_is_better=True),
 }
 
 #: Metrics whose per-frame values the caller computes (they need motion, which

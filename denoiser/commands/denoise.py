@@ -72,7 +72,7 @@ from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, ExrError
 from denoiser.recurrent import RecurrentRunner
-from denoiser.report.flicker import FlickerMeter, denoise_report, read_motion
+from denoiser.report.flicker import FlickerMeter, denoise_report, flicker_buffers, read_motion
 
 log = logging.getLogger(__name__)
 
@@ -307,20 +307,22 @@ def run(cfg: DictConfig) -> dict:
             backend_name, backend = make_backend(backend_name, precision, device)
     runner = RecurrentRunner(backend.prepare(net, None, threads).step)
     # the flicker of the input and the output (report.json/md, flicker.png), where the frames have motion
-    meter = FlickerMeter(["input", "output"]) if cfg.get("report", True) and "motion" in source.buffers else None
+    meter = (FlickerMeter(["input", "output"], int(cfg.get("report_stride") or 1))
+             if cfg.get("report", True) and "motion" in source.buffers else None)
+    extra = [b for b in flicker_buffers(layout, source) if b not in needed] if meter is not None else []
     measure_seconds = 0.0
     started = time.perf_counter()
     with torch.inference_mode(), tqdm(todo, desc=f"denoise ({backend.label})", unit="frame") as progress:
         for i in progress:
-            arrays, bad = layout.read_frame(source, i, needed)
+            arrays, bad = layout.read_frame(source, i, [*needed, *extra])  # one decode for both
             if any(bad.values()):
                 log.warning("%s: replaced %d NaN/Inf value(s)", color_files[i], sum(bad.values()))
             reset = i == start or i in cuts
-            frame = frame_tensors(arrays, device)
+            frame = frame_tensors({k: v for k, v in arrays.items() if k in needed}, device)
             output = runner(frame, reset)
             if meter is not None:
                 tick = time.perf_counter()
-                flicker_frame(meter, layout, source, i, frame, output, reset)
+                flicker_frame(meter, layout, source, i, frame, arrays, output, reset)
                 measure_seconds += time.perf_counter() - tick
             if outputs[i].exists():
                 counts["replayed"] += int(i < first)
@@ -346,13 +348,14 @@ def run(cfg: DictConfig) -> dict:
     return counts
 
 
-def flicker_frame(meter, layout, source, index: int, frame: dict, output, reset: bool) -> None:
-    """Add frame ``index`` (its input ``frame`` ``{buffer: [1, C, H, W]}`` and the network's ``output``
-    ``[1, 3, H, W]``) to the flicker ``meter`` (:class:`~denoiser.report.flicker.FlickerMeter`)."""
+def flicker_frame(meter, layout, source, index: int, frame: dict, arrays: dict, output, reset: bool) -> None:
+    """Add frame ``index`` (its input ``frame`` ``{buffer: [1, C, H, W]}``, every buffer read
+    ``arrays`` ``{buffer: [H, W, C]}`` and the network's ``output`` ``[1, 3, H, W]``) to the flicker
+    ``meter`` (:class:`~denoiser.report.flicker.FlickerMeter`)."""
     out = output if isinstance(output, torch.Tensor) else torch.from_numpy(np.asarray(output))
-    extra = read_motion(layout, source, index, {k: v.cpu() for k, v in frame.items()})
+    extra = read_motion(layout, source, index, arrays)
     meter.update({"input": frame["color"].cpu(), "output": out.float().cpu()}, extra["motion"], reset,
-                  extra["guide"], extra["next_motion"])
+                  extra["aux"], extra["next_motion"])
 
 
 def main() -> None:

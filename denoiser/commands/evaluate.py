@@ -156,11 +156,13 @@ def run(cfg: DictConfig) -> dict:
         print(look_line)
     rows = ev.sequence_rows()
     write_csv(out_dir / "metrics.csv", rows, ["method", "scene", "sequence", "frames", *ev.columns, "ms_per_frame"])
-    write_csv(out_dir / "frames.csv", ev.frame_rows(), ["method", "sequence", "frame", "warmup", *metrics])
+    write_csv(out_dir / "frames.csv", ev.frame_rows(), ["method", "sequence", "frame", "warmup", *ev.metrics])
     header = (f"# Evaluation on {Path(cfg.data.root) / cfg.split}\n\n{len(sources)} sequence(s), "
               f"warm-up {cfg.warmup} frame(s) excluded after each reset, {threads} thread(s). Metrics: "
               "PSNR/SSIM/tPSNR on ACES+sRGB tonemapped frames, HDR-FLIP with a per-sequence exposure range, "
-              "relMSE and SMAPE on linear HDR (see denoiser/metrics.py). \"all frames\": warm-up included; "
+              "relMSE and SMAPE on linear HDR; warp err: the flicker without a reference (Lai et al.'s warping error "
+              "along the frames' motion, pixels visible in both frames; its reference's value is the floor that "
+              "shading changes alone give) (see denoiser/metrics.py). \"all frames\": warm-up included; "
               "\"frames 2+\": every frame of a sequence but its first (frames counted from 1), warm-up or not.\n\n"
               + (look_line + "\n\n" if look_line else ""))
     atomic_write_text(out_dir / "metrics.md", markdown_report(ev, rows, header))

@@ -44,7 +44,15 @@ from denoiser.configs import instantiate_config
 from denoiser.data import exr
 from denoiser.data.layouts.blender import exr_files
 from denoiser.errors import ConfigError, ExrError, UserError
-from denoiser.report.flicker import FlickerMeter, json_values, plot_flicker, read_motion, summary_rows, summary_table
+from denoiser.report.flicker import (
+    FlickerMeter,
+    flicker_buffers,
+    json_values,
+    plot_flicker,
+    read_motion,
+    summary_rows,
+    summary_table,
+)
 
 #: the row of the noisy render's own frames (``input=true``)
 INPUT_ROW = "noisy input"
@@ -103,19 +111,19 @@ def run(cfg: DictConfig) -> dict:
         raise ConfigError(f"dirs: a folder may not be called {INPUT_ROW!r} with input=true")
     meter = FlickerMeter(names)
     cuts = set(source.cuts)
+    buffers = flicker_buffers(layout, source)
     for i in tqdm(range(source.frames), desc="flicker", unit="frame", leave=False):
         frames = {d: read_color(files[d][i], alternatives) for d in dirs}
-        arrays = {}
+        arrays, _ = layout.read_frame(source, i, [*(["color"] if cfg.get("input", True) else []), *buffers])
         if cfg.get("input", True):
-            arrays, _ = layout.read_frame(source, i, ["color"])
             frames[INPUT_ROW] = torch.from_numpy(np.ascontiguousarray(arrays["color"].transpose(2, 0, 1)))[None]
         shapes = {d: tuple(f.shape[-2:]) for d, f in frames.items()}
         if len(set(shapes.values())) != 1 or shapes[dirs[0]] != (source.height, source.width):
             bad = next(d for d, s in shapes.items() if s != (source.height, source.width))
             raise UserError(f"{files[bad][i] if bad in files else motion_dir}: frame {i + 1} is "
                             f"{shapes[bad][1]}x{shapes[bad][0]}, the motion render {source.width}x{source.height}")
-        extra = read_motion(layout, source, i)
-        meter.update(frames, extra["motion"], i == 0 or i in cuts, extra["guide"], extra["next_motion"])
+        extra = read_motion(layout, source, i, arrays, buffers)
+        meter.update(frames, extra["motion"], i == 0 or i in cuts, extra["aux"], extra["next_motion"])
     results = {n: meter.result(n) for n in names}
     try:
         rows = summary_rows(results)

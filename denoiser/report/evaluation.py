@@ -5,6 +5,11 @@ sequence, then over sequences). Used by ``denoiser-eval`` (:mod:`denoiser.comman
 A *method* is anything with ``reset()`` and ``method(frame, reset) -> [1, 3, H, W]``
 (:mod:`denoiser.methods.baselines`): the noisy input, OIDN, a trained network through the recurrent
 runner.
+
+With ``warp`` among the metrics, one :class:`~denoiser.report.flicker.FlickerMeter` per sequence
+measures every method's output and the reference along the frames' motion (the same visibility
+mask for all of them), and each method's accumulator gets ``warp`` (its own) and ``warp_ref``
+(the reference's, the floor that real shading changes alone give) frame by frame.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import torch
 from denoiser.data.evalset import read_frame, sequence_reference
 from denoiser.errors import ConfigError, UserError
 from denoiser.metrics import COLUMNS, MetricAccumulator, flip_exposure, psnr
+from denoiser.report.flicker import FlickerMeter, flicker_buffers, read_motion
 from denoiser.report.plot_crops import crop_box, to_display
 from denoiser.tables import markdown_table, read_csv
 
@@ -30,6 +36,8 @@ class Evaluation:
     def __init__(self, methods: Mapping[str, object], metrics, warmup: int):
         self.methods = OrderedDict(methods)
         self.metrics = list(metrics)
+        if "warp" in self.metrics and "warp_ref" not in self.metrics:  # the reference's own value beside it
+            self.metrics.insert(self.metrics.index("warp") + 1, "warp_ref")
         self.acc = {label: MetricAccumulator(self.metrics, warmup) for label in self.methods}
         self.seconds = {label: {} for label in self.methods}  # label -> {sequence: [s per frame]}
         self.scenes: dict[str, str] = {}
@@ -45,6 +53,8 @@ class Evaluation:
                 acc.set_flip_exposure(name, exposure)
         for method in self.methods.values():
             method.reset()
+        meter = FlickerMeter([*self.methods, REFERENCE]) if "warp" in self.metrics else None
+        flicker = flicker_buffers(dataset.reader.layout, source) if meter is not None else None
         panels = None
         for index in range(frames):
             inputs, reference, reset = read_frame(dataset, source, index)
@@ -56,10 +66,17 @@ class Evaluation:
                 self.seconds[label].setdefault(name, []).append(time.perf_counter() - start)
                 if not torch.isfinite(out).all():
                     raise RuntimeError(f"{label} produced NaN/Inf on {name} frame {index}")
-                self.acc[label].update(out, reference, name, frame_index=[index], reset=[reset])
                 outputs[label] = out
                 if exr_dir is not None:
                     write_denoised(exr_dir / label.replace("/", "_") / name / f"frame_{index:04d}.exr", out)
+            warp = {}
+            if meter is not None:
+                extra = read_motion(dataset.reader.layout, source, index, inputs, flicker)
+                warp = meter.update({**outputs, REFERENCE: reference}, extra["motion"], reset, extra["aux"],
+                                    extra["next_motion"])
+            for label, out in outputs.items():
+                values = {"warp": [warp[label]], "warp_ref": [warp[REFERENCE]]} if warp else None
+                self.acc[label].update(out, reference, name, frame_index=[index], reset=[reset], values=values)
             if index == image_frame:
                 panels = self.crop_panels(outputs, reference, image_cfg)
             progress.update(1)
@@ -116,6 +133,10 @@ class Evaluation:
 
     def frame_rows(self) -> list[dict]:
         return [{"method": label, **row} for label, acc in self.acc.items() for row in acc.frame_rows()]
+
+
+#: the flicker meter's stream of the reference frames (``warp_ref``)
+REFERENCE = "reference"
 
 
 def _mean(values) -> float:

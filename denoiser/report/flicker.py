@@ -2,11 +2,12 @@
 
 The formula and how to read it are said once, in :mod:`denoiser.metrics` (``warp``,
 :func:`~denoiser.metrics.masked_warp_error`). This module aligns frame t-1 to frame t with
-frame t's backward motion (:mod:`denoiser.nn.warp`, bilinear) and builds the visibility mask
-``M_t`` ``[N, 1, H, W]``, the same for every stream of the same frames:
+frame t's backward motion, as the network's warp does (:mod:`denoiser.nn.warp`: the sample
+position ``p + motion(p)``, NaN motion read as 0 and clamped to ``MOTION_LIMIT`` frame sizes,
+bilinear), and builds the visibility mask ``M_t``, the same for every stream of the same frames:
 
-* *in frame*: the bilinear footprint of ``p + motion(p)`` lies wholly inside frame t-1
-  (:func:`~denoiser.nn.warp.coverage` ``>= 1 - 1e-6``), and the motion is finite;
+* *in frame*: the bilinear footprint of ``p + motion(p)`` lies wholly inside frame t-1 (what
+  :func:`~denoiser.nn.warp.coverage` ``= 1`` says), and the motion is finite;
 * *visible in both frames* (disocclusions dropped), one of two tests:
 
   - ``forward-backward`` where frame t-1's forward motion exists (Blender's ``Vector`` (Z, W),
@@ -14,11 +15,18 @@ frame t's backward motion (:mod:`denoiser.nn.warp`, bilinear) and builds the vis
     sign as ``motion``): with ``f`` that motion warped to t, kept where
     ``|m - f|^2 <= FB_ALPHA (|m|^2 + |f|^2) + FB_BETA`` (Ruder et al. 2016, "Artistic style transfer
     for videos", the test Lai et al. use for their occlusion masks);
-  - ``guide`` otherwise: the disagreement ``D`` of the networks' disocclusion gate between the
-    warped previous guide (albedo, normal, depth features) and the current one
-    (:func:`denoiser.nn.temporal.guide_disagreement`), kept where ``D <= GATE_THRESHOLD`` (where the
-    gate of the shipped networks, ``reject_threshold`` 0.1, passes history whole);
+  - ``guide`` otherwise: the depth and normal terms of the networks' disocclusion gate
+    (:func:`denoiser.nn.temporal.guide_disagreement`: log depth ratio of the depth features
+    ``d / (d + m)``, ``1 - cos`` of the normals) between frame t-1's warped features and frame t's,
+    kept where ``D <= GATE_THRESHOLD`` (where the gate of the shipped networks, ``reject_threshold``
+    0.1, passes history whole). The gate's albedo term is left out (it reads a 3x3 box);
   - ``in-frame`` when the frames come with neither (no disocclusion test: said in every report).
+
+``stride`` s: the measure is taken at the pixels ``(s/2 + i s, s/2 + j s)`` (every pixel for
+s = 1): the mean over a regular subset of the kept pixels, the exact per-pixel value at each of
+them (frame t-1's tonemapped values interpolated from its four neighbours), so it estimates the
+full mean at 1/s² of the cost. ``denoiser-denoise`` uses a stride to keep its cost small; the
+evaluation and ``denoiser-flicker`` every pixel.
 
 :class:`FlickerMeter` streams frames (one at a time, several named streams: a noisy input and
 its denoised output, methods side by side) and keeps per stream the per-frame warp error and
@@ -37,72 +45,124 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from denoiser.errors import ExrError
 from denoiser.metrics import masked_warp_error, tonemap
-from denoiser.nn.inputs import guide_features
+from denoiser.nn.inputs import DEPTH_FAR, depth_mean, normal_feature, sanitize
 from denoiser.nn.temporal import guide_disagreement
-from denoiser.nn.warp import coverage, grid_from_positions, sample_positions
+from denoiser.nn.warp import MOTION_LIMIT
 
-#: coverage a kept pixel needs: its whole bilinear footprint inside the previous frame
-COVER_FULL = 1.0 - 1e-6
 #: forward-backward test ``|m - f|^2 <= FB_ALPHA (|m|^2 + |f|^2) + FB_BETA`` (pixels^2; Ruder et al.)
 FB_ALPHA, FB_BETA = 0.01, 0.5
 #: largest disocclusion-gate disagreement ``D`` kept (the shipped networks' ``reject_threshold``)
 GATE_THRESHOLD = 0.1
 #: the visibility tests, in the order they are preferred
 MASKS = ("forward-backward", "guide", "in-frame")
+#: the buffers of the guide test (:func:`frame_aux`)
+AUX = ("normal", "depth")
+
+
+def sample_points(h: int, w: int, stride: int) -> torch.Tensor:
+    """Flat indices ``[n]`` (``y * w + x``) of the pixels measured at ``stride``: ``(s//2 + i s, s//2 + j s)``."""
+    if stride < 1:
+        raise ValueError(f"flicker: stride must be >= 1, got {stride}")
+    ys = torch.arange(stride // 2 if h > stride // 2 else 0, h, stride)
+    xs = torch.arange(stride // 2 if w > stride // 2 else 0, w, stride)
+    return (ys[:, None] * w + xs[None, :]).reshape(-1)
+
+
+def _at(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``x`` ``[1, C, H, W]`` at the flat pixel indices ``index`` (any shape) -> ``[C, *index.shape]`` float32."""
+    flat = x.reshape(x.shape[1], -1).float()
+    return flat[:, index.reshape(-1)].reshape(x.shape[1], *index.shape)
 
 
 @dataclass
 class Alignment:
-    """Frame t-1 aligned to frame t: the sampling grid and the visibility mask.
+    """Frame t-1 aligned to frame t at the measured pixels.
 
-    grid: ``[N, H, W, 2]`` (``grid_sample``, ``align_corners=False``); visible: bool ``[N, 1, H, W]``;
+    points: ``[n]`` flat indices of the measured pixels of frame t; taps: ``[4, n]`` flat indices of
+    their bilinear neighbours in frame t-1; weights: ``[4, n]``; visible: bool ``[n]`` (the mask);
     mask: which test built it (:data:`MASKS`).
     """
 
-    grid: torch.Tensor
+    points: torch.Tensor
+    taps: torch.Tensor
+    weights: torch.Tensor
     visible: torch.Tensor
     mask: str
 
-    def warp(self, previous: torch.Tensor) -> torch.Tensor:
-        """``previous`` ``[N, C, H, W]`` (frame t-1) sampled at ``p + motion(p)``: ``[N, C, H, W]`` float32."""
-        return F.grid_sample(previous.float(), self.grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    def warp(self, previous: torch.Tensor, transform=None) -> torch.Tensor:
+        """``previous`` ``[1, C, H, W]`` (frame t-1) interpolated at ``p + motion(p)``, ``[C, n]``;
+        ``transform`` (e.g. the tonemapper) applied to the four neighbours before interpolating."""
+        values = _at(previous, self.taps)  # [C, 4, n]
+        if transform is not None:
+            values = transform(values)
+        return (values * self.weights[None]).sum(dim=1)
 
-    def error(self, previous_tm: torch.Tensor, current_tm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Warp error and share kept, ``([N], [N])``, of tonemapped frames ``[N, 3, H, W]`` at t-1 and t."""
-        return masked_warp_error(current_tm, self.warp(previous_tm), self.visible)
+    def error(self, previous: torch.Tensor, current: torch.Tensor) -> tuple[float, float]:
+        """Warp error (×1e3) and share kept of linear frames ``[1, 3, H, W]`` at t-1 and t: the warped
+        *tonemapped* frame t-1 against the tonemapped frame t (:func:`~denoiser.metrics.masked_warp_error`)."""
+        cur = tonemap(_at(current, self.points))
+        prev = self.warp(previous, tonemap)
+        error, kept = masked_warp_error(cur[None, :, None], prev[None, :, None], self.visible.view(1, 1, 1, -1))
+        return float(error[0]), float(kept[0])
 
 
-def align(motion: torch.Tensor, previous_guide: torch.Tensor | None = None, guide: torch.Tensor | None = None,
-          previous_next_motion: torch.Tensor | None = None) -> Alignment:
+def align(motion: torch.Tensor, previous_aux: Mapping | None = None, aux: Mapping | None = None,
+          previous_next_motion: torch.Tensor | None = None, stride: int = 1) -> Alignment:
     """The :class:`Alignment` of frame t-1 to frame t (module docstring).
 
-    motion: ``[N, 2, H, W]`` frame t's backward motion (pixels, x right, y down); previous_guide,
-    guide: ``[N, 7, H, W]`` guide features of frames t-1 and t
-    (:func:`~denoiser.nn.inputs.guide_features`) or None; previous_next_motion: ``[N, 2, H, W]``
-    frame t-1's forward motion (``motion_next``) or None. The forward-backward test is used when
-    it is given, else the guide test when both guides are, else only the in-frame test.
+    motion: ``[1, 2, H, W]`` frame t's backward motion (pixels, x right, y down); previous_aux,
+    aux: :func:`frame_aux` of frames t-1 and t (``normal [1, 3, H, W]``, ``depth [1, 1, H, W]``) or
+    None; previous_next_motion: ``[1, 2, H, W]`` frame t-1's forward motion (``motion_next``) or
+    None. The forward-backward test is used when it is given, else the guide test when both aux
+    are, else only the in-frame test.
     """
-    with torch.no_grad():
-        motion = motion.float()
-        sx, sy = sample_positions(motion)
-        grid = grid_from_positions(sx, sy)
-        visible = (coverage(sx, sy) >= COVER_FULL) & torch.isfinite(motion).all(dim=1, keepdim=True)
-        if previous_next_motion is not None:
-            f = F.grid_sample(previous_next_motion.float(), grid, mode="bilinear", padding_mode="zeros",
-                              align_corners=False)
-            m = torch.nan_to_num(motion, nan=0.0, posinf=0.0, neginf=0.0)
-            lhs = ((m - f) ** 2).sum(dim=1, keepdim=True)
-            rhs = FB_ALPHA * ((m * m).sum(dim=1, keepdim=True) + (f * f).sum(dim=1, keepdim=True)) + FB_BETA
-            return Alignment(grid, visible & (lhs <= rhs), "forward-backward")
-        if previous_guide is not None and guide is not None:
-            warped = F.grid_sample(previous_guide.float(), grid, mode="bilinear", padding_mode="zeros",
-                                   align_corners=False)
-            return Alignment(grid, visible & (guide_disagreement(warped, guide) <= GATE_THRESHOLD), "guide")
-        return Alignment(grid, visible, "in-frame")
+    h, w = motion.shape[-2:]
+    points = sample_points(h, w, stride)
+    raw = _at(motion, points)  # [2, n]
+    limit = MOTION_LIMIT * max(h, w)
+    m = sanitize(raw).clamp(-limit, limit)  # as denoiser.nn.warp.sample_positions reads motion
+    sx, sy = (points % w).float() + m[0], torch.div(points, w, rounding_mode="floor").float() + m[1]
+    visible = (sx >= 0) & (sx <= w - 1) & (sy >= 0) & (sy <= h - 1) & torch.isfinite(raw).all(dim=0)
+    x0, y0 = sx.floor().clamp(0, w - 1), sy.floor().clamp(0, h - 1)
+    fx, fy = (sx - x0).clamp(0, 1), (sy - y0).clamp(0, 1)
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    x0, x1, y0, y1 = (v.long() for v in (x0, x1, y0, y1))
+    taps = torch.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1])
+    weights = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
+    alignment = Alignment(points, taps, weights, visible, "in-frame")
+    if previous_next_motion is not None:
+        f = alignment.warp(sanitize(previous_next_motion))
+        lhs = ((m - f) ** 2).sum(dim=0)
+        rhs = FB_ALPHA * ((m * m).sum(dim=0) + (f * f).sum(dim=0)) + FB_BETA
+        alignment.visible, alignment.mask = visible & (lhs <= rhs), "forward-backward"
+    elif previous_aux is not None and aux is not None:
+        previous = (_features_at(previous_aux, taps) * weights[None]).sum(dim=1)  # warped, [7, n]
+        current = _features_at(aux, points)
+        d = guide_disagreement(previous[None, :, None], current[None, :, None])[0, 0, 0]
+        alignment.visible, alignment.mask = visible & (d <= GATE_THRESHOLD), "guide"
+    return alignment
+
+
+def _features_at(aux: Mapping, index: torch.Tensor) -> torch.Tensor:
+    """The gate's guide features (:func:`denoiser.nn.inputs.guide_features`: albedo, normal, depth
+    ``d / (d + m)`` with ``m`` the frame's mean hit depth) at the flat pixel indices ``index``,
+    ``[7, *index.shape]``, the albedo channels zeros (the gate's albedo term is then 0)."""
+    d = sanitize(_at(aux["depth"], index)).clamp(0, DEPTH_FAR)
+    normal = normal_feature(sanitize(_at(aux["normal"], index)))
+    return torch.cat([torch.zeros_like(normal), normal, d / (d + aux["mean"].reshape(()))], dim=0)
+
+
+def frame_aux(arrays: Mapping[str, object]) -> dict | None:
+    """What the guide test reads of a frame (``{buffer: [1, C, H, W]}`` tensors or ``[H, W, C]``
+    arrays): ``{"normal": [1, 3, H, W], "depth": [1, 1, H, W], "mean": [1, 1, 1, 1]}`` (the frame's
+    mean hit depth, :func:`denoiser.nn.inputs.depth_mean`), or None without normal and depth."""
+    if not all(b in arrays for b in AUX):
+        return None
+    normal, depth = _tensor(arrays["normal"]), _tensor(arrays["depth"])
+    return {"normal": normal, "depth": depth, "mean": depth_mean(sanitize(depth).clamp(0, DEPTH_FAR))}
 
 
 @dataclass
@@ -138,12 +198,14 @@ def defined_mean(values: Sequence[float]) -> float:
 class FlickerMeter:
     """The warp error of named streams of the same frames, frame by frame.
 
-    ``names``: the streams (e.g. ``["input", "output"]``). Each :meth:`update` gets frame t of every
-    stream (linear HDR ``[1, 3, H, W]``) with frame t's motion ``[1, 2, H, W]``, optional guide
-    ``[1, 7, H, W]`` and forward motion ``[1, 2, H, W]``, and ``reset`` (first frame, cut).
+    ``names``: the streams (e.g. ``["input", "output"]``); ``stride``: measure every ``stride``-th
+    pixel in each direction (module docstring). Each :meth:`update` gets frame t of every stream
+    (linear HDR ``[1, 3, H, W]``) with frame t's motion ``[1, 2, H, W]``, optional :func:`frame_aux`
+    and forward motion ``[1, 2, H, W]``, and ``reset`` (first frame, cut).
     """
 
     names: Sequence[str]
+    stride: int = 1
     values: dict[str, list[float]] = field(default_factory=dict)
     kept: dict[str, list[float]] = field(default_factory=dict)
     masks: set = field(default_factory=set)
@@ -153,17 +215,17 @@ class FlickerMeter:
         self.values = {n: [] for n in self.names}
         self.kept = {n: [] for n in self.names}
         self._previous: dict[str, torch.Tensor] = {}
-        self._guide: torch.Tensor | None = None
+        self._aux: dict | None = None
         self._next_motion: torch.Tensor | None = None
 
+    @torch.no_grad()
     def update(self, frames: Mapping[str, torch.Tensor], motion: torch.Tensor | None, reset: bool,
-               guide: torch.Tensor | None = None, next_motion: torch.Tensor | None = None) -> dict[str, float]:
+               aux: Mapping | None = None, next_motion: torch.Tensor | None = None) -> dict[str, float]:
         """Add frame t of every stream; returns ``{name: warp error of frame t}`` (NaN at a reset).
         ``motion`` may be None at a reset only."""
         missing = [n for n in self.names if n not in frames]
         if missing:
             raise ValueError(f"flicker: no frame for stream(s) {missing}")
-        current = {n: tonemap(frames[n]) for n in self.names}
         out = {}
         if reset or not self._previous:
             for n in self.names:
@@ -173,14 +235,15 @@ class FlickerMeter:
         else:
             if motion is None:
                 raise ValueError("flicker: frame t needs its motion (only a first frame or a cut may lack it)")
-            alignment = align(motion, self._guide, guide, self._next_motion)
+            alignment = align(motion, self._aux, aux, self._next_motion, self.stride)
             self.masks.add(alignment.mask)
             for n in self.names:
-                error, kept = alignment.error(self._previous[n], current[n])
-                self.values[n].append(float(error[0]))
-                self.kept[n].append(float(kept[0]))
-                out[n] = float(error[0])
-        self._previous, self._guide, self._next_motion = current, guide, next_motion
+                error, kept = alignment.error(self._previous[n], frames[n])
+                self.values[n].append(error)
+                self.kept[n].append(kept)
+                out[n] = error
+        self._previous = {n: frames[n] for n in self.names}
+        self._aux, self._next_motion = aux, next_motion
         return out
 
     def result(self, name: str) -> WarpError:
@@ -193,36 +256,29 @@ class FlickerMeter:
         return used[-1] if used else "none"
 
 
-def warp_error(frames: torch.Tensor, motion: torch.Tensor, guide: torch.Tensor | None = None,
-               next_motion: torch.Tensor | None = None, reset: Sequence[bool] | torch.Tensor | None = None
-               ) -> WarpError:
+def warp_error(frames: torch.Tensor, motion: torch.Tensor, aux: Mapping | None = None,
+               next_motion: torch.Tensor | None = None, reset: Sequence[bool] | torch.Tensor | None = None,
+               stride: int = 1) -> WarpError:
     """The warp error of one sequence in memory.
 
     frames: ``[T, 3, H, W]`` linear HDR in order; motion: ``[T, 2, H, W]`` backward motion of each
-    frame; guide: ``[T, 7, H, W]`` or None; next_motion: ``[T, 2, H, W]`` forward motion or None;
-    reset: bool ``[T]`` (True at cuts; frame 0 always resets). Returns :class:`WarpError` (``[T]`` lists).
+    frame; aux: ``{"normal": [T, 3, H, W], "depth": [T, 1, H, W]}`` or None; next_motion:
+    ``[T, 2, H, W]`` forward motion or None; reset: bool ``[T]`` (True at cuts; frame 0 always
+    resets). Returns :class:`WarpError` (``[T]`` lists).
     """
     if frames.ndim != 4 or frames.shape[1] != 3 or motion.shape != (frames.shape[0], 2, *frames.shape[2:]):
         raise ValueError(f"warp error: expected frames [T, 3, H, W] and motion [T, 2, H, W], got "
                          f"{tuple(frames.shape)} and {tuple(motion.shape)}")
-    meter = FlickerMeter(["x"])
+    meter = FlickerMeter(["x"], stride)
     for t in range(frames.shape[0]):
         cut = t == 0 or (reset is not None and bool(reset[t]))
         meter.update({"x": frames[t:t + 1]}, motion[t:t + 1], cut,
-                     None if guide is None else guide[t:t + 1],
+                     None if aux is None else frame_aux({k: aux[k][t:t + 1] for k in AUX}),
                      None if next_motion is None else next_motion[t:t + 1])
     return meter.result("x")
 
 
 # ----------------------------------------------------------------------------- reading a layout's files
-
-
-def frame_guide(arrays: Mapping[str, object]) -> torch.Tensor | None:
-    """The guide features ``[1, 7, H, W]`` of a frame's buffers (``{buffer: [1, C, H, W]}`` tensors
-    or ``[H, W, C]`` arrays), or None when albedo, normal or depth is missing."""
-    if not all(b in arrays for b in ("albedo", "normal", "depth")):
-        return None
-    return guide_features({b: _tensor(arrays[b]) for b in ("albedo", "normal", "depth")})
 
 
 def _tensor(x) -> torch.Tensor:
@@ -231,32 +287,42 @@ def _tensor(x) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(np.asarray(x, dtype=np.float32).transpose(2, 0, 1)))[None]
 
 
-def read_motion(layout, source, index: int, arrays: Mapping[str, object] | None = None) -> dict:
-    """What the flicker measure needs of frame ``index`` of ``source``: ``{"motion": [1, 2, H, W],
-    "guide": [1, 7, H, W] or None, "next_motion": [1, 2, H, W] or None}``.
+def flicker_buffers(layout, source) -> list[str]:
+    """The buffers the flicker measure reads of ``source``'s frames: ``motion`` and, where the layout
+    has the optional ``motion_next`` and the first frame's file holds it, that (the forward-backward
+    test), else ``normal`` and ``depth`` where present (the guide test). A sequence without a
+    ``motion`` buffer is an ExrError naming its first file."""
+    from denoiser.data import exr
 
-    ``arrays``: buffers already read for the frame (``{buffer: [1, C, H, W]}`` or ``[H, W, C]``),
-    so nothing is decoded twice; what is missing is read. A sequence without a ``motion`` buffer is
-    an ExrError naming its first file; ``next_motion`` is read where the layout has that optional
-    buffer (Blender's ``Vector`` (Z, W)) and the file holds it.
-    """
-    arrays = dict(arrays or {})
     if "motion" not in source.buffers:
         path = layout.file_for(source, 0, "color")
         raise ExrError(path, "no motion pass (the flicker measure needs the renderer's motion vectors: "
                              "Blender's Vector pass or the native motion.X/Y)")
-    wanted = [b for b in ("motion", "albedo", "normal", "depth") if b not in arrays and b in source.buffers]
+    if "motion_next" in getattr(layout, "specs", {}):
+        path = layout.file_for(source, 0, "motion_next")
+        if layout.resolve(path, "motion_next", exr.list_channels(path)) is not None:
+            return ["motion", "motion_next"]
+    return ["motion", *(b for b in AUX if b in source.buffers)]
+
+
+def read_motion(layout, source, index: int, arrays: Mapping[str, object] | None = None,
+                buffers: Sequence[str] | None = None) -> dict:
+    """What the flicker measure needs of frame ``index`` of ``source``: ``{"motion": [1, 2, H, W],
+    "aux": frame_aux or None, "next_motion": [1, 2, H, W] or None}``.
+
+    ``arrays``: buffers already read for the frame (``{buffer: [1, C, H, W]}`` or ``[H, W, C]``),
+    so nothing is decoded twice; what is missing of ``buffers`` (default :func:`flicker_buffers`)
+    is read.
+    """
+    arrays = dict(arrays or {})
+    buffers = flicker_buffers(layout, source) if buffers is None else list(buffers)
+    wanted = [b for b in buffers if b not in arrays]
     if wanted:
         read, _ = layout.read_frame(source, index, wanted)
         arrays.update(read)
-    next_motion = None
-    if "motion_next" in getattr(layout, "specs", {}):
-        path = layout.file_for(source, index, "motion_next")
-        from denoiser.data import exr
-
-        if layout.resolve(path, "motion_next", exr.list_channels(path)) is not None:
-            next_motion = _tensor(layout.read_file(path, ["motion_next"])[0]["motion_next"])
-    return {"motion": _tensor(arrays["motion"]), "guide": frame_guide(arrays), "next_motion": next_motion}
+    forward = "motion_next" in buffers
+    return {"motion": _tensor(arrays["motion"]), "aux": None if forward else frame_aux(arrays),
+            "next_motion": _tensor(arrays["motion_next"]) if forward else None}
 
 
 # ----------------------------------------------------------------------------- agreement with tPSNR
@@ -411,11 +477,12 @@ def denoise_report(meter: FlickerMeter | None, frames: Sequence[int], info: Mapp
     seconds = float(info["seconds"])
     seconds = max(seconds, 1e-9)
     record = {**info, "frames_per_second": len(frames) / seconds,
-              "measure_share": float(info.get("measure_seconds", 0.0)) / seconds, "frame_numbers": list(frames)}
+              "measure_share": float(info.get("measure_seconds", 0.0)) / seconds, "frame_numbers": list(frames),
+              "stride": meter.stride if meter is not None else None}
     lines = [f"# denoiser-denoise report: {info['input']}", "",
-             f"{len(frames)} frame(s) of {info['size'][1]}x{info['size'][0]} in {seconds:.1f} s "
-             f"({record['frames_per_second']:.2f} frames/s), backend {info['backend']}, precision {info['precision']}, "
-             f"{info['threads']} thread(s).", ""]
+             (f"{len(frames)} frame(s) of {info['size'][1]}x{info['size'][0]} in {seconds:.1f} s "
+              f"({record['frames_per_second']:.2f} frames/s), backend {info['backend']}, precision "
+              f"{info['precision']}, {info['threads']} thread(s)."), ""]
     if meter is None:
         record["flicker"] = None
         lines.append("No flicker measured: the input frames have no motion pass.")
@@ -431,12 +498,13 @@ def denoise_report(meter: FlickerMeter | None, frames: Sequence[int], info: Mapp
                          "of the denoised output", frames)
             lines += ["## Flicker (warp error, no reference needed)", "",
                       summary_table(results, align=False).rstrip(), "",
-                      f"Warp error (Lai et al. 2018; denoiser/metrics.py `warp`): per frame, the mean over the pixels "
-                      f"visible in both frames (test: {meter.mask}) of the squared distance between the tonemapped "
-                      "frame and the previous one warped along the motion vectors, ×1e3; lower is steadier. It also "
-                      "counts real changes of shading (moving lights and highlights): compare the output with the "
-                      "input and with other denoisers' frames of the same render (denoiser-flicker), not with 0. "
-                      f"The measure took {record['measure_share']:.1%} of the run.", "",
+                      (f"Warp error (Lai et al. 2018; denoiser/metrics.py `warp`): per frame, the mean over the "
+                       f"pixels visible in both frames (test: {meter.mask}; every {_nth(meter.stride)} pixel in x and "
+                       "y) of the squared distance between the tonemapped frame and the previous one warped along "
+                       "the motion vectors, ×1e3; lower is steadier. It also counts real changes of shading (moving "
+                       "lights and highlights): compare the output with the input and with other denoisers' frames "
+                       "of the same render (denoiser-flicker), not with 0. "
+                       f"The measure took {record['measure_share']:.1%} of the run."), "",
                       "![flicker over frames](flicker.png)", "",
                       "| frame | input | output |", "|---:|---:|---:|"]
             lines += [f"| {f} | {_fmt(a)} | {_fmt(b)} |" for f, a, b in
@@ -446,6 +514,10 @@ def denoise_report(meter: FlickerMeter | None, frames: Sequence[int], info: Mapp
     atomic_write_text(out_dir / "report.json", json.dumps(record, indent=1, allow_nan=False) + "\n")
     atomic_write_text(out_dir / "report.md", "\n".join(lines) + "\n")
     return record
+
+
+def _nth(stride: int) -> str:
+    return "" if stride == 1 else {2: "2nd", 3: "3rd"}.get(stride, f"{stride}th")
 
 
 def _fmt(v: float) -> str:

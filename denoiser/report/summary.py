@@ -34,6 +34,9 @@ from denoiser.tables import markdown_table
 
 #: columns summarised, in table order (header, decimals, direction: denoiser.metrics.COLUMNS)
 SUMMARY_COLUMNS = ("psnr", "psnr_all", "psnr_f2", "ssim", "tpsnr", "flip", "relmse")
+#: columns read per sequence for the claims: the summarised ones and the flicker without a reference
+#: (``warp``, lower is better; an evaluation from before it has none: its claims say "not evaluated")
+CLAIM_COLUMNS = (*SUMMARY_COLUMNS, "warp")
 
 SEED_SUFFIX = re.compile(r"^(?P<group>.+)_s(?P<seed>\d+)$")
 
@@ -49,7 +52,7 @@ def _number(value) -> float | None:
     return None if math.isnan(value) else value
 
 
-def sequence_values(rows: Iterable[Mapping], columns: Sequence[str] = SUMMARY_COLUMNS) -> SequenceValues:
+def sequence_values(rows: Iterable[Mapping], columns: Sequence[str] = CLAIM_COLUMNS) -> SequenceValues:
     """``{method: {column: {sequence: value}}}`` from ``metrics.csv`` rows (first-appearance
     order; the ``sequence=mean`` rows and empty cells skipped)."""
     values: SequenceValues = {}

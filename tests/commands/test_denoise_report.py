@@ -14,7 +14,7 @@ from helpers.eval_data import write_sequence
 from helpers.flicker_data import write_blender_sequence
 
 from denoiser.data import exr
-from denoiser.report.flicker import frame_guide, warp_error
+from denoiser.report.flicker import warp_error
 
 
 def denoise(overrides):
@@ -31,7 +31,7 @@ def test_report_and_plot_of_a_native_sequence(tmp_path):
     record = json.loads((out / "report.json").read_text())
     assert record["backend"] == "eager" and record["precision"] == "fp32" and record["frames"] == 5
     assert record["frames_per_second"] > 0 and 0 < record["measure_share"] < 1
-    assert record["frame_numbers"] == [1, 2, 3, 4, 5]
+    assert record["frame_numbers"] == [1, 2, 3, 4, 5] and record["stride"] == 4
     fl = record["flicker"]
     assert fl["mask"] == "guide"
     assert fl["input"]["per_frame"][0] is None and fl["input"]["per_frame"][3] is None  # first frame, the cut
@@ -41,8 +41,7 @@ def test_report_and_plot_of_a_native_sequence(tmp_path):
              "depth": ["depth.Z"]}
     items = [exr.read_frame(seq / f"frame_{t:04d}.exr", names)[0] for t in range(5)]
     stack = {k: torch.stack([torch.from_numpy(it[k].transpose(2, 0, 1).copy()) for it in items]) for k in names}
-    guide = torch.cat([frame_guide({k: stack[k][t:t + 1] for k in ("albedo", "normal", "depth")}) for t in range(5)])
-    expected = warp_error(stack["color"], stack["motion"], guide=guide, reset=[t == 3 for t in range(5)])
+    expected = warp_error(stack["color"], stack["motion"], aux=stack, reset=[t == 3 for t in range(5)], stride=4)
     got = [math.nan if v is None else v for v in fl["input"]["per_frame"]]
     np.testing.assert_allclose(got, expected.per_frame, rtol=1e-5)
     assert fl["input"]["mean"] == pytest.approx(expected.mean, rel=1e-5) and fl["output"]["mean"] > 0

@@ -7,6 +7,7 @@ the code under test."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -41,7 +42,7 @@ def test_it_rises_monotonically_with_per_frame_gain_jitter():
     signs = torch.tensor([1, -1, 1, 1, -1, 1, -1, -1], dtype=torch.float32).view(-1, 1, 1, 1)
     means = [warp_error(frames * (1 + a * signs), motion).mean for a in (0.0, 0.01, 0.03, 0.1, 0.3)]
     assert means[0] == 0.0
-    assert all(b > a for a, b in zip(means, means[1:])), means
+    assert all(b > a for a, b in itertools.pairwise(means)), means
 
 
 def pan(frames: int, h: int, w: int, dx: int, gains=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -91,12 +92,11 @@ def test_a_camera_pan_with_exact_motion_is_the_static_value_and_the_written_out_
 def moving_square(count: int = 4, h: int = H, w: int = W, step: int = 2, size: int = 8):
     """A bright square moving right by ``step`` px per frame over a static textured background
     (depth 10); the square at depth 1. Noise-free, so every change is a disocclusion.
-    Returns frames [T, 3, h, w], motion, guide [T, 7, h, w] and next motion [T, 2, h, w]."""
-    from denoiser.report.flicker import frame_guide
-
+    Returns frames [T, 3, h, w], motion, aux {normal [T, 3, h, w], depth [T, 1, h, w]} and next
+    motion [T, 2, h, w]."""
     bg = texture(h, w, seed=5)
     sq = texture(size, size, seed=6) * 4
-    frames, motion, guides, nxt = [], [], [], []
+    frames, motion, normals, depths, nxt = [], [], [], [], []
     for t in range(count):
         x0 = 4 + step * t
         img, m, depth = bg.clone(), torch.zeros(2, h, w), torch.full((1, h, w), 10.0)
@@ -111,8 +111,10 @@ def moving_square(count: int = 4, h: int = H, w: int = W, step: int = 2, size: i
         frames.append(img)
         motion.append(m)
         nxt.append(n)
-        guides.append(frame_guide({"albedo": img[None] / 4, "normal": normal[None], "depth": depth[None]})[0])
-    return torch.stack(frames), torch.stack(motion), torch.stack(guides), torch.stack(nxt)
+        normals.append(normal)
+        depths.append(depth)
+    aux = {"normal": torch.stack(normals), "depth": torch.stack(depths)}
+    return torch.stack(frames), torch.stack(motion), aux, torch.stack(nxt)
 
 
 def test_disoccluded_pixels_are_excluded_by_either_test():
@@ -120,7 +122,7 @@ def test_disoccluded_pixels_are_excluded_by_either_test():
     unmasked = warp_error(x, motion)
     assert unmasked.mean > 0.5  # the revealed background samples the square it was behind
     revealed = 8 * 2 / (H * W)
-    for r, mask in ((warp_error(x, motion, guide=guide), "guide"), (warp_error(x, motion, next_motion=nxt),
+    for r, mask in ((warp_error(x, motion, aux=guide), "guide"), (warp_error(x, motion, next_motion=nxt),
                                                                     "forward-backward")):
         assert r.mask == mask
         assert r.mean == pytest.approx(0.0, abs=1e-9), mask
@@ -153,13 +155,26 @@ def test_nothing_visible_is_a_clear_error_and_cuts_restart():
     assert math.isnan(meter.values["a"][2]) and meter.values["a"][1] == 0.0 and meter.values["b"][1] > 0.0
 
 
-def test_the_alignment_is_the_networks_warp():
-    """Frame t-1 aligned by the measure is what denoiser.nn.warp gives the network."""
-    from denoiser.nn.warp import warp_to_current
+@pytest.mark.parametrize("stride", [1, 3])
+def test_the_alignment_is_the_networks_warp(stride):
+    """Frame t-1 aligned by the measure is what denoiser.nn.warp gives the network, at the measured
+    pixels whose footprint is inside (every pixel at stride 1, every 3rd with stride 3)."""
+    from denoiser.nn.warp import coverage, sample_positions, warp_to_current
 
     x, motion, _, _ = moving_square()
-    frac = motion[2:3] + 0.37
-    np.testing.assert_array_equal(align(frac).warp(x[1:2]).numpy(), warp_to_current(x[1:2], frac).numpy())
+    frac = motion[2:3] + torch.linspace(-1.7, 2.3, W).view(1, 1, 1, W)
+    a = align(frac, stride=stride)
+    full = warp_to_current(x[1:2], frac).reshape(3, -1)[:, a.points]
+    inside = (coverage(*sample_positions(frac)) > 1 - 1e-6).reshape(-1)[a.points]
+    assert a.visible.equal(inside) and a.points.numel() == len(range(stride // 2, H, stride)) ** 2
+    np.testing.assert_allclose(a.warp(x[1:2])[:, a.visible].numpy(), full[:, a.visible].numpy(), rtol=1e-5,
+                               atol=1e-6)
+
+
+def test_a_stride_estimates_the_every_pixel_value():
+    frames, motion = pan(5, 40, 44, dx=2, gains=[1.0, 1.1, 0.9, 1.05, 1.0])
+    full, strided = warp_error(frames, motion), warp_error(frames, motion, stride=4)
+    assert strided.mean == pytest.approx(full.mean, rel=0.1) and strided.mean != full.mean
 
 
 def test_ordering_agreement_from_per_sequence_rows():

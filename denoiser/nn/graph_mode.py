@@ -35,6 +35,16 @@ _MATMUL_HEADS = contextvars.ContextVar("matmul_heads", default=False)
 
 
 @contextlib.contextmanager
+def _switched(var: contextvars.ContextVar, value: bool) -> Iterator[None]:
+    """``var`` set to ``value`` within the block, its earlier value back after it."""
+    token = var.set(value)
+    try:
+        yield
+    finally:
+        var.reset(token)
+
+
+@contextlib.contextmanager
 def kernels_as_op(enabled: bool = True) -> Iterator[None]:
     """Within the block, a recorded graph holds the extension's operations (:data:`denoiser.nn.graph_ops.OPERATIONS`):
     :func:`denoiser.nn.kernels.apply_kernels_graph` as one ``denoiser::KernelApply`` node instead
@@ -43,11 +53,8 @@ def kernels_as_op(enabled: bool = True) -> Iterator[None]:
     and, with :func:`heads_as_matmul`, the level-0 head from its factors as one
     ``denoiser::PyramidFilterHead`` (the filter's channels) and ``denoiser::FactoredHead`` (the
     others), and the f32 graph's input transforms and embedding as their operations."""
-    token = _KERNEL_OP.set(bool(enabled))
-    try:
+    with _switched(_KERNEL_OP, bool(enabled)):
         yield
-    finally:
-        _KERNEL_OP.reset(token)
 
 
 def fused_kernels() -> bool:
@@ -57,11 +64,8 @@ def fused_kernels() -> bool:
 
 def unfused(fn, *args):
     """``fn(*args)`` with :func:`kernels_as_op` off (the plain computation of a fused node)."""
-    token = _KERNEL_OP.set(False)
-    try:
+    with _switched(_KERNEL_OP, False):
         return fn(*args)
-    finally:
-        _KERNEL_OP.reset(token)
 
 
 def untraced(fn, *args):
@@ -80,11 +84,8 @@ def untraced(fn, *args):
 def heads_as_matmul(enabled: bool = True) -> Iterator[None]:
     """Within the block, traced U-Net heads are matrix products (:func:`denoiser.nn.parts.pointwise_of_parts`)
     instead of 1x1 convolutions (see the module docstring)."""
-    token = _MATMUL_HEADS.set(bool(enabled))
-    try:
+    with _switched(_MATMUL_HEADS, bool(enabled)):
         yield
-    finally:
-        _MATMUL_HEADS.reset(token)
 
 
 def matmul_heads() -> bool:

@@ -44,7 +44,7 @@ every frame), fixed thread count. Everything is built from primitives and proced
   once, after the release recipe is frozen), unlabeled (12, noisy only, for distillation), timing
   (one of each kind), reserved (9); seeds 1001-1042, 2001-2008, 3001-3014, 4001-4012, 5001-5010,
   6001-6009, disjoint from each other and from the ``fast_<seed>`` ones. Sizes: 128x128, 256x256
-  for ``RELEASE_LARGE`` (two of train).
+  for ``RELEASE_LARGE`` (one of each kind in train, one in val).
 
 Objects and the camera are keyframed on every frame from 0 to frames+1, so the ``Vector`` pass
 has a previous and next position also at the first and last rendered frame.
@@ -1084,11 +1084,12 @@ RELEASE_SPLITS = {
 }
 #: release splits rendered without references
 RELEASE_NOISY_ONLY = ("unlabeled",)
-#: sequences of the release set rendered at 256x256 (the rest at 128x128): two of train (motion_1041,
-#: textures_1042), what the ~3 h Cycles share of the release budget leaves at --ref-spp 384 (issue 62's
-#: timing renders, split timing: an 8-frame 128x128 sequence of a training kind is 54-142 s on 2 cores
-#: at 256 spp, 106-262 s at 512; train + val + unlabeled about 2.2 h at 384 spp, 2.8 h at 512)
-RELEASE_LARGE = frozenset(RELEASE_SPLITS["train"][-2:])
+#: sequences of the release set rendered at 256x256 (the rest at 128x128): the last seed of each kind
+#: in train (interior_1036 ... textures_1042) and val's interior_2001, the set the release render
+#: started at 21:48 (--ref-spp 256) runs with, so that it resumes as it began (issue 62's timing renders,
+#: split timing: an 8-frame 128x128 sequence of a training kind is 54-142 s on 2 cores at 256 spp,
+#: 106-262 s at 512; train + val + unlabeled about 2.1 h at 256 spp, 2.9 h at 384)
+RELEASE_LARGE = frozenset(RELEASE_SPLITS["train"][-len(RELEASE_KINDS):] + RELEASE_SPLITS["val"][:1])
 
 
 def build(name: str, frames: int, width: int) -> dict:

@@ -71,10 +71,20 @@ def sample_points(h: int, w: int, stride: int) -> torch.Tensor:
     return (ys[:, None] * w + xs[None, :]).reshape(-1)
 
 
-def _at(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``x`` ``[1, C, H, W]`` at the flat pixel indices ``index`` (any shape) -> ``[C, *index.shape]`` float32."""
-    flat = x.reshape(x.shape[1], -1).float()
-    return flat[:, index.reshape(-1)].reshape(x.shape[1], *index.shape)
+def _at(x, index: torch.Tensor) -> torch.Tensor:
+    """``x`` at the flat pixel indices ``index`` (any shape) -> ``[C, *index.shape]`` float32; ``x`` a
+    tensor ``[1, C, H, W]`` or an array ``[H, W, C]`` as a layout reads it (no copy of the whole frame)."""
+    if isinstance(x, np.ndarray):
+        c = x.shape[-1]
+        flat = torch.from_numpy(np.ascontiguousarray(x).reshape(-1, c))
+        return flat[index.reshape(-1)].float().T.reshape(c, *index.shape)
+    flat = x.reshape(x.shape[1], -1)
+    return flat[:, index.reshape(-1)].float().reshape(x.shape[1], *index.shape)
+
+
+def _size(x) -> tuple[int, int]:
+    """``(H, W)`` of a ``[1, C, H, W]`` tensor or an ``[H, W, C]`` array."""
+    return tuple(x.shape[:2]) if isinstance(x, np.ndarray) else tuple(x.shape[-2:])
 
 
 @dataclass
@@ -113,13 +123,13 @@ def align(motion: torch.Tensor, previous_aux: Mapping | None = None, aux: Mappin
           previous_next_motion: torch.Tensor | None = None, stride: int = 1) -> Alignment:
     """The :class:`Alignment` of frame t-1 to frame t (module docstring).
 
-    motion: ``[1, 2, H, W]`` frame t's backward motion (pixels, x right, y down); previous_aux,
+    motion: ``[1, 2, H, W]`` (or ``[H, W, 2]``) frame t's backward motion (pixels, x right, y down); previous_aux,
     aux: :func:`frame_aux` of frames t-1 and t (``normal [1, 3, H, W]``, ``depth [1, 1, H, W]``) or
     None; previous_next_motion: ``[1, 2, H, W]`` frame t-1's forward motion (``motion_next``) or
     None. The forward-backward test is used when it is given, else the guide test when both aux
     are, else only the in-frame test.
     """
-    h, w = motion.shape[-2:]
+    h, w = _size(motion)
     points = sample_points(h, w, stride)
     raw = _at(motion, points)  # [2, n]
     limit = MOTION_LIMIT * max(h, w)
@@ -134,35 +144,34 @@ def align(motion: torch.Tensor, previous_aux: Mapping | None = None, aux: Mappin
     weights = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
     alignment = Alignment(points, taps, weights, visible, "in-frame")
     if previous_next_motion is not None:
-        f = alignment.warp(sanitize(previous_next_motion))
+        f = alignment.warp(previous_next_motion, sanitize)
         lhs = ((m - f) ** 2).sum(dim=0)
         rhs = FB_ALPHA * ((m * m).sum(dim=0) + (f * f).sum(dim=0)) + FB_BETA
         alignment.visible, alignment.mask = visible & (lhs <= rhs), "forward-backward"
     elif previous_aux is not None and aux is not None:
-        previous = (_features_at(previous_aux, taps) * weights[None]).sum(dim=1)  # warped, [7, n]
-        current = _features_at(aux, points)
+        previous = (_features_at(previous_aux, taps, points) * weights[None]).sum(dim=1)  # warped, [7, n]
+        current = _features_at(aux, points, points)
         d = guide_disagreement(previous[None, :, None], current[None, :, None])[0, 0, 0]
         alignment.visible, alignment.mask = visible & (d <= GATE_THRESHOLD), "guide"
     return alignment
 
 
-def _features_at(aux: Mapping, index: torch.Tensor) -> torch.Tensor:
+def _features_at(aux: Mapping, index: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """The gate's guide features (:func:`denoiser.nn.inputs.guide_features`: albedo, normal, depth
-    ``d / (d + m)`` with ``m`` the frame's mean hit depth) at the flat pixel indices ``index``,
-    ``[7, *index.shape]``, the albedo channels zeros (the gate's albedo term is then 0)."""
+    ``d / (d + m)``, ``m`` the mean hit depth of the frame's measured pixels ``points``) at the flat
+    pixel indices ``index``, ``[7, *index.shape]``, the albedo channels zeros (its term is then 0)."""
     d = sanitize(_at(aux["depth"], index)).clamp(0, DEPTH_FAR)
+    mean = depth_mean(sanitize(_at(aux["depth"], points)).clamp(0, DEPTH_FAR).view(1, 1, 1, -1))
     normal = normal_feature(sanitize(_at(aux["normal"], index)))
-    return torch.cat([torch.zeros_like(normal), normal, d / (d + aux["mean"].reshape(()))], dim=0)
+    return torch.cat([torch.zeros_like(normal), normal, d / (d + mean.reshape(()))], dim=0)
 
 
 def frame_aux(arrays: Mapping[str, object]) -> dict | None:
-    """What the guide test reads of a frame (``{buffer: [1, C, H, W]}`` tensors or ``[H, W, C]``
-    arrays): ``{"normal": [1, 3, H, W], "depth": [1, 1, H, W], "mean": [1, 1, 1, 1]}`` (the frame's
-    mean hit depth, :func:`denoiser.nn.inputs.depth_mean`), or None without normal and depth."""
+    """What the guide test reads of a frame: ``{"normal", "depth"}`` as given (``[1, C, H, W]``
+    tensors or ``[H, W, C]`` arrays, read at the measured pixels only), or None without them."""
     if not all(b in arrays for b in AUX):
         return None
-    normal, depth = _tensor(arrays["normal"]), _tensor(arrays["depth"])
-    return {"normal": normal, "depth": depth, "mean": depth_mean(sanitize(depth).clamp(0, DEPTH_FAR))}
+    return {b: arrays[b] for b in AUX}
 
 
 @dataclass
@@ -281,12 +290,6 @@ def warp_error(frames: torch.Tensor, motion: torch.Tensor, aux: Mapping | None =
 # ----------------------------------------------------------------------------- reading a layout's files
 
 
-def _tensor(x) -> torch.Tensor:
-    if isinstance(x, torch.Tensor):
-        return x.float()
-    return torch.from_numpy(np.ascontiguousarray(np.asarray(x, dtype=np.float32).transpose(2, 0, 1)))[None]
-
-
 def flicker_buffers(layout, source) -> list[str]:
     """The buffers the flicker measure reads of ``source``'s frames: ``motion`` and, where the layout
     has the optional ``motion_next`` and the first frame's file holds it, that (the forward-backward
@@ -307,8 +310,8 @@ def flicker_buffers(layout, source) -> list[str]:
 
 def read_motion(layout, source, index: int, arrays: Mapping[str, object] | None = None,
                 buffers: Sequence[str] | None = None) -> dict:
-    """What the flicker measure needs of frame ``index`` of ``source``: ``{"motion": [1, 2, H, W],
-    "aux": frame_aux or None, "next_motion": [1, 2, H, W] or None}``.
+    """What the flicker measure needs of frame ``index`` of ``source``: ``{"motion", "aux": frame_aux
+    or None, "next_motion" or None}``, each as given or read (``[1, C, H, W]`` or ``[H, W, C]``).
 
     ``arrays``: buffers already read for the frame (``{buffer: [1, C, H, W]}`` or ``[H, W, C]``),
     so nothing is decoded twice; what is missing of ``buffers`` (default :func:`flicker_buffers`)
@@ -321,8 +324,8 @@ def read_motion(layout, source, index: int, arrays: Mapping[str, object] | None 
         read, _ = layout.read_frame(source, index, wanted)
         arrays.update(read)
     forward = "motion_next" in buffers
-    return {"motion": _tensor(arrays["motion"]), "aux": None if forward else frame_aux(arrays),
-            "next_motion": _tensor(arrays["motion_next"]) if forward else None}
+    return {"motion": arrays["motion"], "aux": None if forward else frame_aux(arrays),
+            "next_motion": arrays["motion_next"] if forward else None}
 
 
 # ----------------------------------------------------------------------------- agreement with tPSNR

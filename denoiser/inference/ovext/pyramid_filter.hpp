@@ -134,11 +134,19 @@ static void run_pyramid_filter(const float* X, const ov::Shape& xs, const Head0&
                     for (int64_t l = 1; l < L; ++l)
                         for (int64_t px = 0; px < W; ++px) m[px] = std::max(m[px], z[l * zp + px] * s[px]);
                     std::fill(sum, sum + W, 0.0f);
-                    for (int64_t l = 0; l < L; ++l)
-                        for (int64_t px = 0; px < W; ++px) {
+                    for (int64_t l = 0; l < L; ++l) {
+                        int64_t px = 0;
+                        for (; px + S <= W; px += S) {  // strips: the compilers leave this loop scalar
+                            const Strip v = exp_bounded_strip(load_strip(z + l * zp + px) * load_strip(s + px) -
+                                                              load_strip(m + px));
+                            store_strip(e + l * W + px, v);
+                            store_strip(sum + px, load_strip(sum + px) + v);
+                        }
+                        for (; px < W; ++px) {
                             e[l * W + px] = exp_bounded(z[l * zp + px] * s[px] - m[px]);
                             sum[px] += e[l * W + px];
                         }
+                    }
                     for (int64_t px = 0; px < W; ++px) sum[px] = 1.0f / sum[px];
                     const bool own = yy >= y0 && yy < y1;  // pooled by this band
                     for (int64_t l = 0; l < L; ++l) {

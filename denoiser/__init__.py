@@ -8,7 +8,7 @@ each imported from anywhere, importing only each other and :mod:`denoiser.conf`)
 :mod:`~denoiser.metrics`, :mod:`~denoiser.measure`, :mod:`~denoiser.machine`,
 :mod:`~denoiser.tables`. Everything else
 lives in a wing, and a wing imports only the wings named after it (docs/architecture.md;
-checked by tests/test_house.py):
+checked by tests/core/test_house.py):
 
 * ``nn/``         the networks in plain PyTorch                   -> root
 * ``data/``       EXR I/O, layouts, datasets, the data module       -> root

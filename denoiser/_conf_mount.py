@@ -6,7 +6,7 @@ own and ``<checkout>/conf/__init__.py`` exists beside it, :func:`mount` imports 
 read the checkout's configs); otherwise nothing is done and the normal import finds the wheel's copy.
 Called once by ``denoiser/__init__.py``; no import hook stays installed.
 
-Private: not a root module of the package (tests/test_house.py counts the others).
+Private: not a root module of the package (tests/core/test_house.py counts the others).
 """
 
 from __future__ import annotations

@@ -39,9 +39,9 @@ extra=("$@")
 if [ -n "${RESUME:-}" ]; then cp "$RESUME" "$OUT/gpu.md" && extra+=(keep_report=true); fi
 # the GPU tests, and the Triton filter's tests compiled for the GPU
 if [ -z "${SKIP_TESTS:-}" ]; then
-timeout 150 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/test_cuda_backend.py tests/test_train_performance.py \
+timeout 150 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/inference/test_cuda_backend.py tests/lit/test_train_performance.py \
     > "$OUT/pytest_gpu.log" 2>&1; echo "pytest -m gpu: exit $?" | tee -a "$OUT/pytest_gpu.log"
-timeout 90 "$PY" -m pytest -q -p no:cacheprovider tests/test_triton_filter.py \
+timeout 90 "$PY" -m pytest -q -p no:cacheprovider tests/inference/test_triton_filter.py \
     > "$OUT/pytest_triton.log" 2>&1; echo "pytest triton: exit $?" | tee -a "$OUT/pytest_triton.log"
 tail -n 3 "$OUT/pytest_gpu.log" "$OUT/pytest_triton.log"
 fi

@@ -59,7 +59,7 @@ CONF_ROOTS = ("conf/", "denoiser/conf/")
 #: conf/pipeline, ...); the scripts that make a block's inputs (the Cycles sequences, make gpu-check's run)
 MEASURED = ("denoiser/", "conf/", "scripts/blender_sequences.py", "scripts/blender_cycles.py", "scripts/gpu_check.sh")  # denoiser/conf/ in denoiser/
 #: tools that no pipeline (conf/pipeline), summary or gpu-check runs and that no measured module imports
-#: (tests/test_claims.py checks both), with their configs: benchmarks of what no block shows (data
+#: (tests/report/test_claims.py checks both), with their configs: benchmarks of what no block shows (data
 #: loading, long sequences, network variants, the renderer), the parameter and FLOP count, export and
 #: denoise (a trained network applied to a user's frames), the val table, render_blender (a user's .blend file)
 TOOLS = ("data_throughput", "memory_longseq", "bench_networks", "effect_cost", "netstats", "export", "denoise", "val_table",

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 #: the folders this process made in the temporary directory, removed when it exits: a pytest session,
-#: and a script a test runs that imports this module (tests/test_signal_stack.py's forced sequence)
+#: and a script a test runs that imports this module (tests/inference/test_signal_stack.py's forced sequence)
 SESSION_FOLDERS: list[Path] = []
 
 
@@ -33,7 +33,7 @@ def _absl_handler_on_the_real_stderr() -> None:
     """``import openvino`` imports ``absl.logging`` (through ``openvino.tools.ovc``), whose handler
     keeps the ``sys.stderr`` of that moment: inside pytest, the capture's file. Its ``close()``
     closes any stream that is not the current ``sys.stderr``/``stdout``, so the next
-    ``logging.config.dictConfig`` (Hydra's, e.g. in tests/test_help.py) closed pytest's capture
+    ``logging.config.dictConfig`` (Hydra's, e.g. in tests/commands/test_help.py) closed pytest's capture
     file and the session died with "I/O operation on closed file". Point it at the real stderr."""
     try:
         import absl.logging

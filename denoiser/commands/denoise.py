@@ -30,7 +30,7 @@ names as ``denoiser-bench``'s ``use_backends``; :func:`~denoiser.inference.backe
 (the exported step graph, :mod:`denoiser.inference.step_graph`; exported once at start, OpenVINO compiles
 it once for the frame size); null (default) picks ``openvino`` when it is installed (with
 ``onnx`` for the export) and the device is the CPU, else ``eager``. ``precision``: ``f32``
-(the outputs match eager PyTorch within float32 rounding, see ``tests/test_openvino.py``), ``bf16``
+(the outputs match eager PyTorch within float32 rounding, see ``tests/inference/test_openvino.py``), ``bf16``
 (OpenVINO's bf16 inference precision, eager's bfloat16 autocast; errors of a few 1e-3 relative;
 faster on CPUs with AMX, not always with AVX512-BF16 alone) or ``auto``, OpenVINO's default: both are
 timed on the first frame (:func:`denoiser.inference.backends.faster_precision`, a few steps each)

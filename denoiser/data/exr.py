@@ -21,7 +21,7 @@ and so does a read during which the library reports an error even if pixels came
 after rebuilding a damaged chunk table); what the library prints while reading (its C core on
 file descriptor 2, its Python bindings on ``sys.stdout``) is captured into that message instead
 of reaching the terminal (see :func:`library_output`); images and tiles wider or taller than
-:data:`MAX_SIDE` are refused by the library's own header checks. ``tests/fuzz_exr.py`` fuzzes
+:data:`MAX_SIDE` are refused by the library's own header checks. ``tests/data/fuzz_exr.py`` fuzzes
 the reader (docs/fuzzing.md).
 
 HDR values are never clamped. ``read_frame`` replaces NaN/Inf by the project's one rule
@@ -65,7 +65,7 @@ POS_INF_REPLACEMENT = POSINF
 #: setMaxImageSize`` / ``setMaxTileSize``), which this module sets at import unless they are set already
 #: (they are process-wide; 0 = no limit, the library's default). Without them a 7 KB file whose header
 #: declares 8 x 83886084 tiles made the library allocate ~24 GB and spend 80 s before failing (a finding
-#: of tests/fuzz_exr.py).
+#: of tests/data/fuzz_exr.py).
 MAX_SIDE = 16384
 if OpenEXR.getMaxImageSize() == (0, 0):
     OpenEXR.setMaxImageSize(MAX_SIDE, MAX_SIDE)

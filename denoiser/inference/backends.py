@@ -367,7 +367,7 @@ def faster_precision(net: torch.nn.Module, frame: Mapping[str, torch.Tensor], th
     ``warmup`` then ``repeats`` recurrent steps of each, compared by their median. bf16 is not
     timed where it is not available (no bf16 on the CPU, OpenVINO missing it; the reason says
     so); f32 wins a tie. bf16's outputs differ from f32 by a few 1e-3 relative
-    (``tests/test_openvino.py``), so it is taken only when it is faster."""
+    (``tests/inference/test_openvino.py``), so it is taken only when it is faster."""
     from denoiser.measure import time_steps
 
     ms: dict[str, float] = {}

@@ -19,7 +19,7 @@ definition) within float32 rounding, in three kernels:
 
 The average pooling of the partitions stays in torch (small, coarse levels). Inference only (no
 autograd). The kernels also run on CPU tensors under Triton's interpreter (``TRITON_INTERPRET=1``,
-set before triton is imported), which is how ``tests/test_triton_filter.py`` checks them
+set before triton is imported), which is how ``tests/inference/test_triton_filter.py`` checks them
 without a GPU. Triton is an optional dependency (``pip install .[gpu]``); :func:`unavailable_reason`
 says why the kernels cannot run here.
 """

@@ -9,7 +9,7 @@ schema and the helper that records one as a node of an exported graph.
   :class:`~denoiser.nn.inputs.GuideFeaturesOp`, :class:`~denoiser.nn.unet.FactoredHeadOp`,
   :class:`~denoiser.nn.temporal.ClampBlendOp`, :class:`~denoiser.nn.temporal.GuideGateOp`,
   :class:`~denoiser.nn.warp.WarpHistoryOp`) record their nodes through :func:`graph_node`, which
-  checks them against it; ``tests/test_ovext_schema.py`` checks the C++ source
+  checks them against it; ``tests/inference/test_ovext_schema.py`` checks the C++ source
   (``denoiser/inference/ovext/<name>.hpp``, the operation's name in snake case, and
   ``extension.cpp``) against it.
 * When a graph holds these operations: :func:`denoiser.nn.graph_mode.kernels_as_op`.

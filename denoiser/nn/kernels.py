@@ -23,7 +23,7 @@ border mask is two small separable biases added to the logits (:func:`border_bia
 and a column term, 0 inside and -inf for taps outside), and the sum is k*k multiply-adds that an
 inference engine fuses into elementwise kernels. In OpenVINO
 at 1080p that is faster than gathering the views with a one-hot grouped convolution (im2col as
-a convolution, which OpenVINO runs as a real k x k convolution, with reorders around it). Same numbers within float32 rounding (``tests/test_export.py``); the training path
+a convolution, which OpenVINO runs as a real k x k convolution, with reorders around it). Same numbers within float32 rounding (``tests/inference/test_export.py``); the training path
 keeps the in-place loop with its hand-written backward.
 """
 

@@ -2,7 +2,7 @@
 runs=, oidn=): a tiny two-ablation sweep, for real (denoiser-train, -eval, -bench and the summary), on
 a 32x32 dataset against a teacher and full-recipe students trained here first; the summary has the
 paired intervals and the OIDN-fast row and column. The demo's command lines with the defaults are
-those of before these keys (tests/test_pipeline.py composes them)."""
+those of before these keys (tests/pipeline/test_pipeline.py composes them)."""
 
 from __future__ import annotations
 

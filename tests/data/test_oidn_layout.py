@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
+from denoiser.buffers import FRAME_INPUTS
 from denoiser.configs import load_layout
 from denoiser.data import exr
 from denoiser.data.dataset import SequenceDataset, index_split
 from denoiser.data.synthetic import write_synthetic_sequence
 from denoiser.errors import UserError
 
-BUFFERS = ["color", "albedo", "normal", "depth", "motion"]
+BUFFERS = list(FRAME_INPUTS)
 RGB = ("R", "G", "B")
 
 
@@ -61,7 +62,7 @@ def test_oidn_named_files_read_into_the_native_layouts_buffers(same_pixels):
     native, oidn, _ = same_pixels
     (a,), (b,) = items(native, "native"), items(oidn, "oidn")
     assert b["sequence"] == "val/shot" and b["color"].shape == (3, 3, 32, 32)
-    for buffer in ("color", "albedo", "normal", "depth", "reference"):
+    for buffer in (*(b for b in FRAME_INPUTS if b != "motion"), "reference"):
         assert torch.equal(a[buffer], b[buffer]), buffer
     assert torch.equal(b["reset"], a["reset"]) and torch.equal(b["frame_index"], torch.arange(3))
     assert not torch.equal(a["motion"], torch.zeros_like(a["motion"]))   # the native sequence moves

@@ -52,8 +52,6 @@ def run(cfg: DictConfig) -> dict:
     import lightning.pytorch as pl
     import torch
 
-    from denoiser.atomic import remove_stale_temporaries
-    from denoiser.commands.train import resolve_ckpt_path
     from denoiser.configs import instantiate_config, load_layout
     from denoiser.lit.adapt import adapt
 
@@ -71,12 +69,6 @@ def run(cfg: DictConfig) -> dict:
     if source.frames < 1:
         raise UserError(f"{src}: no frames")
     mix = mix_share(cfg)
-    run_dir = out / "run"
-    for stale in remove_stale_temporaries(run_dir / "checkpoints"):
-        print(f"removed {stale} (a checkpoint write that was killed)", file=sys.stderr)
-    resume = resolve_ckpt_path("auto", str(run_dir)) if cfg.get("resume", True) else None
-    if resume:
-        print(f"resuming from {resume}", file=sys.stderr)
     record = adapt(source, layout, out, student=str(cfg.student), teacher=str(cfg.teacher), steps=int(cfg.steps),
                    optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
                    trainer=OmegaConf.to_container(cfg.trainer, resolve=True),
@@ -84,7 +76,7 @@ def run(cfg: DictConfig) -> dict:
                    window=int(cfg.window), crop=int(cfg.crop), batch_size=int(cfg.batch_size),
                    heldout_share=float(cfg.heldout_share), heldout_crops=int(cfg.heldout_crops), mix=mix,
                    mix_root=str(cfg.mix_root), mix_layout=load_layout(str(cfg.mix_layout)) if mix > 0 else None,
-                   checkpoint_every=int(cfg.checkpoint_every), resume=resume,
+                   checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.get("resume", True)),
                    trust=bool(cfg.get("trust_checkpoint")))
     print(f"wrote {out / 'student.ckpt'} ({record['kept']} student) and {out / 'adapt.json'} in "
           f"{record['seconds']:.0f} s; denoise with: denoiser-denoise ckpt={out / 'student.ckpt'} input={src} "

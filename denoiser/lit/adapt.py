@@ -28,6 +28,7 @@ import copy
 import json
 import math
 import os
+import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -151,19 +152,18 @@ def adapt(source: SequenceSource, layout: Layout, out: str | os.PathLike, *, stu
           steps: int, optimizer: Mapping, trainer: Mapping, loss: Mapping | None = None, window: int = 4,
           crop: int = 96, batch_size: int = 2, heldout_share: float = 0.25, heldout_crops: int = 4,
           mix: float = 0.0, mix_root: str | None = None, mix_layout: Layout | None = None,
-          checkpoint_every: int = 50, resume: str | None = None, trust: bool = False,
+          checkpoint_every: int = 50, resume: bool = True, trust: bool = False,
           log=print) -> dict[str, Any]:
     """Adapt ``student`` toward ``teacher`` on ``source``'s frames; returns the record written to
     ``<out>/adapt.json`` (gaps before and after in dB, which weights were kept, the sizes used).
 
     ``optimizer``: a partial optimizer config (``_target_``, ``_partial_``); ``trainer``: the
-    Lightning Trainer config (its ``max_steps`` is ``steps``); ``resume``: a ``last.ckpt`` to go on
-    from, or None. ``mix``: share of the batches' windows drawn from ``<mix_root>/train``.
+    Lightning Trainer config (its ``max_steps`` is ``steps``); ``resume``: go on from
+    ``<out>/run/checkpoints/last.ckpt`` when it exists (``ckpt_path=auto`` of ``denoiser-train``). ``mix``: share of the batches' windows drawn from ``<mix_root>/train``.
     """
-    import lightning.pytorch as pl
     from lightning.pytorch.callbacks import ModelCheckpoint
 
-    from denoiser.atomic import atomic_write_text
+    from denoiser.atomic import atomic_write_text, remove_stale_temporaries
     from denoiser.checkpoint import save_checkpoint
     from denoiser.configs import instantiate_config
     from denoiser.lit.distill import DistillationModule
@@ -192,11 +192,17 @@ def adapt(source: SequenceSource, layout: Layout, out: str | os.PathLike, *, stu
         f"{hw[1]}x{hw[0]} of the last {heldout} frame(s); higher is closer)")
 
     run_dir = out / "run"
+    for stale in remove_stale_temporaries(run_dir / "checkpoints"):  # left by a killed write
+        log(f"removed {stale} (a checkpoint write that was killed)")
+    last = run_dir / "checkpoints" / "last.ckpt"
+    resume_from = str(last) if resume and last.is_file() else None
+    if resume_from:
+        print(f"resuming from {resume_from}", file=sys.stderr)
     ckpt = ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True, save_top_k=0,
                            every_n_train_steps=max(1, int(checkpoint_every)))
     fit = instantiate_config({**dict(trainer), "max_steps": int(steps), "default_root_dir": str(run_dir)},
                              "trainer", callbacks=[ckpt])
-    fit.fit(module, train_dataloaders=loader, ckpt_path=resume)
+    fit.fit(module, train_dataloaders=loader, ckpt_path=resume_from)
     if fit.interrupted:
         raise UserError(f"{run_dir / 'checkpoints' / 'last.ckpt'}: adaptation interrupted at step {fit.global_step}; "
                         f"run the same command again to go on from there (no {RESULT} written)")

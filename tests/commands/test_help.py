@@ -31,6 +31,7 @@ COMMANDS = {
     "denoiser-render": ("denoiser.commands.render", "render"),
     "denoiser-pareto": ("denoiser.commands.pareto", "pareto"),
     "denoiser-flicker": ("denoiser.commands.flicker", "flicker"),
+    "denoiser-adapt": ("denoiser.commands.adapt", "adapt"),
 }
 #: Hydra's own groups a command's help also lists (only training runs multiruns)
 HYDRA_GROUPS = {"denoiser-train": {"hydra/launcher", "hydra/sweeper"}}

@@ -239,7 +239,7 @@ def compose_entry(name: str, *overrides: str, hydra_cfg: bool = False):
 def test_one_layout_group_chosen_with_layout_everywhere():
     """conf/layout/ is the only layout group: `layout=native|blender` chooses the data module's
     layout (train, eval, bench; package data.layout) and denoiser-denoise's input layout (at `layout`)."""
-    assert options("layout") == ["blender", "native"] and not (Path(CONF_DIR) / "data" / "layout").exists()
+    assert options("layout") == ["blender", "native", "oidn"] and not (Path(CONF_DIR) / "data" / "layout").exists()
     for name in ("train", "eval", "bench"):
         native = compose_entry(name, *(["output_dir=x"] if name == "train" else []))
         blender = compose_entry(name, "layout=blender", *(["output_dir=x"] if name == "train" else []))

@@ -148,7 +148,7 @@ MAY_IMPORT = {
     "inference": {"root", "nn"},
     "methods": {"root", "nn", "inference"},
     "report": {"root", "nn", "inference", "methods", "data"},
-    "lit": {"root", "nn", "data"},
+    "lit": {"root", "nn", "data", "inference", "methods"},  # methods: validation scores OIDN-fast beside the network (val/oidn_fast_psnr)
     "pipeline": {"root"},
 }
 

@@ -805,18 +805,26 @@ def build_interior(rng: random.Random, frames: int) -> dict:
     return drawn
 
 
+def _objects_on_stage(rng: random.Random, frames: int, wall, sky, materials, weights, speed, lens) -> dict:
+    """3-6 objects of ``materials`` (drawn with ``weights``) on a stage (``wall``: :func:`_stage`)
+    under a sky (``sky``: its strength range) and 1-2 area lights, the first moving at ``speed``
+    (m/frame) half the time, a camera of ``lens`` (mm) on a drawn path: ``glossy`` and ``textures``."""
+    drawn = _stage(rng, wall=wall)
+    drawn.update(_sky_lit(rng, sky))
+    drawn["area_lights"] = _area_lights(rng, rng.randint(1, 2))
+    objects = _objects(rng, rng.randint(3, 6), materials, weights, 1.8)
+    drawn["objects"] = [o for _, o in objects]
+    if rng.random() < 0.5:
+        drawn["objects"][0]["motion"] = _move(rng, objects[0][0], frames, speed, (0.0, 8.0))
+    drawn["camera"] = camera_path(rng, camera(lens=rng.uniform(*lens)), frames, (0.0, 0.0, 0.4))
+    return drawn
+
+
 def build_glossy(rng: random.Random, frames: int) -> dict:
     """Glossy and metal objects (mirror-like to rough) on a textured floor under a sky and area
     lights; the camera orbits, trucks, dollies, cranes or pans."""
-    drawn = _stage(rng)
-    drawn.update(_sky_lit(rng, (0.3, 1.5)))
-    drawn["area_lights"] = _area_lights(rng, rng.randint(1, 2))
-    objects = _objects(rng, rng.randint(3, 6), ("metal", "plastic", "diffuse"), (5, 4, 1), 1.8)
-    drawn["objects"] = [o for _, o in objects]
-    if rng.random() < 0.5:
-        drawn["objects"][0]["motion"] = _move(rng, objects[0][0], frames, (0.03, 0.15), (0.0, 8.0))
-    drawn["camera"] = camera_path(rng, camera(lens=rng.uniform(28.0, 50.0)), frames, (0.0, 0.0, 0.4))
-    return drawn
+    return _objects_on_stage(rng, frames, None, (0.3, 1.5), ("metal", "plastic", "diffuse"), (5, 4, 1),
+                             (0.03, 0.15), (28.0, 50.0))
 
 
 def build_glass(rng: random.Random, frames: int) -> dict:
@@ -914,15 +922,7 @@ def build_motion(rng: random.Random, frames: int) -> dict:
 def build_textures(rng: random.Random, frames: int) -> dict:
     """Procedural textures everywhere (checker, brick, noise, Voronoi, wave, magic, gradient, with
     bump), high-frequency detail a denoiser must keep; the camera moves slowly."""
-    drawn = _stage(rng, wall=True)
-    drawn.update(_sky_lit(rng, (0.3, 1.2)))
-    drawn["area_lights"] = _area_lights(rng, rng.randint(1, 2))
-    objects = _objects(rng, rng.randint(3, 6), ("textured",), (1,), 1.8)
-    drawn["objects"] = [o for _, o in objects]
-    if rng.random() < 0.5:
-        drawn["objects"][0]["motion"] = _move(rng, objects[0][0], frames, (0.03, 0.12), (0.0, 8.0))
-    drawn["camera"] = camera_path(rng, camera(lens=rng.uniform(28.0, 60.0)), frames, (0.0, 0.0, 0.4))
-    return drawn
+    return _objects_on_stage(rng, frames, True, (0.3, 1.2), ("textured",), (1,), (0.03, 0.12), (28.0, 60.0))
 
 
 def build_foliage(rng: random.Random, frames: int) -> dict:

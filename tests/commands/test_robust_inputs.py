@@ -45,9 +45,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TEST_LEDGER
 
-from denoiser.conf import CONF_DIR
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: conftest also when run as a script (below)
+from conftest import TEST_LEDGER  # noqa: E402
+
+from denoiser.conf import CONF_DIR  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent

@@ -55,7 +55,7 @@ class PreemptOnce(pl.Callback):
 
 
 def train(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests"), str(Path(__file__).resolve().parent)])}  # this file: its callbacks
     proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], check=False, cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]

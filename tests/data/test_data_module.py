@@ -57,7 +57,7 @@ def test_every_data_option_composes(option, layout, root, tmp_path):
     with initialize_config_dir(CONF_DIR, version_base="1.3"):
         cfg = compose(overrides=[f"+data={option}", f"layout={layout}"])
     assert REQUIRED_KEYS <= set(cfg.data)
-    assert cfg.data.layout._target_.endswith({"native": "NativeLayout", "blender": "BlenderLayout"}[layout])
+    assert cfg.data.layout._target_.endswith({"native": "NativeLayout", "blender": "BlenderLayout", "oidn": "OidnLayout"}[layout])
     cfg.data.root = str(root)
     cfg.data.cache_dir = str(tmp_path / "cache")
     dm = instantiate(cfg.data)

@@ -180,14 +180,22 @@ def add(kind: str, mat, location=(0, 0, 0), scale=(1, 1, 1), rotation=(0, 0, 0),
     return obj
 
 
-def area_light(location, rotation, size=2.0, energy=300.0, color=(1.0, 0.95, 0.9)):
-    data = bpy.data.lights.new("Area", type="AREA")
-    data.size = size
+def _light(kind: str, name: str, location, energy: float, color, **settings):
+    """A light object of ``kind`` (AREA, POINT, ...) linked into the scene; ``settings``: its data's own
+    attributes (``size``, ``shadow_soft_size``)."""
+    data = bpy.data.lights.new(name, type=kind)
+    for key, value in settings.items():
+        setattr(data, key, value)
     data.energy = energy
     data.color = color
-    obj = bpy.data.objects.new("Area", data)
+    obj = bpy.data.objects.new(name, data)
     bpy.context.scene.collection.objects.link(obj)
     obj.location = location
+    return obj
+
+
+def area_light(location, rotation, size=2.0, energy=300.0, color=(1.0, 0.95, 0.9)):
+    obj = _light("AREA", "Area", location, energy, color, size=size)
     obj.rotation_euler = rotation
     return obj
 
@@ -545,14 +553,7 @@ def shape(rng: random.Random, mat, size: float, kind: str | None = None, locatio
 
 
 def point_light(location, radius=0.05, energy=50.0, color=(1.0, 1.0, 1.0)):
-    data = bpy.data.lights.new("Point", type="POINT")
-    data.shadow_soft_size = radius
-    data.energy = energy
-    data.color = color
-    obj = bpy.data.objects.new("Point", data)
-    bpy.context.scene.collection.objects.link(obj)
-    obj.location = location
-    return obj
+    return _light("POINT", "Point", location, energy, color, shadow_soft_size=radius)
 
 
 def sun_light(direction, strength=4.0, angle_deg=1.0, color=(1.0, 0.95, 0.85)):

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import shutil
 import statistics
 from pathlib import Path
@@ -321,6 +322,21 @@ def time_table(names: list[str], timed: dict, seeds: list[int], reference: str, 
     return markdown_table(rows, ["variant", *(c for b in backends for c in (f"ms_{b}", f"cost_{b}"))], headers=headers)
 
 
+def teacher_of(run: Path) -> str | None:
+    """The ``model.teacher_ckpt=`` a run was trained with (``.hydra/overrides.yaml``), a relative
+    path joined to the folder it was trained from (``.hydra/hydra.yaml``'s ``hydra.runtime.cwd``),
+    so that one teacher named two ways is one; ``"none"`` without one, None without the overrides."""
+    overrides = run / ".hydra" / "overrides.yaml"
+    if not overrides.exists():
+        return None
+    given = [str(o).split("=", 1)[1] for o in OmegaConf.load(overrides) if str(o).startswith("model.teacher_ckpt=")]
+    if not given:
+        return "none"
+    hydra = run / ".hydra" / "hydra.yaml"
+    cwd = OmegaConf.select(OmegaConf.load(hydra), "hydra.runtime.cwd") if hydra.exists() else None
+    return os.path.normpath(Path(cwd or "") / given[0]) if not Path(given[0]).is_absolute() else given[0]
+
+
 def run_table_rows(cfg: DictConfig, names: list[str], seeds: list[int]) -> list[dict]:
     """One row per variant and seed: the run directory, steps, best val PSNR, collapse, teacher."""
     report, prefixes = Path(cfg.report), dict(cfg.get("run_dirs") or {})
@@ -331,10 +347,9 @@ def run_table_rows(cfg: DictConfig, names: list[str], seeds: list[int]) -> list[
             row = {"variant": name, "seed": s, "dir": str(run)}
             if run.is_dir():
                 row.update({k: v for k, v in run_row(run).items() if k not in ("run", "seed")})
-                overrides = run / ".hydra" / "overrides.yaml"
-                if overrides.exists():
-                    teacher = [o.split("=", 1)[1] for o in OmegaConf.load(overrides) if str(o).startswith("model.teacher_ckpt=")]
-                    row["teacher"] = teacher[0] if teacher else "none"
+                teacher = teacher_of(run)
+                if teacher is not None:
+                    row["teacher"] = teacher
             else:
                 row["collapsed"] = "not found"
             rows.append(row)

@@ -392,3 +392,20 @@ def test_runs_at_other_steps_by_another_teacher_or_collapsed_are_named(tmp_path)
     assert line.endswith("1 of its 3 runs collapsed (runs table): their numbers are those of a broken run.")
     runs = table(text.split("## Training runs", 1)[1], "variant")   # the last row (seed 2) per variant
     assert runs["k3"][1:7] == ["2", str(out / "runs" / "k3_s2"), "200", "33.50", "no", "t.ckpt"]
+
+
+def test_one_teacher_named_relative_and_absolute_is_one_teacher(tmp_path):
+    """A user's runs name their teacher as they typed it: ``runs/teacher/...`` from the folder they
+    trained in (``.hydra/hydra.yaml``'s ``hydra.runtime.cwd``) is the pipeline's absolute path."""
+    out, ckpt = report(tmp_path), tmp_path / "runs" / "teacher" / "checkpoints" / "best.ckpt"
+    for variant in OFFSETS:
+        for s in SEEDS:
+            hydra = out / "runs" / f"{variant}_s{s}" / ".hydra"
+            hydra.mkdir(parents=True)
+            given = "runs/teacher/checkpoints/best.ckpt" if variant == "none" else str(ckpt)
+            (hydra / "overrides.yaml").write_text(f"- experiment=demo_distill\n- model.teacher_ckpt={given}\n")
+            (hydra / "hydra.yaml").write_text(f"hydra:\n  runtime:\n    cwd: {tmp_path}\n")
+    assert summary(tmp_path, "run_dirs=null").returncode == 0
+    text = (out / "summary.md").read_text()
+    assert "Not the same teacher" not in text
+    assert table(text.split("## Training runs", 1)[1], "variant")["none"][6] == str(ckpt)

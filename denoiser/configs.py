@@ -7,8 +7,11 @@ instantiating any ``_target_`` config, with one-line errors.
   :class:`~denoiser.errors.UserError` raised by a constructor comes out as itself;
 * :func:`compose_config`: any config of ``conf/`` with overrides, from anywhere (inside a
   running Hydra app too);
-* :func:`compose_net_config`: the resolved net config of the groups ``net``, ``kernel`` and
-  ``ablation`` plus overrides (what checkpoints store under ``hyper_parameters['net']``);
+* :func:`compose_net_config`: the resolved net config of the groups ``net``, ``kernel``,
+  ``lever`` and ``ablation`` plus overrides (what checkpoints store under ``hyper_parameters['net']``);
+* :func:`current_overrides`: overrides naming an option where it used to be (``ablation=history_clamp``,
+  now ``lever=history_clamp``: :data:`MOVED_OPTIONS`) rewritten to name where it is, so stored
+  overrides (a run directory's ``.hydra/overrides.yaml``, a finished run's ``metrics.json``) compose;
 * :func:`build_net`: that config instantiated, a :class:`~denoiser.nn.denoiser.Denoiser`;
 * :func:`job_dirname`: a multirun job's folder name from its overrides (the resolver
   ``${job_dirname:...}`` of ``conf/train.yaml``'s ``hydra.sweep.subdir``).
@@ -95,9 +98,32 @@ def _full_key(exc: BaseException, key: str) -> str:
     return f"{key}.{full}" if full and not str(full).startswith(key) else (full or key)
 
 
+#: options that moved to another config group: ``{(old group, option): new group}``. The levers (an
+#: added mechanism, not a part removed or replaced) left ``conf/ablation/`` for ``conf/lever/``
+#: (issue 63); run directories from before store ``ablation=<lever>`` in their overrides.
+MOVED_OPTIONS = {("ablation", name): "lever" for name in (
+    "demodulation", "filtered_remodulation", "hdr_loss", "hdr_loss_distill", "history_clamp",
+    "history_disagreement", "log_filter", "noise_scale")}
+_OVERRIDE = re.compile(r"^(?P<prefix>[+~]*)(?P<group>[\w/.@-]+)=(?P<option>[\w.-]+)$")
+
+
+def current_overrides(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` with each ``<group>=<option>`` of a moved option (:data:`MOVED_OPTIONS`) naming
+    its group now: ``ablation=history_clamp`` -> ``lever=history_clamp`` (``+``/``~`` kept); every
+    other override as given. Where stored overrides are read (:func:`compose_config`, a sweep's
+    jobs: :func:`denoiser.report.pareto.read_job`)."""
+    out = []
+    for override in map(str, overrides):
+        m = _OVERRIDE.match(override)
+        group = MOVED_OPTIONS.get((m["group"], m["option"])) if m else None
+        out.append(f"{m['prefix']}{group}={m['option']}" if group else override)
+    return out
+
+
 def compose_config(overrides: Sequence[str] = (), config_name: str | None = None):
     """Compose ``conf/<config_name>.yaml`` (None: an empty config) with Hydra ``overrides`` -> DictConfig.
 
+    An override naming a moved option is read as its new place (:func:`current_overrides`).
     Works inside a running Hydra app too (its ``conf/`` is the same directory). Hydra's and
     OmegaConf's exceptions propagate (callers name what they composed).
     """
@@ -106,6 +132,7 @@ def compose_config(overrides: Sequence[str] = (), config_name: str | None = None
 
     from denoiser.conf import CONF_DIR
 
+    overrides = current_overrides(overrides)
     if GlobalHydra.instance().is_initialized():  # inside a Hydra app
         return compose(config_name, overrides=list(overrides))
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
@@ -113,9 +140,10 @@ def compose_config(overrides: Sequence[str] = (), config_name: str | None = None
 
 
 def compose_net_config(net: str = "student", kernel: str | None = None, overrides: Sequence[str] = (),
-                       ablation: str = "none") -> dict:
-    """Resolved net config composed from ``conf/net/<net>.yaml``, ``conf/kernel/<kernel>.yaml``
-    and ``conf/ablation/<ablation>.yaml``, then Hydra ``overrides`` (e.g. ``["net.unet.encoder=[8,8,8]"]``).
+                       ablation: str = "none", lever: str | None = None) -> dict:
+    """Resolved net config composed from ``conf/net/<net>.yaml``, ``conf/kernel/<kernel>.yaml``,
+    ``conf/lever/<lever>.yaml`` (None: no lever) and ``conf/ablation/<ablation>.yaml`` (in the order
+    of ``conf/train.yaml``), then Hydra ``overrides`` (e.g. ``["net.unet.encoder=[8,8,8]"]``).
 
     ``kernel`` defaults to ``net``'s own name when such a kernel file exists, else ``student``.
     Returns the plain dict that :func:`build_net` instantiates and checkpoints store under
@@ -129,9 +157,11 @@ def compose_net_config(net: str = "student", kernel: str | None = None, override
 
     if kernel is None:
         kernel = net if (Path(CONF_DIR) / "kernel" / f"{net}.yaml").exists() else "student"
-    groups = f"net={net} kernel={kernel}" + (f" ablation={ablation}" if ablation != "none" else "")
+    groups = (f"net={net} kernel={kernel}" + (f" lever={lever}" if lever else "")
+              + (f" ablation={ablation}" if ablation != "none" else ""))
     try:
-        cfg = compose_config([f"+net={net}", f"+kernel={kernel}", f"+ablation={ablation}", *overrides])
+        cfg = compose_config([f"+net={net}", f"+kernel={kernel}", *([f"+lever={lever}"] if lever else []),
+                              f"+ablation={ablation}", *overrides])
         return OmegaConf.to_container(cfg.net, resolve=True)
     except (HydraException, OmegaConfBaseException) as exc:
         raise ConfigError(f"{groups}: {first_line(exc)}") from None

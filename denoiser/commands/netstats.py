@@ -6,8 +6,8 @@ Usage::
     python -m denoiser.commands.netstats net=teacher kernel=teacher ablation=no_pyramid
     python -m denoiser.commands.netstats net=student net.unet.encoder=[16,32,64] net.unet.decoder=[32,16]
 
-A Hydra app over ``conf/netstats.yaml``, which composes only the groups ``net``, ``kernel`` and
-``ablation`` (defaults ``student``, ``student``, ``none``), so it works without the training
+A Hydra app over ``conf/netstats.yaml``, which composes only the groups ``net``, ``kernel``, ``lever``
+and ``ablation`` (defaults ``student``, ``student``, none, ``none``), so it works without the training
 configs; other ``key=value`` arguments are Hydra overrides. Prints the parameters per part,
 the U-Net feature widths and the FLOPs of one ``flops_size`` x ``flops_size`` frame (default
 256; :func:`denoiser.measure.count_flops`). A bad value is one line on stderr (exit 2).

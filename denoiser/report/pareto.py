@@ -101,11 +101,14 @@ def job_dirs(sweep_dir: str | os.PathLike) -> list[Path]:
 
 def read_job(job_dir: str | os.PathLike) -> dict:
     """One job of a multirun: ``{"dir", "overrides" (list), "metrics" (dict), "done", "ckpt"}``;
-    ``ckpt`` is ``checkpoints/last.ckpt`` (the final weights, as validated), else ``best.ckpt``, else None."""
+    ``ckpt`` is ``checkpoints/last.ckpt`` (the final weights, as validated), else ``best.ckpt``, else None;
+    an override naming a moved option names its place now (:func:`denoiser.configs.current_overrides`)."""
     from omegaconf import OmegaConf
 
+    from denoiser.configs import current_overrides
+
     job_dir = Path(job_dir)
-    overrides = [str(o) for o in OmegaConf.load(job_dir / ".hydra" / "overrides.yaml")]
+    overrides = current_overrides(OmegaConf.load(job_dir / ".hydra" / "overrides.yaml"))
     ckpts = [job_dir / "checkpoints" / name for name in ("last.ckpt", "best.ckpt")]
     return {"dir": job_dir, "overrides": overrides, "metrics": read_json(job_dir / METRICS_FILE),
             "done": (job_dir / DONE_FILE).is_file(), "ckpt": next((c for c in ckpts if c.is_file()), None)}

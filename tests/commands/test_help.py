@@ -117,7 +117,7 @@ def test_help_names_the_command_and_lists_only_its_groups_and_keys(script, monke
 def test_denoise_help_is_about_denoising_only(monkeypatch, capsys):
     text = run_help("denoiser-denoise", monkeypatch, capsys)
     assert "layout=native|blender" in text and "(now: native)" in text
-    for word in ("callbacks", "trainer", "experiment", "ablation", "data=", "scene", "model"):
+    for word in ("callbacks", "trainer", "experiment", "ablation", "lever", "data=", "scene", "model"):
         assert word not in text, word
     for key in ("ckpt", "input", "output", "write", "channel_prefix", "replay_frames", "layout"):
         assert f"\n{key}:" in text

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from denoiser.conf import CONF_DIR
 
-GROUPS = ["data", "layout", "net", "kernel", "model", "ablation", "trainer", "logger", "callbacks",
+GROUPS = ["data", "layout", "net", "kernel", "model", "lever", "ablation", "trainer", "logger", "callbacks",
           "experiment", "debug"]
 
 
@@ -85,9 +85,9 @@ def test_demo_experiments():
     assert distill.data.use_unlabeled is True and distill.trainer.max_time
 
 
-def test_noise_scale_ablation_reaches_the_augmentation():
+def test_noise_scale_lever_reaches_the_augmentation():
     off = instantiate(compose_train("experiment=demo_distill").data.augment)
-    on = instantiate(compose_train("experiment=demo_distill", "ablation=noise_scale").data.augment)
+    on = instantiate(compose_train("experiment=demo_distill", "lever=noise_scale").data.augment)
     assert off.noise_scale is None and (on.noise_scale, on.noise_prob) == ((0.2, 1.0), 0.5)
     assert (on.flip, on.transpose, on.exposure) == (off.flip, off.transpose, off.exposure)
 
@@ -97,7 +97,7 @@ def test_each_demo_experiment_joins_the_motion_families_with_a_share():
     data/demo joined by exactly data/demo_motion (conf/render_set/demo_motion.yaml's fast-moving and
     saturated families) through data.extra_roots, with data.extra_share of the labeled windows from
     it (the val's choice: 0 for the students, whose val and unlabeled sequences still hold it; 0.25 for
-    the teacher); no noise-level augmentation (ablation=noise_scale adds it); the teacher at lr 1e-3."""
+    the teacher); no noise-level augmentation (lever=noise_scale adds it); the teacher at lr 1e-3."""
     for experiment in ("demo", "demo_distill", "demo_teacher"):
         cfg = resolved(compose_train(f"experiment={experiment}"))["data"]
         root = Path(cfg["root"])
@@ -118,11 +118,28 @@ def test_distillation_ablations_switch_off_their_parts():
     assert no_kd.model.param_transfer is None and no_kd.data.use_unlabeled is False and no_kd.model.loss.gt_weight > 0
 
 
-@pytest.mark.parametrize("ablation", options("ablation"))
-def test_every_ablation_builds_a_network(ablation):
-    cfg = compose_train("net=tiny", f"ablation={ablation}")
+@pytest.mark.parametrize("group,option", [(g, o) for g in ("ablation", "lever") for o in options(g)])
+def test_every_ablation_and_lever_builds_a_network(group, option):
+    cfg = compose_train("net=tiny", f"{group}={option}")
     net = instantiate(cfg.net)
     assert net.num_parameters() > 0
+
+
+def test_a_lever_stored_under_its_old_group_composes_as_the_lever():
+    """Run directories from before the levers left conf/ablation/ (issue 63) store ``ablation=<lever>``
+    (.hydra/overrides.yaml, metrics.json): read through compose_config it is ``lever=<lever>``, for
+    every moved option; the file is gone from ablation/, and no option is in both groups."""
+    from denoiser.configs import MOVED_OPTIONS, compose_config, compose_net_config, current_overrides
+
+    assert set(options("ablation")).isdisjoint(options("lever"))
+    for (group, name), now in MOVED_OPTIONS.items():
+        assert name in options(now) and name not in options(group), name
+        old = ["output_dir=/tmp/denoiser-test-configs", "experiment=demo_distill", f"{group}={name}"]
+        new = old[:-1] + [f"{now}={name}"]
+        assert resolved(compose_config(old, "train")) == resolved(compose_config(new, "train")), name
+    assert compose_net_config("tiny", ablation="history_clamp")["temporal"]["history_clamp"] == 1.0
+    assert current_overrides(["+ablation=log_filter", "ablation=no_pyramid", "ablation=none,history_clamp", "seed=0"]) \
+        == ["+lever=log_filter", "ablation=no_pyramid", "ablation=none,history_clamp", "seed=0"]
 
 
 @pytest.mark.parametrize("trainer", options("trainer"))

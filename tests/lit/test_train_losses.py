@@ -139,8 +139,8 @@ def test_feature_loss_scale_invariant():
     assert feature_loss(t, t) == 0
 
 
-@pytest.mark.parametrize("model, ablation", [("student", "hdr_loss"), ("distill", "hdr_loss_distill")])
-def test_hdr_loss_ablations_turn_the_term_on(model, ablation):
+@pytest.mark.parametrize("model, lever", [("student", "hdr_loss"), ("distill", "hdr_loss_distill")])
+def test_hdr_loss_levers_turn_the_term_on(model, lever):
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
@@ -153,5 +153,5 @@ def test_hdr_loss_ablations_turn_the_term_on(model, ablation):
     base = ["output_dir=/tmp/denoiser-test-hdr", f"model={model}"]
     for cfg_loss in losses(compose_config(base, "train")):
         assert instantiate(cfg_loss).weights["hdr"] == 0.0
-    for cfg_loss in losses(compose_config([*base, f"ablation={ablation}"], "train")):
+    for cfg_loss in losses(compose_config([*base, f"lever={lever}"], "train")):
         assert instantiate(cfg_loss).weights["hdr"] == 0.5

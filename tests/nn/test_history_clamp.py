@@ -73,7 +73,7 @@ def test_off_by_default_on_in_the_demo_student_and_validated():
     for name in ("tiny", "demo_teacher", "student", "teacher"):
         assert compose_net_config(name)["temporal"].get("history_clamp") is None
     assert compose_net_config("demo_student")["temporal"]["history_clamp"] == 1.0  # the demo recipe (issue 33)
-    assert compose_net_config("tiny", ablation="history_clamp")["temporal"]["history_clamp"] == 1.0
+    assert compose_net_config("tiny", lever="history_clamp")["temporal"]["history_clamp"] == 1.0
     with pytest.raises(ConfigError, match="history_clamp"):
         TemporalRecurrence(4, history_clamp=0.0)
 

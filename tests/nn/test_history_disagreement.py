@@ -62,7 +62,7 @@ def test_off_by_default_bit_for_bit_and_one_more_input_when_on():
     assert TemporalRecurrence().history_disagreement is False
     for name in ("tiny", "demo_student", "demo_teacher", "student", "teacher"):
         assert not compose_net_config(name)["temporal"].get("history_disagreement")
-    assert compose_net_config("tiny", ablation="history_disagreement")["temporal"]["history_disagreement"] is True
+    assert compose_net_config("tiny", lever="history_disagreement")["temporal"]["history_disagreement"] is True
     assert TemporalRecurrence(4, history_disagreement=True).input_channels == TemporalRecurrence(4).input_channels + 1
     with_key = tiny(disagreement=False, seed=3)
     cfg = compose_net_config("tiny")

@@ -59,11 +59,11 @@ def test_config_defaults_keep_old_behaviour():
     for name in ("student", "teacher", "demo_student", "demo_teacher"):
         cfg = compose_net_config(name)
         # no net config demodulates: on the sample-averaged albedo renderers give, it cost ~1 dB on
-        # val (docs/results_log.md); ablation=demodulation switches it on
+        # val (docs/results_log.md); lever=demodulation switches it on
         assert cfg["demodulate"] is False and cfg["temporal"]["reject_threshold"] == 0.1
         # the demo nets' softmaxes may sharpen further: at 2.5 a small bright lamp glowed (docs/results_log.md)
         assert cfg["filter"]["logit_scale"] == (5 if name.startswith("demo") else 2.5)
-        assert compose_net_config(name, ablation="demodulation")["demodulate"] is True
+        assert compose_net_config(name, lever="demodulation")["demodulate"] is True
         assert compose_net_config(name, ablation="no_demodulation")["demodulate"] is False
         assert compose_net_config(name, ablation="no_disocclusion")["temporal"]["reject_threshold"] is None
 
@@ -277,7 +277,7 @@ def test_levers_on_hard_inputs_stay_finite_with_finite_gradients(dtype):
 def filtered(seed=0):
     """The tiny net, demodulating, with ``remodulate: filtered``, and the same net with plain
     remodulation sharing every weight (the extra level-0 head channels are the only difference)."""
-    cfg = compose_net_config("tiny", ablation="filtered_remodulation")
+    cfg = compose_net_config("tiny", lever="filtered_remodulation")
     cfg["demodulate"] = True
     torch.manual_seed(seed)
     net = build_net(cfg).eval()
@@ -289,7 +289,7 @@ def filtered(seed=0):
 
 
 def test_filtered_remodulation_config_rules():
-    assert compose_net_config("demo_student", ablation="filtered_remodulation")["remodulate"] == "filtered"
+    assert compose_net_config("demo_student", lever="filtered_remodulation")["remodulate"] == "filtered"
     assert build_net(compose_net_config("tiny")).remodulate == "input"  # old configs: plain remodulation
     with pytest.raises(ConfigError, match="needs net.demodulate"):
         build_net({**compose_net_config("tiny"), "demodulate": False, "remodulate": "filtered"})

@@ -9,10 +9,10 @@ ablations``) at its end. It reads
 
 * ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the demo's test split; every variant's runs
   labelled ``<variant>_s<seed>``, a variant being an ablation name, ``none`` the full recipe):
-  the means ± std over seeds (:mod:`denoiser.report.summary`), and per variant and metric the paired
+  the means ± std over seeds (:mod:`denoiser.report.seed_groups`), and per variant and metric the paired
   difference variant minus ``reference`` per test sequence (seeds averaged per sequence first),
   its 95% bootstrap interval over sequences and the verdict ahead/tied/behind
-  (:func:`denoiser.report.summary.paired_difference`, :mod:`denoiser.report.stats`);
+  (:func:`denoiser.report.seed_groups.paired_difference`, :mod:`denoiser.report.stats`);
 * ``<report>/bench/bench.csv`` (``denoiser-bench`` at 1920x1080): ms per frame per variant and
   backend, and what the pyramid costs against each figure variant; with ``bench.json`` beside
   it, the cost paired per interleaved round, its median and distribution-free interval
@@ -50,9 +50,8 @@ from denoiser.errors import ConfigError, UserError
 from denoiser.measure import median_interval
 from denoiser.metrics import COLUMNS
 from denoiser.report import ledger
-from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
-from denoiser.report.summary import (
-    commit_line,
+from denoiser.report.provenance import commit_line, tree_hash
+from denoiser.report.seed_groups import (
     format_interval,
     format_mean_std,
     group_sequences,
@@ -61,8 +60,8 @@ from denoiser.report.summary import (
     run_row,
     seed_groups,
     sequence_values,
-    tree_hash,
 )
+from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
 from denoiser.tables import markdown_table, read_csv
 
 #: the README copies the lines between these markers (scripts/readme_results.py --marker ablations)

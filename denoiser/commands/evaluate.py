@@ -61,7 +61,7 @@ from denoiser.metrics import METRICS
 from denoiser.report import ledger
 from denoiser.report.evaluation import METRIC_FORMATS, METRIC_HEADERS, Evaluation, markdown_report
 from denoiser.report.plot_crops import save_crops
-from denoiser.report.summary import git_commit, tree_hash
+from denoiser.report.provenance import git_commit, tree_hash
 from denoiser.tables import markdown_table, write_csv
 
 log = logging.getLogger(__name__)

@@ -85,7 +85,7 @@ class Report:
 def code_commit() -> str:
     """The commit of the code that runs: git's, else the one ``scripts/gpu_carry.sh`` wrote into
     ``.gpu_carry/commit`` (the working tree travels to a lent machine without ``.git``)."""
-    from denoiser.report.summary import git_commit
+    from denoiser.report.provenance import git_commit
 
     commit = git_commit()  # "unknown" outside a git checkout
     carried = ROOT / ".gpu_carry" / "commit"

@@ -40,7 +40,7 @@ from denoiser.commands.app import CommandParser, report_user_error
 from denoiser.errors import UserError
 from denoiser.machine import cpu_model
 from denoiser.pipeline.timings import newest
-from denoiser.report.summary import git_commit
+from denoiser.report.provenance import git_commit
 
 BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
 

@@ -47,7 +47,7 @@ from denoiser.report.pareto import (
     varying_overrides,
 )
 from denoiser.report.plot_tradeoff import plot_accuracy_vs_time
-from denoiser.report.summary import git_commit
+from denoiser.report.provenance import git_commit
 from denoiser.tables import markdown_table, read_csv, write_csv
 
 NAN = float("nan")

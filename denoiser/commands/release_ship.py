@@ -32,7 +32,7 @@ from denoiser.configs import plain
 from denoiser.errors import UserError
 from denoiser.release import CARD, FP16_TOLERANCE, MANIFEST, MAX_FILE_BYTES, NAMES, fp16_output_error
 from denoiser.report.model_card import file_sha256, render_card
-from denoiser.report.summary import git_commit
+from denoiser.report.provenance import git_commit
 
 
 def _run_seed(ckpt_path: Path):

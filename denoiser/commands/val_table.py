@@ -20,10 +20,10 @@ run, ``prev_student_distilled_s<k>``, with this run's on the same split.)
 
 * a table: the ``plain_rows`` (methods without seeds, e.g. the noisy input and OIDN), then every candidate (``reference`` first) with the mean over
   sequences of ``metric`` and of each ``also`` column (mean ± std over seeds,
-  :mod:`denoiser.report.summary`), and two paired differences in ``metric``: the candidate minus
+  :mod:`denoiser.report.seed_groups`), and two paired differences in ``metric``: the candidate minus
   ``reference`` and minus ``baseline``, per sequence with the seeds averaged first, their 95% bootstrap
   interval over sequences and the verdict ahead/tied/behind
-  (:func:`denoiser.report.summary.paired_difference`, :mod:`denoiser.report.stats`); the
+  (:func:`denoiser.report.seed_groups.paired_difference`, :mod:`denoiser.report.stats`); the
   ``labels`` of the groups shown as a legend under it;
 * a per-sequence table of ``metric``, seeds averaged, one column per method shown.
 
@@ -45,11 +45,10 @@ from denoiser.atomic import atomic_write_text
 from denoiser.commands.app import hydra_runtime
 from denoiser.errors import ConfigError, UserError
 from denoiser.metrics import COLUMNS
-from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
-from denoiser.report.summary import (
+from denoiser.report.provenance import git_commit
+from denoiser.report.seed_groups import (
     format_interval,
     format_mean_std,
-    git_commit,
     group_sequences,
     method_means,
     paired_difference,
@@ -57,6 +56,7 @@ from denoiser.report.summary import (
     sequence_values,
     split_seed,
 )
+from denoiser.report.stats import CONFIDENCE, RESAMPLES, SEED
 from denoiser.tables import markdown_table, read_csv
 
 
@@ -204,7 +204,7 @@ def candidate_table(cfg: DictConfig, baselines: list[str], candidates: list[str]
 
 def sequence_table(names: list[str], per_sequence: dict, metric: str) -> str:
     """One row per sequence (first-appearance order over ``names``), one column per method: its
-    ``metric`` on that sequence, seeds averaged (:func:`denoiser.report.summary.group_sequences`)."""
+    ``metric`` on that sequence, seeds averaged (:func:`denoiser.report.seed_groups.group_sequences`)."""
     values = {name: per_sequence.get(name, {}).get(metric, {}) for name in names}
     sequences = list(dict.fromkeys(seq for v in values.values() for seq in v))
     rows = [{"sequence": seq, **{name: values[name].get(seq) for name in names}} for seq in sequences]

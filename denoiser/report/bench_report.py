@@ -71,8 +71,8 @@ def machine_info(threads: int, peak_gflops: float, versions: dict[str, str], isa
     """The machine and software of a run: ``cpu`` (model name), ``cpu_id`` (:func:`cpu_signature`),
     ``logical_cores``, ``isa`` (:func:`cpu_isa`), ``versions`` (:func:`engine_versions`),
     ``threads_requested``, ``matmul_peak_gflops``, ``gpu``, and the run's UTC ``date`` and code
-    ``commit`` (:func:`denoiser.report.summary.git_commit`)."""
-    from denoiser.report.summary import git_commit
+    ``commit`` (:func:`denoiser.report.provenance.git_commit`)."""
+    from denoiser.report.provenance import git_commit
 
     return {"cpu": cpu_model(), "cpu_id": cpu_signature(), "logical_cores": os.cpu_count(), "isa": dict(isa),
             "versions": dict(versions), "threads_requested": threads, "matmul_peak_gflops": peak_gflops,

@@ -10,8 +10,8 @@ A figure table is declared in YAML (``tables`` of ``conf/compare_summary.yaml``)
       order: {name: baselines, methods: [nppd, ONND, ws]}   # -> "baselines: NPPD > ONND > WS: yes|no"
 
 Each row gives the metrics of ``metrics`` (mean ± std over seeds for a group of several seeds,
-:func:`denoiser.report.summary.format_mean_std`) and the group's time at the bench size
-(:func:`denoiser.report.summary.group_timing`). The two sentences are computed from the means of
+:func:`denoiser.report.seed_groups.format_mean_std`) and the group's time at the bench size
+(:func:`denoiser.report.seed_groups.group_timing`). The two sentences are computed from the means of
 ``rank_metric`` (PSNR by default; the direction, higher or lower is better, from
 :data:`denoiser.metrics.COLUMNS`). A declared method missing from the evaluation keeps its row,
 empty, and is named under the table: a comparison run without ONND still reads as the figure.
@@ -24,7 +24,7 @@ from itertools import pairwise
 
 from denoiser.errors import ConfigError
 from denoiser.metrics import COLUMNS
-from denoiser.report.summary import format_mean_std, group_timing
+from denoiser.report.seed_groups import format_mean_std, group_timing
 from denoiser.tables import markdown_table
 
 
@@ -50,7 +50,7 @@ def figure_table(spec: Mapping, groups: Mapping[str, Mapping], bench: Mapping[st
                  size: tuple[int, int], metrics: Sequence[str]) -> str:
     """The Markdown table of one figure: a row per declared method, in the declared order.
 
-    groups: ``{method: seed group}`` (:func:`denoiser.report.summary.seed_groups` rows by method);
+    groups: ``{method: seed group}`` (:func:`denoiser.report.seed_groups.seed_groups` rows by method);
     bench: ``{method: fastest bench row at size (H, W)}``.
     """
     for m in metrics:
@@ -125,7 +125,7 @@ def order_line(spec: Mapping, groups: Mapping[str, Mapping], metric: str) -> str
 def figure_sections(tables: Sequence[Mapping], groups: Sequence[Mapping], bench: Mapping[str, Mapping],
                     size: tuple[int, int], metrics: Sequence[str], rank_metric: str) -> list[str]:
     """Markdown lines of every declared table: a ``##`` title, the table, its missing methods
-    and its ranking lines. groups: :func:`denoiser.report.summary.seed_groups`' rows."""
+    and its ranking lines. groups: :func:`denoiser.report.seed_groups.seed_groups`' rows."""
     by_method = {g["method"]: g for g in groups}
     lines: list[str] = []
     for spec in tables:

@@ -10,13 +10,13 @@ beside a user's data root for any other):
 
 * ``date``: UTC, ``YYYY-MM-DDTHH:MM:SSZ``;
 * ``dataset``: the data root; ``split``: the split's name; ``split_sha256``: the content hash of
-  the split's files (:func:`denoiser.report.summary.tree_hash`); ``split_id``: the split as drawn
+  the split's files (:func:`denoiser.report.provenance.tree_hash`); ``split_id``: the split as drawn
   (:func:`split_id`: each sequence's metadata without its render timings, and its files' names), which
   identifies the split whatever its folder is called and however often it is rendered again;
 * ``sequences``: how many sequences were evaluated (``sequences=`` may pick a subset);
 * ``checkpoints``: the run ids (a checkpoint's run folder, else its file name), ``;``-separated;
   ``baselines``: the baseline methods, ``;``-separated;
-* ``commit``: the code that evaluated (:func:`denoiser.report.summary.git_commit`, ``-dirty``
+* ``commit``: the code that evaluated (:func:`denoiser.report.provenance.git_commit`, ``-dirty``
   with uncommitted changes);
 * ``purpose``: as given; ``look``: the how-many-th evaluation of this split the row is.
 
@@ -44,7 +44,7 @@ from pathlib import Path
 
 from denoiser.conf import CONF_DIR
 from denoiser.errors import UserError
-from denoiser.report.summary import hash_bytes
+from denoiser.report.provenance import hash_bytes
 from denoiser.tables import write_csv
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -121,7 +121,7 @@ def split_id(root: str | os.PathLike) -> str:
     (:data:`METADATA_FILES`) by its relative path and its JSON without :data:`VOLATILE_KEYS` (keys
     sorted), every other file in a folder that holds one by its relative path only (its bytes are one
     render of what the metadata draws), and a file elsewhere by its path and bytes (a split without
-    metadata is its bytes, as :func:`denoiser.report.summary.tree_hash`)."""
+    metadata is its bytes, as :func:`denoiser.report.provenance.tree_hash`)."""
     root = Path(root)
     files = sorted(p for p in root.rglob("*") if p.is_file())
     described = {p.parent for p in files if p.name in METADATA_FILES}

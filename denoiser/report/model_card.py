@@ -24,7 +24,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from denoiser.report.summary import hash_bytes
+from denoiser.report.provenance import hash_bytes
 
 
 def file_sha256(path: str | os.PathLike) -> str:

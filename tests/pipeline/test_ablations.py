@@ -17,8 +17,8 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 
 from denoiser.conf import CONF_DIR
+from denoiser.report.seed_groups import format_interval
 from denoiser.report.stats import paired_interval
-from denoiser.report.summary import format_interval
 
 ROOT = Path(__file__).resolve().parents[2]
 SEEDS = (0, 1, 2)

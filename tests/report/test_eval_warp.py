@@ -14,7 +14,7 @@ from helpers.eval_data import write_dataset
 
 from denoiser.data.exr import read_frame
 from denoiser.report.flicker import warp_error
-from denoiser.report.summary import claim_lines, group_sequences, sequence_values
+from denoiser.report.seed_groups import claim_lines, group_sequences, sequence_values
 from denoiser.tables import read_csv
 
 NAMES = {"color": ["color.R", "color.G", "color.B"], "reference": ["reference.R", "reference.G", "reference.B"],

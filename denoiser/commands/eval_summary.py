@@ -1,13 +1,16 @@
-"""The demo's summary: ``python -m denoiser.commands.demo_summary`` -> ``<report>/summary.md``.
+"""An evaluation's summary: ``python -m denoiser.commands.eval_summary`` -> ``<report>/summary.md``.
 
 Usage::
 
-    python -m denoiser.commands.demo_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
+    python -m denoiser.commands.eval_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
 
-A Hydra app over ``conf/demo_summary.yaml``, run by ``conf/pipeline/demo.yaml`` at its end. It reads
+One command for three pipelines' summaries, each its own entry config: make demo's
+(``conf/demo_summary.yaml``, the default; ``conf/pipeline/demo.yaml`` runs it at its end), make
+compare's (``--config-name compare_summary``) and the recipe check's (``--config-name
+recipe_check_summary``, ``conf/pipeline/recipe_check.yaml``). It reads
 
 * ``<report>/eval/metrics.csv`` (``denoiser-eval`` on the test split; students labelled
-  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.report.summary`), one row
+  ``<group>_s<seed>``) and gathers the seeds into mean ± std (:mod:`denoiser.report.seed_groups`), one row
   for methods with identical per-sequence values (``OIDN-balanced = OIDN-high``), and the
   paired claims of ``claims`` (network minus baseline per sequence, a bootstrap interval over
   sequences and a verdict from it), with a per-family table of the same differences;
@@ -30,7 +33,7 @@ copies a results block (the ledger's line, the table and the claims) into docs/r
 
 ``make compare`` (``conf/pipeline/compare.yaml``) runs it over ``conf/compare_summary.yaml``::
 
-    python -m denoiser.commands.demo_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
+    python -m denoiser.commands.eval_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
 
 which adds the figure tables declared under ``tables`` (the paper's Fig. A.2 and A.3, with
 their ranking lines; :mod:`denoiser.report.figure_tables`) above the table of every method.
@@ -49,11 +52,11 @@ from denoiser.errors import ConfigError, UserError
 from denoiser.metrics import COLUMNS
 from denoiser.report import ledger
 from denoiser.report.figure_tables import figure_sections
-from denoiser.report.summary import (
+from denoiser.report.provenance import commit_line, tree_hash
+from denoiser.report.seed_groups import (
     SUMMARY_COLUMNS,
     check_claims,
     claim_lines,
-    commit_line,
     family_lines,
     format_mean_std,
     group_sequences,
@@ -63,7 +66,6 @@ from denoiser.report.summary import (
     run_row,
     seed_groups,
     sequence_values,
-    tree_hash,
 )
 from denoiser.tables import markdown_table, read_csv
 
@@ -156,7 +158,7 @@ def metric_row(group: dict) -> dict:
 
 
 def merged_note(groups: list[dict]) -> list[str]:
-    """A paragraph under a table naming its merged rows (:func:`denoiser.report.summary.merge_identical`)."""
+    """A paragraph under a table naming its merged rows (:func:`denoiser.report.seed_groups.merge_identical`)."""
     merged = [g["method"] for g in groups if len(g.get("members", [])) > 1]
     note = (f"`{' `, `'.join(merged)}`: the same value on every sequence and metric, one row (OIDN's qualities "
             "run the same weights where its large weights are not installed, as on this CPU).")
@@ -164,8 +166,8 @@ def merged_note(groups: list[dict]) -> list[str]:
 
 
 def evaluation(path: Path) -> tuple[list[dict], dict]:
-    """A metrics.csv's seed groups (:func:`denoiser.report.summary.seed_groups`) and its per-sequence
-    values per group (:func:`denoiser.report.summary.group_sequences`)."""
+    """A metrics.csv's seed groups (:func:`denoiser.report.seed_groups.seed_groups`) and its per-sequence
+    values per group (:func:`denoiser.report.seed_groups.group_sequences`)."""
     rows = read_csv(path)
     return seed_groups(method_means(rows)), group_sequences(sequence_values(rows))
 

@@ -5,10 +5,12 @@ VENV    ?= .venv
 PY      := $(VENV)/bin/python
 EXTRAS  ?= render,eval,export,openvino,scale,dev
 PYTEST_ARGS ?=
-# The suite runs in one pytest-xdist worker process: a test that kills its process (a native
-# runtime's segfault) is reported as that test's failure, by name, the worker is replaced and the
-# summary still prints (issue 44; tests/inference/test_signal_stack.py::test_make_test_survives_a_crashing_test).
-PYTEST_ISOLATION ?= -p xdist -n 1 --max-worker-restart=100
+# The suite runs in pytest-xdist worker processes, one per core (tests/conftest.py gives each worker's
+# torch its share of the threads), long tests handed out first-come (worksteal): a test that kills its
+# process (a native runtime's segfault) is reported as that test's failure, by name, the worker is
+# replaced and the summary still prints (issue 44; tests/core/test_crash_isolation.py).
+PYTEST_WORKERS ?= auto
+PYTEST_ISOLATION ?= -p xdist -n $(PYTEST_WORKERS) --dist worksteal --max-worker-restart=100
 
 .PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val blender-venv release
 

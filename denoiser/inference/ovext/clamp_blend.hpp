@@ -15,13 +15,34 @@ namespace denoiser {
 
 // One row of one channel: out[px] for px in [0, W). r0, r1, r2: base rows y - 1, y, y + 1 (edges
 // replicated), each padded by one replicated value at both ends (W + 2 floats, index px + 1 is px).
+// A strip of S pixels at a time (the compilers leave the pixel loop scalar), the same operations
+// in the same order for the rest.
 static inline void clamp_blend_row(const float* __restrict r0, const float* __restrict r1,
                                    const float* __restrict r2, const float* __restrict prev,
                                    const float* __restrict weight, float k, int64_t W, float* __restrict out) {
-    for (int64_t px = 0; px < W; ++px) {
+    int64_t px = 0;
+    for (; px + S <= W; px += S) {
+        const Strip x = load_strip(r1 + px + 1);
+        Strip total = {}, squares = {};
+        // the neighbours in box_moments' order (rows, then columns; the centre left out)
+        const Strip n[8] = {load_strip(r0 + px), load_strip(r0 + px + 1), load_strip(r0 + px + 2),
+                            load_strip(r1 + px), load_strip(r1 + px + 2), load_strip(r2 + px),
+                            load_strip(r2 + px + 1), load_strip(r2 + px + 2)};
+        for (int t = 0; t < 8; ++t) {
+            const Strip d = n[t] - x;
+            total = total + d;
+            squares = squares + d * d;
+        }
+        const Strip mean_d = total / 9.0f;
+        const Strip var = max_strip(squares / 9.0f - mean_d * mean_d, Strip{});
+        const Strip mean = x + mean_d;
+        const Strip spread = k * sqrt_strip(var + 1e-12f);
+        const Strip clamped = min_strip(max_strip(load_strip(prev + px), mean - spread), mean + spread);
+        store_strip(out + px, x + load_strip(weight + px) * (clamped - x));
+    }
+    for (; px < W; ++px) {
         const float x = r1[px + 1];
         float total = 0.0f, squares = 0.0f;
-        // the neighbours in box_moments' order (rows, then columns; the centre left out)
         const float n[8] = {r0[px], r0[px + 1], r0[px + 2], r1[px], r1[px + 2], r2[px], r2[px + 1], r2[px + 2]};
         for (int t = 0; t < 8; ++t) {
             const float d = n[t] - x;

@@ -103,7 +103,30 @@ public:
                 }
                 float* __restrict o = O + b * HW + y * W;
                 const float* __restrict d_ = d.data();
-                for (int64_t px = 0; px < W; ++px) {
+                int64_t px = 0;
+                for (; px + S <= W; px += S) {  // strips (the compilers leave the pixel loop scalar), as below
+                    const Strip p0 = load_strip(p + 3 * pstride + px), p1 = load_strip(p + 4 * pstride + px),
+                                p2 = load_strip(p + 5 * pstride + px);
+                    const Strip c0 = load_strip(x + 3 * HW + px), c1 = load_strip(x + 4 * HW + px),
+                                c2 = load_strip(x + 5 * HW + px);
+                    const Strip lp = sqrt_strip(p0 * p0 + p1 * p1 + p2 * p2);
+                    const Strip lc = sqrt_strip(c0 * c0 + c1 * c1 + c2 * c2);
+                    const IntStrip hp = lp > 0.5f, hc = lc > 0.5f;
+                    const Strip cos = (p0 * c0 + p1 * c1 + p2 * c2) / max_strip(lp * lc, Strip{} + 1e-6f);
+                    const Strip normal = (hp & hc) != 0 ? 1.0f - cos : (hp == hc ? Strip{} : Strip{} + 1.0f);
+                    const Strip lo = Strip{} + DEPTH_LOGIT_EPS, hi = Strip{} + (1.0f - DEPTH_LOGIT_EPS);
+                    const Strip pd = min_strip(max_strip(load_strip(p + 6 * pstride + px), lo), hi);
+                    const Strip cd = min_strip(max_strip(load_strip(x + 6 * HW + px), lo), hi);
+                    const Strip ratio = log_normal_strip((pd * (1.0f - cd)) / (cd * (1.0f - pd)));
+                    IntStrip bits;
+                    std::memcpy(&bits, &ratio, sizeof(bits));
+                    bits &= 0x7fffffff;  // fabs
+                    Strip depth;
+                    std::memcpy(&depth, &bits, sizeof(depth));
+                    const Strip D = max_strip(max_strip(load_strip(d_ + px), normal), depth);
+                    store_strip(o + px, min_strip(max_strip(2.0f - D / m_threshold, Strip{}), Strip{} + 1.0f));
+                }
+                for (; px < W; ++px) {
                     // normals: 1 - cos where both are present (length > 0.5), 0 where neither, else 1
                     const float p0 = p[3 * pstride + px], p1 = p[4 * pstride + px], p2 = p[5 * pstride + px];
                     const float c0 = x[3 * HW + px], c1 = x[4 * HW + px], c2 = x[5 * HW + px];

@@ -54,6 +54,16 @@ static inline void store_part(float* p, Strip v, int64_t n) {
     std::memcpy(p, t, static_cast<size_t>(n) * sizeof(float));
 }
 
+// std::max and std::min per lane (a < b ? b : a and b < a ? b : a: a NaN in b gives a), and
+// std::sqrt per lane (a loop the compilers make one square-root instruction of)
+static inline Strip max_strip(Strip a, Strip b) { return a < b ? b : a; }
+static inline Strip min_strip(Strip a, Strip b) { return b < a ? b : a; }
+static inline Strip sqrt_strip(Strip v) {
+    Strip r;
+    for (int64_t l = 0; l < S; ++l) r[l] = __builtin_sqrtf(v[l]);
+    return r;
+}
+
 // 0, 1, ..., S - 1
 static inline Strip lane_index() {
     Strip v;

@@ -95,7 +95,7 @@ gpu-check:
 # fast-object-motion sequences fast_301..306: fresh seeds, issue 49), the val split (fast_101..103, other
 # seeds: `make blender-val` alone, BLENDER_VAL_ARGS) into data/blender/val/, then
 # denoiser-eval on them (noisy input, OIDN, and the checkpoints of BLENDER_CKPT) into reports/blender/,
-# and the ceiling a demodulating network meets on their noisy albedo (python -m denoiser.commands.albedo_bound).
+# and the ceiling a demodulating network meets on their noisy albedo (python -m denoiser.commands.tools.albedo_bound).
 # Once they exist, `make demo` also evaluates its teacher and students on them (reports/demo/blender/,
 # a table in reports/demo/summary.md).
 #   make blender BLENDER_CKPT='{student: reports/demo/runs/.../last.ckpt}'
@@ -126,4 +126,4 @@ blender: setup $(BLENDER_VENV)/.installed blender-val
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split test $(BLENDER_ARGS)
 	$(VENV)/bin/denoiser-eval layout=blender data.root=$(BLENDER_DATA) split=test out_dir=$(BLENDER_OUT) \
 		'purpose=$(BLENDER_PURPOSE)' $(if $(BLENDER_CKPT),'ckpt=$(BLENDER_CKPT)') $(BLENDER_EVAL_ARGS)
-	$(VENV)/bin/python -m denoiser.commands.albedo_bound $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md
+	$(VENV)/bin/python -m denoiser.commands.tools.albedo_bound $(BLENDER_DATA)/test --out $(BLENDER_OUT)/albedo_bound.md

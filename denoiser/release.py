@@ -1,7 +1,7 @@
 """The shipped release networks (issue 62): where they are, their names, how they are stored.
 
 The networks are data, not code: the folder ``denoiser/models/`` (package data of ``denoiser``) holds,
-once ``make release`` has shipped (``python -m denoiser.commands.release_ship``)::
+once ``make release`` has shipped (``python -m denoiser.commands.tools.release_ship``)::
 
     denoiser/models/teacher.pt     # {"hyper_parameters": {"net": <net config>}, "state_dict": {"net.<name>": tensor}}
     denoiser/models/student.pt     #   (no pickled object: torch.load(weights_only=True) reads it)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The device check of a lent GPU (docs/gpu.md): in at most ~8 minutes, the GPU tests, then
-# python -m denoiser.commands.gpu_check (inference at 1080p, training steps, a short training run,
+# python -m denoiser.commands.tools.gpu_check (inference at 1080p, training steps, a short training run,
 # the CPU evaluation of its checkpoint). Results go to $OUT (the run tool brings it back) or
 # outputs/gpu_check, and docs/results/gpu.md when run in a checkout.
 #   scripts/gpu_check.sh             # make gpu-check
@@ -47,7 +47,7 @@ tail -n 3 "$OUT/pytest_gpu.log" "$OUT/pytest_triton.log"
 fi
 left=$(( ${TOTAL_S:-460} - ($(date +%s) - started) ))
 budget=$(( left - 60 > 60 ? left - 60 : 60 ))
-timeout $(( left > 90 ? left : 90 )) "$PY" -m denoiser.commands.gpu_check out="$OUT" budget_s="$budget" "${extra[@]}" 2>&1 \
+timeout $(( left > 90 ? left : 90 )) "$PY" -m denoiser.commands.tools.gpu_check out="$OUT" budget_s="$budget" "${extra[@]}" 2>&1 \
     | tee "$OUT/gpu_check.log" | grep -v "^\s*$" | tail -n 60
 [ -z "${SKIP_TESTS:-}" ] && {
     echo; echo "## Tests"; echo

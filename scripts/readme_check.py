@@ -20,7 +20,7 @@ on stderr, naming its file, then exit 1 (``--report-only``: exit 0, the lines al
 when every block is current (a ``<!-- NAME:pending -->`` line is not a block).
 
 Code of the networks (:data:`BEHAVIOUR`, ``denoiser/nn``) is judged by what it computes when
-nothing else measured changed: :mod:`denoiser.commands.nn_fingerprint` (this checkout's file, by
+nothing else measured changed: :mod:`denoiser.commands.tools.nn_fingerprint` (this checkout's file, by
 path, with ``denoiser`` imported from the tree) runs on both trees (``git archive`` of the block's
 commit and of ``HEAD``) and hashes, per network config, the training
 pass's outputs and gradients and the exported ONNX graphs, bit for bit. Equal fingerprints (a
@@ -64,29 +64,37 @@ MEASURED = ("denoiser/", "conf/", "scripts/blender_sequences.py", "scripts/blend
 #: denoise (a trained network applied to a user's frames), the val table, render_blender (a user's .blend file)
 TOOLS = ("data_throughput", "memory_longseq", "bench_networks", "effect_cost", "netstats", "export", "denoise", "val_table",
          "render_blender")
+#: the console scripts among them (denoiser/commands/<name>.py); the others are python -m tools
+#: (denoiser/commands/tools/<name>.py)
+CONSOLE_SCRIPTS = ("export", "denoise", "render_blender")
+#: the unmeasured tools and diagnoses (:data:`UNMEASURED` below): the fingerprint, the diagnoses written
+#: to files of their own, never into a block (run by hand), and the tools of TOOLS
+UNMEASURED_TOOLS = ("nn_fingerprint", "albedo_bound", "diagnose_history", "noise_response",
+                    *(t for t in TOOLS if t not in CONSOLE_SCRIPTS))
 #: under MEASURED but unable to change a trained network or a block's numbers
 UNMEASURED = (
     *(f"{root}hydra/help/" for root in CONF_ROOTS),           # the --help text
-    "denoiser/commands/nn_fingerprint.py",                     # this check's own probe
-    *(f"denoiser/commands/{tool}.py" for tool in TOOLS),
+    *(f"denoiser/commands/tools/{tool}.py" for tool in UNMEASURED_TOOLS),
+    *(f"denoiser/commands/{tool}.py" for tool in CONSOLE_SCRIPTS),
     *(f"{root}{tool}.yaml" for root in CONF_ROOTS for tool in TOOLS),
-    # diagnoses and tables written to files of their own, never into a block (run by hand)
-    "denoiser/commands/albedo_bound.py", "denoiser/commands/diagnose_history.py", "denoiser/commands/noise_response.py",
     "denoiser/report/history_diagnosis.py", "denoiser/report/noise_response.py", "denoiser/report/cpu_speed.py",
 )
+#: the unmeasured tools where they were before denoiser/commands/tools/ (issue 63): left out of the
+#: diff as well, so that a block older than the move does not see them deleted
+FORMER_UNMEASURED = tuple(f"denoiser/commands/{tool}.py" for tool in UNMEASURED_TOOLS)
 #: a file deleted at the first location and added at the second is the same file moved (paired
 #: even when git's rename detection, which goes by similarity, does not pair a small edited file)
-MOVED = (("denoiser/conf/", "conf/"),)
+MOVED = (("denoiser/conf/", "conf/"), ("denoiser/commands/", "denoiser/commands/tools/"))
 #: an added file of these kinds is a new option of its config group (``conf/render_set/demo_motion.yaml``): a
 #: config composes it only when selected by name, and a changed file that selects it is in the diff
 NEW_OPTION = (".yaml", ".yml")
-#: Python code judged by what the networks compute (denoiser.commands.nn_fingerprint), not by its text
+#: Python code judged by what the networks compute (denoiser.commands.tools.nn_fingerprint), not by its text
 BEHAVIOUR = ("denoiser/nn/",)
 #: the fingerprint module: the one of the package this script's Python imports (this checkout's, in
 #: its venv). Found, not imported (nothing of the package runs here), and run in a child by path,
 #: never by ``-m``: the child imports ``denoiser`` from the archived tree (an older commit's lacks the
 #: module), and both trees must be hashed by the same code.
-FINGERPRINT_MODULE = "denoiser.commands.nn_fingerprint"
+FINGERPRINT_MODULE = "denoiser.commands.tools.nn_fingerprint"
 #: the child's program: run the file at argv[1] as ``__main__`` without putting its directory on
 #: sys.path (as ``python FILE`` would: a module of the package's folder would shadow a top-level one)
 RUN_FILE = "import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__')"
@@ -138,7 +146,7 @@ def measured_changes(repo: Path, commit: str, measured: tuple[str, ...] = MEASUR
     ``unmeasured`` whose file was added, deleted, or changed in :func:`meaning` (pure moves,
     comments and docstrings drop out)."""
     diff = git(repo, "diff", "-M", "--name-status", commit, "HEAD", "--", *measured,
-               *(f":(exclude){path}" for path in unmeasured))
+               *(f":(exclude){path}" for path in (*unmeasured, *FORMER_UNMEASURED)))
     if diff.returncode != 0:
         raise SystemExit(f"error: {repo}: git diff {commit} HEAD failed: {diff.stderr.strip()}")
     entries = [line.split("\t") for line in diff.stdout.splitlines() if line]

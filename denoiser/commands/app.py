@@ -4,7 +4,7 @@
 Hydra composes ``conf/<config_name>.yaml`` with the command line, then ``task(cfg)`` runs.
 A :class:`~denoiser.errors.UserError` becomes one line on stderr and exit code 2; the full
 traceback is shown only with ``DENOISER_DEBUG=1``. The commands that take no config
-(``python -m denoiser.commands.noise_response``, ``diagnose_history``, ``albedo_bound``,
+(``python -m denoiser.commands.tools.noise_response``, ``diagnose_history``, ``albedo_bound``,
 ``paper_budget``) parse with :class:`CommandParser` (argparse, ``key=value`` accepted) and end a
 UserError with :func:`report_user_error` the same way.
 
@@ -43,7 +43,7 @@ def key_value_argv(argv: list[str]) -> list[str]:
 
 
 class CommandParser(argparse.ArgumentParser):
-    """``argparse`` for the commands that are not Hydra apps (``python -m denoiser.commands.<name>``):
+    """``argparse`` for the commands that are not Hydra apps (``python -m denoiser.commands.tools.<name>``):
     ``--help`` prints the module docstring as written (``doc``: usage lines kept), ``key=value``
     arguments are read as ``--key=value`` (:func:`key_value_argv`), and a usage mistake (a missing
     or unknown argument, a bad value) is one line ``error: ...`` on stderr and exit 2, as a

@@ -14,7 +14,7 @@ reference are first replaced by their luminance (:data:`denoiser.metrics.LUMINAN
 channels, so that one network's figures on the colour and the grey versions of a sequence show
 what its colours cost.
 
-    python -m denoiser.commands.noise_response ckpt=S.ckpt sequences=[data/blender/val/fast_101] layout=blender
+    python -m denoiser.commands.tools.noise_response ckpt=S.ckpt sequences=[data/blender/val/fast_101] layout=blender
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""denoiser/commands/albedo_bound.py (``python -m denoiser.commands.albedo_bound``): the ceiling that
+"""denoiser/commands/tools/albedo_bound.py (``python -m denoiser.commands.tools.albedo_bound``): the ceiling that
 remodulating with a noisy albedo sets (issue 12)."""
 
 import subprocess
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from denoiser.commands import albedo_bound
+from denoiser.commands.tools import albedo_bound
 from denoiser.data import exr
 from denoiser.metrics import psnr
 
@@ -83,14 +83,14 @@ def test_missing_reference_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_the_command_takes_key_value_arguments_and_refuses_mistakes_in_one_line(tmp_path):
-    """``python -m denoiser.commands.albedo_bound``: ``out=``/``warmup=`` as well as ``--out``; no
+    """``python -m denoiser.commands.tools.albedo_bound``: ``out=``/``warmup=`` as well as ``--out``; no
     sequences, a bad value and a missing argument are one line ``error: ...`` and exit 2."""
     seq = tmp_path / "split" / "flat"
     albedo = np.full((H, W, 3), 0.5, np.float32)
     for t in range(3):
         write(seq / "noisy" / f"{t + 1:04d}.exr", albedo * 1.1, albedo)
         write(seq / "reference" / f"{t + 1:04d}.exr", albedo, albedo)
-    command = [sys.executable, "-m", "denoiser.commands.albedo_bound"]
+    command = [sys.executable, "-m", "denoiser.commands.tools.albedo_bound"]
     out = tmp_path / "bound.md"
     ok = subprocess.run([*command, str(tmp_path / "split"), f"out={out}", "warmup=1"], capture_output=True,
                         text=True, check=False)

@@ -173,8 +173,8 @@ def test_peak_rss_sees_an_allocation(method):
 
 @pytest.mark.slow
 def test_bench_networks_measures_in_a_subprocess(capsys):
-    """python -m denoiser.commands.bench_networks, tiny: the parent passes each job to a fresh process."""
-    from denoiser.commands.bench_networks import run
+    """python -m denoiser.commands.tools.bench_networks, tiny: the parent passes each job to a fresh process."""
+    from denoiser.commands.tools.bench_networks import run
 
     rows = run(compose("bench_networks", ["nets=[tiny]", "sizes=[24x16]", "variants=[eager]", "repeats=2",
                                           "kernels=false"]))

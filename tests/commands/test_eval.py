@@ -222,7 +222,7 @@ def test_a_look_at_the_test_split_needs_a_purpose_and_is_recorded(setup, tmp_pat
     run(compose_eval([*base, f"data.root={copy}", "purpose=debug", f"out_dir={tmp_path / 'copy_out'}"]))
     assert ledger.read(book)[-1]["look"] == "3" and ledger.looks(digest, book) == 3
     # the demo summary of the second evaluation: its commit, its look (2) and the looks now (3)
-    from denoiser.commands.eval_summary import run as summarize
+    from denoiser.commands.tools.eval_summary import run as summarize
 
     (tmp_path / "report").mkdir()
     (tmp_path / "report" / "eval").symlink_to(tmp_path / "1")

@@ -131,7 +131,7 @@ def test_train_help_shows_the_current_choices(monkeypatch, capsys):
     assert OmegaConf.to_container(composed("train").hydra.help)["app_name"] == "denoiser-train"
 
 
-#: the argparse commands (``python -m denoiser.commands.<name>``, no config of their own)
+#: the argparse commands (``python -m denoiser.commands.tools.<name>``, no config of their own)
 ARGPARSE_COMMANDS = ("noise_response", "diagnose_history", "albedo_bound", "paper_budget", "nn_fingerprint")
 
 
@@ -139,16 +139,16 @@ ARGPARSE_COMMANDS = ("noise_response", "diagnose_history", "albedo_bound", "pape
 def test_argparse_commands_help_and_usage_mistakes(name, capsys):
     """``--help``: the ``python -m`` name, what the command does (its docstring) and every option;
     a usage mistake: one line ``error: ...`` naming ``--help``, exit 2, no traceback."""
-    module = importlib.import_module(f"denoiser.commands.{name}")
+    module = importlib.import_module(f"denoiser.commands.tools.{name}")
     with pytest.raises(SystemExit) as exit_:
         module.main(["--help"])
     assert exit_.value.code == 0
     text = capsys.readouterr().out
-    assert text.startswith(f"usage: python -m denoiser.commands.{name} ")
+    assert text.startswith(f"usage: python -m denoiser.commands.tools.{name} ")
     assert module.__doc__.splitlines()[0] in text and "Usage::" in text and "--help" in text
     with pytest.raises(SystemExit) as exit_:
         module.main(["--no-such-option"])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1, err
-    assert err.startswith("error: ") and f"denoiser.commands.{name} --help" in err
+    assert err.startswith("error: ") and f"denoiser.commands.tools.{name} --help" in err
     assert "--no-such-option" in err or "arguments are required" in err   # argparse names the first mistake

@@ -12,7 +12,7 @@ from conftest import compose_command, tiny_checkpoint
 from helpers.eval_data import write_sequence
 
 from denoiser.checkpoint import load_denoiser, load_weights, read_checkpoint
-from denoiser.commands.release_ship import main as ship_main
+from denoiser.commands.tools.release_ship import main as ship_main
 from denoiser.data.exr import read_channels
 from denoiser.errors import UserError
 from denoiser.release import fp16_output_error, models_dir

@@ -1,6 +1,6 @@
 """Long sequences: the peak RSS of ``denoiser-denoise`` does not grow with the number of frames.
 
-A small version of ``python -m denoiser.commands.memory_longseq`` (which measures 100 vs 1000 frames at 64x64
+A small version of ``python -m denoiser.commands.tools.memory_longseq`` (which measures 100 vs 1000 frames at 64x64
 with the student): 20 vs 150 frames at 64x64 with ``net=tiny``, each run a real
 ``denoiser-denoise`` process whose peak RSS comes from the kernel. Keeping every frame's input
 buffers (15 float32 channels, 240 KiB a frame) would add about 35 MiB over 150 frames, far
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from denoiser.commands.memory_longseq import measure_lengths, table
+from denoiser.commands.tools.memory_longseq import measure_lengths, table
 
 TOLERANCE_MIB = 16.0
 

@@ -1,4 +1,4 @@
-"""The val table (denoiser/commands/val_table.py over conf/val_table.yaml): training candidates
+"""The val table (denoiser/commands/tools/val_table.py over conf/val_table.yaml): training candidates
 compared on validation splits, from small synthetic metrics.csv files: the means against a hand
 computation, the paired intervals' verdicts, the per-sequence seed averages against a plain loop,
 seeds outside ``seeds`` left out, and a missing seed as one error line naming the file and group."""
@@ -58,7 +58,7 @@ def config(tmp_path: Path, csvs: dict[str, Path], *overrides: str):
 
 
 def run_table(tmp_path: Path, *overrides: str, values: dict | None = None) -> str:
-    from denoiser.commands.val_table import run
+    from denoiser.commands.tools.val_table import run
 
     csv_path = write_metrics(tmp_path / "eval" / "metrics.csv", values or VALUES)
     return run(config(tmp_path, {"one": csv_path}, *overrides)).read_text()
@@ -155,7 +155,7 @@ def test_runs_of_other_seeds_are_left_out_and_named(tmp_path):
 
 def test_a_missing_seed_is_one_error_naming_the_csv_and_the_group(tmp_path, capsys):
     from denoiser.commands.app import guarded
-    from denoiser.commands.val_table import run
+    from denoiser.commands.tools.val_table import run
 
     values = {k: v for k, v in VALUES.items() if k != "ahead_s1"}
     good = write_metrics(tmp_path / "good" / "metrics.csv", VALUES)
@@ -177,7 +177,7 @@ def test_a_missing_seed_is_one_error_naming_the_csv_and_the_group(tmp_path, caps
 def test_two_runs_of_one_split_read_as_one(tmp_path):
     """``csv: [a, b]``: candidates from two evaluation runs of the same split, paired as if one run
     had evaluated them all; the baselines both runs hold are taken once."""
-    from denoiser.commands.val_table import run
+    from denoiser.commands.tools.val_table import run
 
     baselines = {k: VALUES[k] for k in ("noisy input", "OIDN-fast")}
     first = write_metrics(tmp_path / "a" / "metrics.csv", {**baselines, **{f"base_s{s}": v for s, v in BASE.items()}})
@@ -199,7 +199,7 @@ def test_two_runs_of_one_split_read_as_one(tmp_path):
 def test_prefix_pairs_two_runs_of_the_same_labels(tmp_path):
     """``prefix``: two runs that label their students alike (make demo's before and after) are paired
     on the same split; the baselines keep their names and are checked equal."""
-    from denoiser.commands.val_table import run
+    from denoiser.commands.tools.val_table import run
 
     baselines = {k: VALUES[k] for k in ("noisy input", "OIDN-fast")}
     before = write_metrics(tmp_path / "a" / "metrics.csv", {**baselines, **{f"s_s{s}": v for s, v in BASE.items()}})

@@ -219,6 +219,21 @@ def test_library_never_imports_a_command():
     assert not {k: v for k, v in offenders.items() if v}
 
 
+def test_console_scripts_in_commands_and_python_m_tools_in_tools():
+    """``denoiser/commands/`` holds the ``denoiser-*`` console scripts of pyproject's ``[project.scripts]``
+    (and ``app.py``, their start-up), each one module there; ``denoiser/commands/tools/`` holds the
+    ``python -m`` tools, none of them a console script."""
+    import tomllib
+
+    scripts = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())["project"]["scripts"]
+    targets = {target.split(":")[0] for target in scripts.values()}
+    top = {f"denoiser.commands.{p.stem}" for p in (PACKAGE / "commands").glob("*.py")} - {"denoiser.commands.app"}
+    tools = {f"denoiser.commands.tools.{p.stem}" for p in (PACKAGE / "commands" / "tools").glob("*.py")
+             if p.name != "__init__.py"}
+    assert top == targets, (top - targets, targets - top)
+    assert tools and not tools & targets
+
+
 def test_commands_do_not_import_each_other():
     """Commands share library modules, never each other's code (``app`` is their shared start-up)."""
     offenders = {}

@@ -1,5 +1,5 @@
 """Weight interpolation between a network and its fine-tune (WiSE-FT):
-:func:`denoiser.checkpoint.interpolate_checkpoints` and ``python -m denoiser.commands.interpolate``.
+:func:`denoiser.checkpoint.interpolate_checkpoints` and ``python -m denoiser.commands.tools.interpolate``.
 The written weights against a plain loop over tensors and elements, the ends exact, the network
 loadable by every command, and each user mistake one error line naming the file."""
 
@@ -71,7 +71,7 @@ def test_same_config_other_shapes_is_one_error(tmp_path, pair):
 
 def test_command_writes_the_checkpoint_and_says_one_line_on_a_mistake(tmp_path, pair, capsys):
     from denoiser.commands.app import guarded
-    from denoiser.commands.interpolate import run
+    from denoiser.commands.tools.interpolate import run
 
     start, end = pair
     out = tmp_path / "mid.ckpt"

@@ -106,7 +106,7 @@ def test_readme_check_fails_on_a_block_older_than_the_measured_code(tmp_path):
 
 RECIPE_FILES = {
     "denoiser/lit/distill.py": "ALPHA = 0.5\n",
-    "denoiser/commands/netstats.py": "WIDTH = 1\n",
+    "denoiser/commands/tools/netstats.py": "WIDTH = 1\n",
     "conf/base/model.yaml": "lr: 0.001\n",
     "conf/experiment/demo_distill.yaml": "trainer:\n  max_steps: 900\n",
     "conf/pipeline/demo.yaml": "alpha: 0.75\n",
@@ -144,7 +144,7 @@ def test_readme_check_catches_a_changed_recipe_in_every_file_of_blocks(tmp_path)
     commit("denoiser/lit/distill.py", "ALPHA = 0.5  # the distillation weight\n")
     commit("conf/base/model.yaml", "# the base recipe\nlr: 0.001  # Adam\n")
     commit("conf/hydra/help/command.yaml", "header: usage, longer\n")
-    commit("denoiser/commands/netstats.py", "WIDTH = 2\n")
+    commit("denoiser/commands/tools/netstats.py", "WIDTH = 2\n")
     commit("docs/notes.md", "other words\n")
     proc = check()
     assert proc.returncode == 0, proc.stderr
@@ -183,7 +183,7 @@ def test_what_readme_check_leaves_unmeasured_no_pipeline_runs_and_no_measured_mo
     spec.loader.exec_module(check)
 
     off = {p.removesuffix(".py").replace("/", ".") for p in check.UNMEASURED if p.endswith(".py")}
-    assert "denoiser.commands.netstats" in off and all(importlib.util.find_spec(m) for m in off)
+    assert "denoiser.commands.tools.netstats" in off and all(importlib.util.find_spec(m) for m in off)
 
     def measured(path: Path) -> bool:
         rel = path.relative_to(ROOT).as_posix()
@@ -229,7 +229,7 @@ def test_what_readme_check_leaves_unmeasured_no_pipeline_runs_and_no_measured_mo
 @pytest.mark.slow
 def test_readme_check_judges_network_code_by_what_it_computes(tmp_path):
     """A refactor of denoiser/nn (another syntax tree, the same numbers) leaves a block current; a
-    change of what a network computes makes it stale (denoiser/commands/nn_fingerprint.py on both trees)."""
+    change of what a network computes makes it stale (denoiser/commands/tools/nn_fingerprint.py on both trees)."""
     import shutil
 
     repo = tmp_path / "repo"

@@ -212,7 +212,7 @@ def test_precache_fills_the_cache_once(root, tmp_path):
 
 
 def test_benchmark_runs_small():
-    from denoiser.commands import data_throughput as bench
+    from denoiser.commands.tools import data_throughput as bench
 
     rows = bench.measure_loader(size=32, crop=16, window=2, sequences=1, frames=3, workers=[0], batch=2, repeat=1)
     assert [r["mode"].split()[0] for r in rows] == ["cold", "fill", "warm"]

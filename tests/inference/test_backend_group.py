@@ -73,7 +73,7 @@ def test_commands_accept_exactly_the_group():
 
 def test_bench_networks_variants_are_backends():
     """bench_networks' variants are group options, except the weight-format experiments, none a duplicate."""
-    from denoiser.commands import bench_networks
+    from denoiser.commands.tools import bench_networks
 
     assert set(bench_networks.BACKEND_VARIANTS) <= set(GROUP_FILES)
     others = set(bench_networks.VARIANTS) - set(bench_networks.BACKEND_VARIANTS)
@@ -184,7 +184,7 @@ def test_a_new_backend_through_hydra_searchpath_on_the_command_line(fake_backend
 
 def test_summaries_find_the_labels_with_the_graph():
     """ablation_summary's configured labels (openvino f32) find bench.csv's (openvino f32 (fused))."""
-    from denoiser.commands.ablation_summary import bench_label
+    from denoiser.commands.tools.ablation_summary import bench_label
 
     labels = {"openvino f32 (fused)", "openvino bf16 (plain)", "eager fp32"}
     assert [bench_label(b, labels) for b in ("openvino f32", "openvino bf16", "eager fp32", "onnxruntime")] == [

@@ -200,7 +200,7 @@ def test_step_traffic_counts_what_a_step_must_move(net):
 def test_gpu_check_reports_the_device_and_stops_without_one(tmp_path):
     from conftest import compose_command
 
-    from denoiser.commands.gpu_check import run
+    from denoiser.commands.tools.gpu_check import run
 
     if torch.cuda.is_available():
         pytest.skip("on a GPU the check runs for minutes: scripts/gpu_check.sh")
@@ -214,7 +214,7 @@ def test_gpu_check_training_step_reduces_the_per_item_loss_to_a_scalar_and_steps
     """The device check's training step (run on the CPU here): DenoiseLoss's per-item terms [B] are
     averaged into one scalar, whose backward and AdamW step change the weights (a lent H200 once
     failed on `loss.backward()` of the [B] sum)."""
-    from denoiser.commands.gpu_check import train_step
+    from denoiser.commands.tools.gpu_check import train_step
     from denoiser.configs import build_net, compose_net_config
     from denoiser.frames import random_frame
     from denoiser.lit.losses import DenoiseLoss
@@ -237,7 +237,7 @@ def test_gpu_check_training_step_reduces_the_per_item_loss_to_a_scalar_and_steps
 
 
 def test_gpu_check_resumed_report_keeps_the_sections_it_does_not_set(tmp_path):
-    from denoiser.commands.gpu_check import Report
+    from denoiser.commands.tools.gpu_check import Report
 
     first = Report(tmp_path / "gpu.md")
     first.set("Device", "- gpu: A")
@@ -261,7 +261,7 @@ def test_gpu_check_loader_rate_runs_past_one_epoch(tmp_path):
     holds (a lent H200's check stopped on StopIteration): the loader goes round again."""
     from helpers.eval_data import write_dataset
 
-    from denoiser.commands.gpu_check import loader_rate
+    from denoiser.commands.tools.gpu_check import loader_rate
 
     root = write_dataset(tmp_path, split="train", sequences=1, frames=4, size=32)
     overrides = ["experiment=demo", *["net=tiny", "kernel=student"], f"data.root={root}", "data.val_split=null",
@@ -276,7 +276,7 @@ def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
     from conftest import compose_command, tiny_checkpoint
     from helpers.eval_data import write_dataset
 
-    from denoiser.commands.gpu_check import Report, run
+    from denoiser.commands.tools.gpu_check import Report, run
     from denoiser.errors import ConfigError
 
     Report(tmp_path / "gpu.md").set("Device", "- gpu: NVIDIA H200")

@@ -77,7 +77,7 @@ def test_config_mistakes_are_user_errors(net, overrides, message):
 
 
 def test_netstats_prints_parameter_counts(capsys):
-    from denoiser.commands.netstats import run
+    from denoiser.commands.tools.netstats import run
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         run(compose("netstats", overrides=["net=tiny", "kernel=k3", "flops_size=32"]))

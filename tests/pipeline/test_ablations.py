@@ -1,4 +1,4 @@
-"""`make ablations` (conf/pipeline/ablations.yaml) and its report (denoiser/commands/ablation_summary.py):
+"""`make ablations` (conf/pipeline/ablations.yaml) and its report (denoiser/commands/tools/ablation_summary.py):
 the summary's means, paired intervals, verdicts and sentences on synthetic evaluations with known
 differences (the paper's direction holding and not holding), its one-line errors, the script's
 commands (with stub executables), the configs it composes, and the Makefile targets."""
@@ -105,7 +105,7 @@ def summary(tmp_path: Path, *overrides: str) -> Done:
     import contextlib
     import io
 
-    from denoiser.commands.ablation_summary import run
+    from denoiser.commands.tools.ablation_summary import run
     from denoiser.commands.app import guarded
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
@@ -125,7 +125,7 @@ def summary(tmp_path: Path, *overrides: str) -> Done:
 
 
 def cli(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "denoiser.commands.ablation_summary", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "denoiser.commands.tools.ablation_summary", *args], capture_output=True,
                           text=True, cwd=tmp_path, check=False, env={**os.environ, "PYTHONPATH": str(ROOT)})
 
 

@@ -88,7 +88,7 @@ def _summary(tmp_path: Path, psnr: dict[str, list[float]], *overrides: str) -> s
     report = tmp_path / "report"
     _write_csv(report / "eval" / "metrics.csv", _metric_rows(psnr))
     _write_csv(report / "bench" / "bench.csv", _bench_rows())
-    return subprocess.run([sys.executable, "-m", "denoiser.commands.eval_summary", "--config-name", "compare_summary",
+    return subprocess.run([sys.executable, "-m", "denoiser.commands.tools.eval_summary", "--config-name", "compare_summary",
                            f"report={report}", f"data_root={tmp_path / 'data'}", "seeds=[0,1,2]", *overrides],
                           capture_output=True, text=True, cwd=tmp_path, check=False)
 

@@ -152,8 +152,8 @@ def test_demo_renders_trains_the_recipe_evaluates_and_writes_the_table(tree):
     assert ckpt.count("reports/demo/runs/student_") == 6 and arg(evaluations[0], "purpose")
     bench = next(c for c in calls if c[0] == "denoiser-bench")
     assert arg(bench, "ckpt").count("_s0:") == 2 and "_s1" not in arg(bench, "ckpt")  # the first seed only
-    summary = next(c for c in calls if c[0] == "python" and "denoiser.commands.eval_summary" in c)
-    assert summary[summary.index("denoiser.commands.eval_summary") + 1:] == ["report=reports/demo", "seeds=[0, 1, 2]"]
+    summary = next(c for c in calls if c[0] == "python" and "denoiser.commands.tools.eval_summary" in c)
+    assert summary[summary.index("denoiser.commands.tools.eval_summary") + 1:] == ["report=reports/demo", "seeds=[0, 1, 2]"]
     assert (tree / "reports" / "demo" / "metrics.md").is_file() and (tree / "reports" / "demo" / "bench.md").is_file()
     table = rows(tree / "reports" / "demo" / "timings.md")
     assert list(table) == ["render", "teacher", "students", "eval", "bench", "summary", "report", "total", "work"]
@@ -269,7 +269,7 @@ def test_paper_runs_each_pipeline_as_a_stage_and_adds_up_their_work(tree):
     calls = pipeline(tree, "pipeline=paper", "dry_run=true").stdout.splitlines()
     assert [line.split("]")[0][1:] for line in calls] == ["ablations", "compare", "pareto", "summary"]
     assert calls[0].endswith("denoiser-pipeline pipeline=ablations")
-    assert "denoiser.commands.paper_budget paper=reports/paper/timings.md" in calls[3]
+    assert "denoiser.commands.tools.paper_budget paper=reports/paper/timings.md" in calls[3]
 
 
 @pytest.mark.parametrize("name", ["demo", "ablations", "compare", "pareto", "paper"])
@@ -286,7 +286,7 @@ def test_every_pipeline_composes_and_its_training_overrides_compose_with_train(t
     # the other Hydra commands' lines compose with their own entry configs, their values as written
     # (lists, quoted strings with spaces, checkpoint mappings: what the shell passes)
     entry = {"denoiser-eval ": "eval", "denoiser-bench ": "bench", "denoiser-render ": "render",
-             "denoiser.commands.eval_summary ": "demo_summary", "denoiser.commands.ablation_summary ": "ablation_summary"}
+             "denoiser.commands.tools.eval_summary ": "demo_summary", "denoiser.commands.tools.ablation_summary ": "ablation_summary"}
     composed = 0
     for line in out.splitlines():
         for marker, config in entry.items():
@@ -368,7 +368,7 @@ def test_compare_renders_its_data_and_evaluates_nppd_ws_and_make_demos_networks_
         "best.ckpt, nppd_s1: reports/compare/runs/nppd_demo_s1/checkpoints/best.ckpt, ws_s1: reports/compare/runs/"
         "ws_demo_s1/checkpoints/best.ckpt}")  # make demo's runs and the ones trained here alike: each run's best
     summary = next(c for c in calls if c[0] == "python")
-    assert summary[1:5] == ["-m", "denoiser.commands.eval_summary", "--config-name", "compare_summary"]
+    assert summary[1:5] == ["-m", "denoiser.commands.tools.eval_summary", "--config-name", "compare_summary"]
     (tree / "calls.log").unlink()
     pipeline(tree, "pipeline=compare", "seeds=[0,1]")  # resumed (make paper again): no second look at the test split
     assert [c[0] for c in stub_calls(tree / "calls.log") if c[0] != "denoiser-train"] == ["denoiser-render", "python"]
@@ -462,7 +462,7 @@ def test_recipe_check_evaluates_both_recipes_students_on_each_split_once(tree):
             f"checkpoints/interpolated_a0.75.ckpt, refine_no_kd_s0: {other}/student_no_kd_s0/checkpoints/interpolated_a0.75.ckpt}}")
         assert "~baselines.oidn_high" in call and "~baselines.oidn_balanced" in call  # the noisy input and OIDN-fast
     summary = calls[2]
-    assert summary[1:5] == ["-m", "denoiser.commands.eval_summary", "--config-name", "recipe_check_summary"]
+    assert summary[1:5] == ["-m", "denoiser.commands.tools.eval_summary", "--config-name", "recipe_check_summary"]
     from denoiser.configs import compose_config
 
     cfg = compose_config(summary[5:], "recipe_check_summary")

@@ -1,4 +1,4 @@
-"""Stage times of the pipelines (denoiser/pipeline/timings.py) and make paper's budget (denoiser/commands/paper_budget.py): a resumed pipeline's table keeps
+"""Stage times of the pipelines (denoiser/pipeline/timings.py) and make paper's budget (denoiser/commands/tools/paper_budget.py): a resumed pipeline's table keeps
 the seconds of the run that did a reused step, and the budget adds up the stages' work."""
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def test_a_table_from_before_the_run_column_is_carried_over(tmp_path):
 
 
 def paper_budget(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "denoiser.commands.paper_budget", "--paper",
+    return subprocess.run([sys.executable, "-m", "denoiser.commands.tools.paper_budget", "--paper",
                            str(tmp_path / "paper.md"), "--reports", str(tmp_path / "reports"), "--out",
                            str(tmp_path / "summary.md"), *args], capture_output=True, text=True, check=False)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from denoiser.commands.effect_cost import LADDER, bench_scene
+from denoiser.commands.tools.effect_cost import LADDER, bench_scene
 from denoiser.conf import CONF_DIR
 from denoiser.errors import ConfigError, UserError
 from denoiser.render import build
@@ -103,7 +103,7 @@ def test_pinhole_without_dof_thin_lens_with_dof(mi):
 
 
 def test_every_ladder_step_builds_and_loads(mi):
-    """Each step of the effect-cost ladder (denoiser/commands/effect_cost.py) builds a spec that
+    """Each step of the effect-cost ladder (denoiser/commands/tools/effect_cost.py) builds a spec that
     declares exactly the effects up to it, and the scene loads in Mitsuba with its shapes."""
     for i in range(len(LADDER)):
         spec, scene = _load(mi, bench_scene(LADDER[: i + 1]))
@@ -207,7 +207,7 @@ def test_unknown_light_keys_and_shape_params_are_errors(mi):
 def test_bench_prints_one_row_per_effect(mi, capsys):
     from hydra import compose, initialize_config_dir
 
-    from denoiser.commands.effect_cost import run
+    from denoiser.commands.tools.effect_cost import run
     from denoiser.conf import CONF_DIR
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):

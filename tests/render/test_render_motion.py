@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from denoiser.commands.effect_cost import bench_scene
+from denoiser.commands.tools.effect_cost import bench_scene
 from denoiser.data.exr import read_frame
 from denoiser.render.job import RenderSettings, frame_path, render_sequence
 from denoiser.render.passes import NO_HIT_DEPTH

@@ -175,7 +175,7 @@ def test_cli_renders_and_reports_user_errors(tmp_path):
 
 
 def test_dof_blurs_albedo_but_depth_and_motion_stay_pixel_centre(mi):
-    from denoiser.commands.effect_cost import bench_scene
+    from denoiser.commands.tools.effect_cost import bench_scene
     from denoiser.render.motion import backward_motion
     from denoiser.render.passes import FrameRenderer
 

@@ -153,7 +153,7 @@ def test_merge_identical_rows_from_the_data_and_the_mean_rows_ignored():
 
 
 def test_summary_claims_come_from_the_paired_intervals(tmp_path):
-    from denoiser.commands.eval_summary import run
+    from denoiser.commands.tools.eval_summary import run
     from denoiser.configs import compose_config
 
     rows = synthetic_rows()
@@ -199,7 +199,7 @@ def test_an_extra_table_turned_off_in_a_composed_config_is_not_written(tmp_path)
     """``extra_evals`` entries are tables ``{dir: title}``; a null title (a config composed on
     demo_summary's turning off its ``blender`` entry, conf/recipe_check_summary.yaml) writes no table
     even where its metrics.csv exists."""
-    from denoiser.commands.eval_summary import run
+    from denoiser.commands.tools.eval_summary import run
     from denoiser.configs import compose_config
 
     report = tmp_path / "report"
@@ -218,7 +218,7 @@ def test_an_extra_table_turned_off_in_a_composed_config_is_not_written(tmp_path)
 def test_results_table_puts_fp32_beside_bf16_with_the_paired_speedup(tmp_path):
     """The student's fastest fp32 row and fastest bf16 row each get their own columns; the speed-up
     is the bench's paired one with its interval (not a ratio of the fastest of any precision)."""
-    from denoiser.commands.eval_summary import bench_rows, results_table
+    from denoiser.commands.tools.eval_summary import bench_rows, results_table
     from denoiser.report.seed_groups import seed_groups
 
     rows = [

@@ -1,4 +1,4 @@
-"""The history diagnosis (denoiser/report/history_diagnosis.py, denoiser/commands/diagnose_history.py) and the
+"""The history diagnosis (denoiser/report/history_diagnosis.py, denoiser/commands/tools/diagnose_history.py) and the
 temporal probe it reads (denoiser/nn/temporal.py): the probe changes nothing, the captured
 weights are the network's, the regions and statistics match a plain per-pixel computation."""
 
@@ -96,7 +96,7 @@ def test_diagnose_writes_the_grid_and_the_table(tmp_path):
 def test_script_runs_with_the_fixture_checkpoint_and_reports_bad_input(tmp_path):
     seq = tmp_path / "seq"
     write_synthetic_sequence(seq, frames=3, width=SIZE, height=SIZE, seed=1)
-    command = [sys.executable, "-m", "denoiser.commands.diagnose_history"]
+    command = [sys.executable, "-m", "denoiser.commands.tools.diagnose_history"]
     ok = subprocess.run([*command, f"ckpt={FIXTURE}", f"sequence={seq}", "frame=1",
                          f"out={tmp_path / 'out'}"], check=False, capture_output=True, text=True, cwd=ROOT)
     assert ok.returncode == 0, ok.stderr

@@ -1,4 +1,4 @@
-"""The noise response (denoiser/report/noise_response.py, denoiser/commands/noise_response.py): the scaled
+"""The noise response (denoiser/report/noise_response.py, denoiser/commands/tools/noise_response.py): the scaled
 input is the augmentation's rule, and the table's figures are the network's, checked with a
 network that returns its input (output = input for every factor) and one that returns the
 reference (output independent of the factor), against a plain PSNR loop."""
@@ -118,7 +118,7 @@ def test_the_script_writes_the_table_and_refuses_bad_input_in_one_line(sequence,
         assert im.format == "PNG" and im.width >= 400
     for row in ("| seq | colour | 0.5 |", "| seq | colour | 1 |", "| seq | grey | 0.5 |", "| seq | grey | 1 |"):
         assert row in text
-    script = [sys.executable, "-m", "denoiser.commands.noise_response", f"ckpt={ckpt}"]
+    script = [sys.executable, "-m", "denoiser.commands.tools.noise_response", f"ckpt={ckpt}"]
     proc = subprocess.run([*script, f"sequences=[{tmp_path / 'nope'}]"], capture_output=True, text=True, cwd=ROOT, check=False)
     assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1
     proc = subprocess.run([*script, f"sequences=[{sequence}]", "factors=[a]"], capture_output=True, text=True,

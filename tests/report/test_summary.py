@@ -72,7 +72,7 @@ def test_summary_and_readme_copy(tmp_path):
     data = tmp_path / "data"
     (data / "test" / "s0_000").mkdir(parents=True)
     (data / "test" / "s0_000" / "frame_0000.exr").write_bytes(b"x")
-    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.eval_summary", f"report={report}",
+    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={report}",
                            f"data_root={data}", "seeds=[0,1,2]"], capture_output=True, text=True, cwd=tmp_path, check=False)
     assert proc.returncode == 0, proc.stderr
     summary = (report / "summary.md").read_text()
@@ -86,7 +86,7 @@ def test_summary_and_readme_copy(tmp_path):
     assert proc.returncode == 0, proc.stderr
     text = readme.read_text()
     assert "old table" not in text and student in text and text.endswith("\n\ntail\n")
-    bad = subprocess.run([sys.executable, "-m", "denoiser.commands.eval_summary", f"report={tmp_path / 'none'}"],
+    bad = subprocess.run([sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={tmp_path / 'none'}"],
                          capture_output=True, text=True, cwd=tmp_path, check=False)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "metrics.csv" in bad.stderr
 
@@ -114,7 +114,7 @@ def test_summary_names_the_evaluations_commit_and_the_looks_of_its_split(tmp_pat
         ledger.record("data/demo", "test", digest, 2, ["student_s0"], ["OIDN-fast"], "0123abc", "report", book)
     told = ledger.provenance("4567def-dirty", "2026-01-02T03:04:05Z", "data/demo", "test", digest, 2, 2, book)
     (report / "eval" / "evaluation.json").write_text(json.dumps(told))
-    cmd = [sys.executable, "-m", "denoiser.commands.eval_summary", f"report={report}", f"data_root={tmp_path}",
+    cmd = [sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={report}", f"data_root={tmp_path}",
            f"ledger={book}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
     assert proc.returncode == 0, proc.stderr
@@ -164,7 +164,7 @@ def test_summary_lists_the_reports_own_runs_by_name(tmp_path):
     for name in ("teacher", "student_s0"):
         (report / "runs" / name / "checkpoints").mkdir(parents=True)
     (report / "runs" / "notes").mkdir()  # no checkpoints/: not a run
-    cmd = [sys.executable, "-m", "denoiser.commands.eval_summary", "report=reports/demo", f"data_root={tmp_path}"]
+    cmd = [sys.executable, "-m", "denoiser.commands.tools.eval_summary", "report=reports/demo", f"data_root={tmp_path}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
     assert proc.returncode == 0, proc.stderr
     summary = (report / "summary.md").read_text()
@@ -179,7 +179,7 @@ def test_results_block_states_the_pipelines_stage_times(tmp_path):
     the stage-time table's seconds and their sum, from timings.md.tmp while the pipeline still runs
     (the summary is one of its stages), else timings.md; no line without a table."""
     report = demo_report(tmp_path)
-    cmd = [sys.executable, "-m", "denoiser.commands.eval_summary", "report=reports/demo", f"data_root={tmp_path}"]
+    cmd = [sys.executable, "-m", "denoiser.commands.tools.eval_summary", "report=reports/demo", f"data_root={tmp_path}"]
 
     def block():
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
@@ -209,7 +209,7 @@ def test_summary_adds_the_blender_table_with_gains_when_its_evaluation_exists(tm
             writer = csv.DictWriter(f, FIELDS)
             writer.writeheader()
             writer.writerows(rows)
-    cmd = [sys.executable, "-m", "denoiser.commands.eval_summary", f"report={report}", f"data_root={tmp_path}"]
+    cmd = [sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={report}", f"data_root={tmp_path}"]
     assert subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False).returncode == 0
     summary = (report / "summary.md").read_text()
     section = summary.split("## Blender Cycles sequences")[1].split("\n## ")[0]
@@ -265,7 +265,7 @@ def test_blender_block_holds_the_claims_per_family_in_frames_2_plus(tmp_path):
             writer = csv.DictWriter(f, [*FIELDS, "psnr_f2"])
             writer.writeheader()
             writer.writerows(rows)
-    cmd = [sys.executable, "-m", "denoiser.commands.eval_summary", f"report={report}", f"data_root={tmp_path}"]
+    cmd = [sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={report}", f"data_root={tmp_path}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=False)
     assert proc.returncode == 0, proc.stderr
     block = (report / "summary.md").read_text().split("<!-- blender:begin -->")[1].split("<!-- blender:end -->")[0]

@@ -2,8 +2,8 @@
 
 ::
 
-    python -m denoiser.commands.memory_longseq                       # 100 and 1000 frames at 64x64, net=student
-    python -m denoiser.commands.memory_longseq frames=[100,1000] size=64 net=student threads=2
+    python -m denoiser.commands.tools.memory_longseq                       # 100 and 1000 frames at 64x64, net=student
+    python -m denoiser.commands.tools.memory_longseq frames=[100,1000] size=64 net=student threads=2
 
 A Hydra app over ``conf/memory_longseq.yaml``. What it does:
 

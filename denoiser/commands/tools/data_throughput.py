@@ -2,8 +2,8 @@
 
 ::
 
-    python -m denoiser.commands.data_throughput
-    python -m denoiser.commands.data_throughput size=512 crop=128 window=8 sequences=2 frames=16 workers=[0,2]
+    python -m denoiser.commands.tools.data_throughput
+    python -m denoiser.commands.tools.data_throughput size=512 crop=128 window=8 sequences=2 frames=16 workers=[0,2]
 
 A Hydra app over ``conf/data_throughput.yaml``. Writes synthetic native-layout sequences
 (:mod:`denoiser.data.synthetic`, all buffers plus reference, float32, zip) into a temporary

@@ -1,12 +1,12 @@
 """What the networks of a source tree compute, as one hash per network config:
-``python -m denoiser.commands.nn_fingerprint``. ``scripts/readme_check.py`` compares it between a
+``python -m denoiser.commands.tools.nn_fingerprint``. ``scripts/readme_check.py`` compares it between a
 README block's commit and ``HEAD`` when only ``denoiser/nn`` code changed, so a refactor that
 computes the same numbers leaves the README's measurements current.
 
 Usage::
 
-    python -m denoiser.commands.nn_fingerprint [--nets a,b,...]            # this install's denoiser
-    PYTHONPATH=<tree> python denoiser/commands/nn_fingerprint.py --tree <tree> [--nets a,b,...]
+    python -m denoiser.commands.tools.nn_fingerprint [--nets a,b,...]            # this install's denoiser
+    PYTHONPATH=<tree> python denoiser/commands/tools/nn_fingerprint.py --tree <tree> [--nets a,b,...]
 
 prints JSON ``{net: sha256}``. ``<tree>`` is a checkout (or ``git archive``) of a commit:
 ``denoiser`` is imported from it, this file's code hashes it (``scripts/readme_check.py`` runs this
@@ -133,7 +133,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def main(argv=None) -> None:
-    parser = _Parser(prog="python -m denoiser.commands.nn_fingerprint", description=__doc__,
+    parser = _Parser(prog="python -m denoiser.commands.tools.nn_fingerprint", description=__doc__,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tree", type=Path, help="the tree denoiser must be imported from (an error otherwise)")
     parser.add_argument("--nets", help="comma-separated conf/net names (default: every one)")

@@ -1,8 +1,8 @@
-"""Ship release networks: ``python -m denoiser.commands.release_ship`` (make release's ship stage).
+"""Ship release networks: ``python -m denoiser.commands.tools.release_ship`` (make release's ship stage).
 
 Usage::
 
-    python -m denoiser.commands.release_ship teacher=reports/release/runs/teacher \\
+    python -m denoiser.commands.tools.release_ship teacher=reports/release/runs/teacher \\
         student=reports/release/runs/student_s0 [out=denoiser/models] [fp16=auto|true|false] \\
         [data=release,release_motion,...] [figure=Title:reports/release/summary.md ...] [goals=goals.json]
 
@@ -85,7 +85,7 @@ def ship(networks: dict[str, str], out: str | Path, fp16: str = "auto", data=(),
 
 
 def main(argv=None) -> int:
-    parser = CommandParser("denoiser.commands.release_ship", __doc__)
+    parser = CommandParser("denoiser.commands.tools.release_ship", __doc__)
     for name in NAMES:
         parser.add_argument(f"--{name}", help=f"the {name}'s checkpoint or run directory")
     parser.add_argument("--out", default=None, help="folder shipped into (default: denoiser/models of this checkout)")

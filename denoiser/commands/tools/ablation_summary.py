@@ -1,8 +1,8 @@
-"""The ablations' summary: ``python -m denoiser.commands.ablation_summary`` -> ``reports/ablations/summary.md``.
+"""The ablations' summary: ``python -m denoiser.commands.tools.ablation_summary`` -> ``reports/ablations/summary.md``.
 
 Usage::
 
-    python -m denoiser.commands.ablation_summary report=reports/ablations seeds=[0,1,2]
+    python -m denoiser.commands.tools.ablation_summary report=reports/ablations seeds=[0,1,2]
 
 A Hydra app over ``conf/ablation_summary.yaml``, run by ``conf/pipeline/ablations.yaml`` (``make
 ablations``) at its end. It reads

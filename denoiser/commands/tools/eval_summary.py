@@ -1,8 +1,8 @@
-"""An evaluation's summary: ``python -m denoiser.commands.eval_summary`` -> ``<report>/summary.md``.
+"""An evaluation's summary: ``python -m denoiser.commands.tools.eval_summary`` -> ``<report>/summary.md``.
 
 Usage::
 
-    python -m denoiser.commands.eval_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
+    python -m denoiser.commands.tools.eval_summary report=reports/demo data_root=data/demo seeds=[0,1,2]
 
 One command for three pipelines' summaries, each its own entry config: make demo's
 (``conf/demo_summary.yaml``, the default; ``conf/pipeline/demo.yaml`` runs it at its end), make
@@ -33,7 +33,7 @@ copies a results block (the ledger's line, the table and the claims) into docs/r
 
 ``make compare`` (``conf/pipeline/compare.yaml``) runs it over ``conf/compare_summary.yaml``::
 
-    python -m denoiser.commands.eval_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
+    python -m denoiser.commands.tools.eval_summary --config-name compare_summary report=reports/compare seeds=[0,1,2]
 
 which adds the figure tables declared under ``tables`` (the paper's Fig. A.2 and A.3, with
 their ranking lines; :mod:`denoiser.report.figure_tables`) above the table of every method.

@@ -1,8 +1,8 @@
-"""A network between two checkpoints of the same network: ``python -m denoiser.commands.interpolate``.
+"""A network between two checkpoints of the same network: ``python -m denoiser.commands.tools.interpolate``.
 
 Usage::
 
-    python -m denoiser.commands.interpolate start=reports/demo/runs/student_distilled_s0 \\
+    python -m denoiser.commands.tools.interpolate start=reports/demo/runs/student_distilled_s0 \\
         end=<its fine-tune's run>/checkpoints/last.ckpt alpha=0.5 out=mid.ckpt
 
 A Hydra app over ``conf/interpolate.yaml``: writes ``out``, the weights ``(1 - alpha) * start +

@@ -1,5 +1,5 @@
 """How far can a demodulating denoiser get on renders whose albedo pass is noisy?
-``python -m denoiser.commands.albedo_bound``.
+``python -m denoiser.commands.tools.albedo_bound``.
 
 A network with ``net.demodulate: true`` filters ``color / albedo`` and multiplies its output by
 the *input's* albedo again. Renderers that average the albedo over the pixel's samples (Cycles'
@@ -11,7 +11,7 @@ remodulated with the noisy render's albedo, against the reference colour, with t
 
 Usage::
 
-    python -m denoiser.commands.albedo_bound data/blender/test [--out reports/blender/albedo_bound.md] [--warmup 2]
+    python -m denoiser.commands.tools.albedo_bound data/blender/test [--out reports/blender/albedo_bound.md] [--warmup 2]
 
 Reads the splits through the Blender layout (``conf/layout/blender.yaml``: its pass aliases and
 view-layer prefixes), with one buffer more for this tool, the reference render's albedo
@@ -65,7 +65,7 @@ def sequence_bound(layout, seq: Path, warmup: int) -> tuple[float, float, int]:
 
 
 def main(argv=None) -> int:
-    p = CommandParser("denoiser.commands.albedo_bound", __doc__)
+    p = CommandParser("denoiser.commands.tools.albedo_bound", __doc__)
     p.add_argument("split_dir", type=Path, help="a Blender-layout split, e.g. data/blender/test")
     p.add_argument("--warmup", type=int, default=2, help="frames skipped at the start (default 2, as denoiser-eval)")
     p.add_argument("--out", type=Path, default=None, help="also write the table to this Markdown file")

@@ -1,8 +1,8 @@
-"""How a checkpoint's output follows the noise level of its input: ``python -m denoiser.commands.noise_response``.
+"""How a checkpoint's output follows the noise level of its input: ``python -m denoiser.commands.tools.noise_response``.
 
 Usage::
 
-    python -m denoiser.commands.noise_response ckpt=S.ckpt sequences=[data/blender/val/fast_101,data/blender/val/fast_102] \\
+    python -m denoiser.commands.tools.noise_response ckpt=S.ckpt sequences=[data/blender/val/fast_101,data/blender/val/fast_102] \\
         layout=blender factors=[0.25,0.5,1,2] grey=true out=reports/noise_response.md plot=reports/noise_response.png
 
 Prints the table (and writes it to ``out`` when given): per sequence and factor f, the PSNR of the
@@ -27,7 +27,7 @@ def _list(text: str) -> list[str]:
 
 
 def parse_args(argv):
-    p = CommandParser("denoiser.commands.noise_response", __doc__)
+    p = CommandParser("denoiser.commands.tools.noise_response", __doc__)
     p.add_argument("--ckpt", required=True, type=Path, help="checkpoint of a Denoiser")
     p.add_argument("--sequences", required=True, type=_list, help="[dir,dir,...]: labeled sequence directories")
     p.add_argument("--layout", default="native", help="native (default) or blender")

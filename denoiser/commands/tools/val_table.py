@@ -1,8 +1,8 @@
-"""Training candidates on validation splits: ``python -m denoiser.commands.val_table`` -> ``out``.
+"""Training candidates on validation splits: ``python -m denoiser.commands.tools.val_table`` -> ``out``.
 
 Usage::
 
-    python -m denoiser.commands.val_table out=reports/fast/val_table.md reference=base candidates=[base,clamp,dc] \
+    python -m denoiser.commands.tools.val_table out=reports/fast/val_table.md reference=base candidates=[base,clamp,dc] \
         "evals={blender: {title: 'Blender Cycles val (fast_101-103)', csv: reports/fast/blender_val/metrics.csv}, \
                 mitsuba: {title: 'Mitsuba val (data/demo_fast/val)', csv: reports/fast/mitsuba_val/metrics.csv}}"
 
@@ -240,7 +240,7 @@ def run(cfg: DictConfig) -> Path:
             sequence_table([*baselines, *candidates], per_sequence, metric).rstrip(), "",
         ]))
     overrides = hydra_runtime()[0]
-    command = " ".join(["python -m denoiser.commands.val_table", *overrides])
+    command = " ".join(["python -m denoiser.commands.tools.val_table", *overrides])
     lines = [
         f"# {cfg.title}",
         "",

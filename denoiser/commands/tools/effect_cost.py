@@ -1,10 +1,10 @@
-"""Cost of each simulated effect: ``python -m denoiser.commands.effect_cost``.
+"""Cost of each simulated effect: ``python -m denoiser.commands.tools.effect_cost``.
 
 ::
 
-    python -m denoiser.commands.effect_cost
-    python -m denoiser.commands.effect_cost width=64 height=64 effects=[area_light,indirect,glossy]
-    python -m denoiser.commands.effect_cost effects=[area_light] scenes=all
+    python -m denoiser.commands.tools.effect_cost
+    python -m denoiser.commands.tools.effect_cost width=64 height=64 effects=[area_light,indirect,glossy]
+    python -m denoiser.commands.tools.effect_cost effects=[area_light] scenes=all
 
 A Hydra app over ``conf/effect_cost.yaml``. One Cornell-room scene; effects are switched on one at a time, cumulatively, in the order of
 ``LADDER``. For every step frame 0 is rendered first and reported as ``frame 0``; then

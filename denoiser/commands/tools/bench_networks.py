@@ -1,9 +1,9 @@
-"""CPU benchmark of the denoiser networks: ``python -m denoiser.commands.bench_networks``.
+"""CPU benchmark of the denoiser networks: ``python -m denoiser.commands.tools.bench_networks``.
 
 ::
 
-    python -m denoiser.commands.bench_networks
-    python -m denoiser.commands.bench_networks nets=[student] sizes=[1920x1080] repeats=2 kernels=false
+    python -m denoiser.commands.tools.bench_networks
+    python -m denoiser.commands.tools.bench_networks nets=[student] sizes=[1920x1080] repeats=2 kernels=false
 
 A Hydra app over ``conf/bench_networks.yaml``. For the networks of ``nets`` (default student and
 teacher: ``conf/net/<name>.yaml`` with their own kernel sizes) at every size of ``sizes``
@@ -43,7 +43,7 @@ These two are not backends but weight-format experiments (they convert the netwo
 Denormal floats are flushed (``torch.set_flush_denormal(True)``) in every variant. ``repeats``
 applies to the student; the teacher always runs 1 warm-up + 1 timed step, it takes many seconds
 per frame on 2 cores. Each measurement is a job ``{kind: net|kernel, ...}`` that the parent
-passes to a fresh ``python -m denoiser.commands.bench_networks job={...}``, which prints its
+passes to a fresh ``python -m denoiser.commands.tools.bench_networks job={...}``, which prints its
 result as one JSON line.
 """
 
@@ -184,7 +184,7 @@ def run_job(job: dict) -> dict:
 def in_subprocess(job: dict) -> dict:
     """Run one job in a fresh interpreter (clean peak-RSS accounting)."""
     override = "job={" + ",".join(f"{k}:{v}" for k, v in job.items()) + "}"
-    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.bench_networks", override],
+    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.tools.bench_networks", override],
                           capture_output=True, text=True, check=False)
     lines = proc.stdout.strip().splitlines()
     if proc.returncode != 0 or not lines:

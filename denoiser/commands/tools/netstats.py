@@ -1,10 +1,10 @@
-"""Size of a network composed from ``conf/``: ``python -m denoiser.commands.netstats``.
+"""Size of a network composed from ``conf/``: ``python -m denoiser.commands.tools.netstats``.
 
 Usage::
 
-    python -m denoiser.commands.netstats net=student kernel=student
-    python -m denoiser.commands.netstats net=teacher kernel=teacher ablation=no_pyramid
-    python -m denoiser.commands.netstats net=student net.unet.encoder=[16,32,64] net.unet.decoder=[32,16]
+    python -m denoiser.commands.tools.netstats net=student kernel=student
+    python -m denoiser.commands.tools.netstats net=teacher kernel=teacher ablation=no_pyramid
+    python -m denoiser.commands.tools.netstats net=student net.unet.encoder=[16,32,64] net.unet.decoder=[32,16]
 
 A Hydra app over ``conf/netstats.yaml``, which composes only the groups ``net``, ``kernel``, ``lever``
 and ``ablation`` (defaults ``student``, ``student``, none, ``none``), so it works without the training

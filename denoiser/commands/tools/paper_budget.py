@@ -1,6 +1,6 @@
 """The budget of ``make paper``: what each stage's work costs, from the stage tables the pipelines
 wrote, against the budget -> ``reports/paper/summary.md`` (``make readme`` copies its block):
-``python -m denoiser.commands.paper_budget``.
+``python -m denoiser.commands.tools.paper_budget``.
 
 A stage's work is the ``work`` row of its own table (``reports/<stage>/timings.md``: every step's
 seconds, the steps that an earlier run did included, with the seconds of that run; ``denoiser/pipeline/timings.py``),
@@ -19,7 +19,7 @@ into ``docs/results.md`` from its own file.
 
 Usage::
 
-    python -m denoiser.commands.paper_budget [--paper reports/paper/timings.md] [--reports reports] \\
+    python -m denoiser.commands.tools.paper_budget [--paper reports/paper/timings.md] [--reports reports] \\
         [--stages ablations,compare,pareto] [--budget-hours 6] [--out reports/paper/summary.md]
 
 ``key=value`` arguments (``budget_hours=6``) are accepted as well as ``--key value``. A missing
@@ -137,7 +137,7 @@ def summary(paper: Path, stages: list[str], reports: Path, budget_hours: float, 
 
 
 def main(argv=None) -> int:
-    parser = CommandParser("denoiser.commands.paper_budget", __doc__)
+    parser = CommandParser("denoiser.commands.tools.paper_budget", __doc__)
     parser.add_argument("--paper", type=Path, default=Path("reports/paper/timings.md"),
                         help="make paper's own stage table (default reports/paper/timings.md)")
     parser.add_argument("--reports", type=Path, default=Path("reports"),

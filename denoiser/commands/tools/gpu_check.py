@@ -1,4 +1,4 @@
-"""The device check of a lent GPU: ``python -m denoiser.commands.gpu_check`` (``scripts/gpu_check.sh``,
+"""The device check of a lent GPU: ``python -m denoiser.commands.tools.gpu_check`` (``scripts/gpu_check.sh``,
 ``make gpu-check``; docs/gpu.md).
 
 A Hydra app over ``conf/gpu_check.yaml``. In one process, within ``budget_s``, it writes

@@ -1,10 +1,10 @@
 """Diagnose a recurrent checkpoint's history on one frame of a sequence, a PNG grid and a table:
-``python -m denoiser.commands.diagnose_history``.
+``python -m denoiser.commands.tools.diagnose_history``.
 
 Usage::
 
-    python -m denoiser.commands.diagnose_history --ckpt S.ckpt --sequence data/blender/val/fast_101 --layout blender
-    python -m denoiser.commands.diagnose_history ckpt=S.ckpt sequence=data/demo/val/<seq> frame=5 out=reports/diagnose
+    python -m denoiser.commands.tools.diagnose_history --ckpt S.ckpt --sequence data/blender/val/fast_101 --layout blender
+    python -m denoiser.commands.tools.diagnose_history ckpt=S.ckpt sequence=data/demo/val/<seq> frame=5 out=reports/diagnose
 
 Writes ``<out>/<sequence>_f<frame>.png`` (noisy, output, reference, warped history; the history
 blend weights a and b, the disocclusion gate and the coverage; the squared tonemapped errors of
@@ -24,7 +24,7 @@ from denoiser.errors import UserError
 
 
 def parse_args(argv):
-    p = CommandParser("denoiser.commands.diagnose_history", __doc__)
+    p = CommandParser("denoiser.commands.tools.diagnose_history", __doc__)
     p.add_argument("--ckpt", required=True, type=Path, help="checkpoint of a recurrent Denoiser")
     p.add_argument("--sequence", required=True, type=Path, help="a labeled sequence directory")
     p.add_argument("--layout", default="native", help="native (default) or blender")

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import compose_command, tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
+from helpers.configs import compose_command
 from helpers.eval_data import write_sequence
 
 from denoiser.data.exr import write_frame

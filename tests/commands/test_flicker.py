@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import compose_command
+from helpers.configs import compose_command
 from helpers.eval_data import write_sequence
 from helpers.flicker_data import write_blender_sequence, write_denoised
 

@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import compose_command, tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
+from helpers.configs import compose_command
 from helpers.eval_data import write_sequence
 
 from denoiser.checkpoint import load_denoiser, load_weights, read_checkpoint

@@ -46,8 +46,8 @@ from pathlib import Path
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: conftest also when run as a script (below)
-from conftest import TEST_LEDGER  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers also when run as a script (below)
+from helpers.session import TEST_LEDGER  # noqa: E402
 
 from denoiser.conf import CONF_DIR  # noqa: E402
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import compose_command
+from helpers.configs import compose_command
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from helpers.eval_data import write_dataset

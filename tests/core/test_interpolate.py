@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import compose_command, tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
+from helpers.configs import compose_command
 
 from denoiser.checkpoint import interpolate_checkpoints, load_denoiser, read_checkpoint, save_checkpoint
 from denoiser.configs import build_net, compose_net_config

@@ -108,7 +108,7 @@ def test_onnx_export_applies_the_rule(net, tmp_path, engine):
         pytest.importorskip("openvino")
         fused = engine == "openvino_fused_f32"
         if fused:
-            from conftest import extension_or_skip
+            from helpers.ovext import extension_or_skip
 
             extension_or_skip()
         runner = OpenVinoStep(export_onnx(net, tmp_path / "tiny.onnx", matmul_heads=fused, fused_kernels=fused),

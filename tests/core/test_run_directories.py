@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
 
 from denoiser.checkpoint import checkpoint_paths, load_denoiser, resolve_checkpoint
 from denoiser.errors import UserError

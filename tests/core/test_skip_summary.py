@@ -11,7 +11,7 @@ from pathlib import Path
 
 INNER = '''
 import pytest
-from conftest import skip_or_fail
+from helpers.ovext import skip_or_fail
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])
@@ -40,8 +40,10 @@ def test_parity():
 
 
 def run_inner(tmp_path: Path, require: bool) -> subprocess.CompletedProcess:
-    """pytest on a small module next to a copy of tests/conftest.py (no pyproject: plain options)."""
+    """pytest on a small module next to a copy of tests/conftest.py and tests/helpers/ (no pyproject: plain options)."""
     shutil.copy(Path(__file__).resolve().parents[1] / "conftest.py", tmp_path / "conftest.py")
+    shutil.copytree(Path(__file__).resolve().parents[1] / "helpers", tmp_path / "helpers",
+                    ignore=shutil.ignore_patterns("__pycache__"))
     (tmp_path / "test_inner.py").write_text(INNER)
     (tmp_path / "test_openvino.py").write_text(OPENVINO_MODULE)
     env = {k: v for k, v in os.environ.items() if k != "DENOISER_REQUIRE_OVEXT"}

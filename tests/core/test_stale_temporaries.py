@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TEST_LEDGER
+from helpers.session import TEST_LEDGER
 from hydra import compose, initialize_config_dir
 
 from denoiser.atomic import atomic_path, is_temporary, remove_stale_temporaries

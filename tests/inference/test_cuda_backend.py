@@ -198,7 +198,7 @@ def test_step_traffic_counts_what_a_step_must_move(net):
 
 
 def test_gpu_check_reports_the_device_and_stops_without_one(tmp_path):
-    from conftest import compose_command
+    from helpers.configs import compose_command
 
     from denoiser.commands.tools.gpu_check import run
 
@@ -273,7 +273,8 @@ def test_gpu_check_loader_rate_runs_past_one_epoch(tmp_path):
 def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
     """sections=[cpu_eval]: a checkpoint (trained on a lent GPU) evaluated where this runs, into the
     kept report, which keeps the sections of the lease; without eval_ckpt: one clear error."""
-    from conftest import compose_command, tiny_checkpoint
+    from helpers.checkpoints import tiny_checkpoint
+    from helpers.configs import compose_command
     from helpers.eval_data import write_dataset
 
     from denoiser.commands.tools.gpu_check import Report, run

@@ -8,7 +8,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
-from conftest import extension_or_skip
+from helpers.ovext import extension_or_skip
 
 from denoiser.checkpoint import save_checkpoint
 from denoiser.configs import build_net, compose_net_config

@@ -14,7 +14,7 @@ hundreds, large motion; a reset at frame 2; errors relative to ``max(1, |value|)
 import numpy as np
 import pytest
 import torch
-from conftest import extension_or_skip
+from helpers.ovext import extension_or_skip
 
 pytest.importorskip("openvino", reason="openvino is not installed (pip install .[openvino])")
 pytest.importorskip("onnx", reason="onnx is not installed (the export needs it)")

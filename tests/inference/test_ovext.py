@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import extension_or_skip
+from helpers.ovext import extension_or_skip
 
 from denoiser.errors import UserError
 from denoiser.inference import ovext

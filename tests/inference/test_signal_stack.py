@@ -121,7 +121,9 @@ FORCED = textwrap.dedent("""
     from pathlib import Path
     faulthandler.enable()
     sys.path.insert(0, {tests!r})
-    from conftest import compose_command, tiny_checkpoint
+    import conftest  # noqa: F401 - the session's folders (the extension's build cache), removed at exit
+    from helpers.checkpoints import tiny_checkpoint
+    from helpers.configs import compose_command
     from helpers.eval_data import write_dataset
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate

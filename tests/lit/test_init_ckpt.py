@@ -2,7 +2,8 @@
 
 import pytest
 import torch
-from conftest import compose_command, tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
+from helpers.configs import compose_command
 
 from denoiser.checkpoint import load_weights, read_checkpoint
 from denoiser.configs import compose_net_config, instantiate_config

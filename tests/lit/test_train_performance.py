@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import compose_command
+from helpers.configs import compose_command
 
 from denoiser.configs import instantiate_config
 from denoiser.frames import random_frame

@@ -128,7 +128,7 @@ def test_reduces_error_on_a_noisy_sequence():
 def test_denoiser_eval_with_baselines_compare(tmp_path):
     """denoiser-eval's code path with ``baselines=compare``: ONND gets the samples, the others don't;
     on data without samples ONND stops with its one-line ConfigError."""
-    from conftest import compose_command
+    from helpers.configs import compose_command
 
     from denoiser.commands.evaluate import run
     from denoiser.data.synthetic import write_synthetic_sequence
@@ -153,7 +153,8 @@ def test_denoiser_bench_times_onnd(tmp_path):
     """denoiser-bench with ``baselines=compare``: ONND is timed on frames that carry their samples
     (resampled to each size), its time includes the online step; a network beside it still runs
     on frames without samples (as in denoiser-eval)."""
-    from conftest import compose_command, tiny_checkpoint
+    from helpers.checkpoints import tiny_checkpoint
+    from helpers.configs import compose_command
 
     from denoiser.commands.bench import run as bench
     from denoiser.data.synthetic import write_synthetic_sequence
@@ -185,7 +186,7 @@ def test_online_steps_lower_the_self_supervised_loss():
 
 def test_compare_is_default_plus_onnd():
     """conf/baselines/compare.yaml composes default.yaml and adds ONND, in eval and bench alike."""
-    from conftest import compose_command
+    from helpers.configs import compose_command
 
     ev = compose_command("eval", ["baselines=compare"], threads=3)
     bench = compose_command("bench", ["baselines=compare"], threads=3)

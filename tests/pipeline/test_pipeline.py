@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import STUB_HEADER, compose_command, stub_calls
+from helpers.configs import compose_command
+from helpers.stubs import STUB_HEADER, stub_calls
 
 ROOT = Path(__file__).resolve().parents[2]
 COMMANDS = ["denoiser-train", "denoiser-eval", "denoiser-bench", "denoiser-render", "denoiser-pareto", "python"]

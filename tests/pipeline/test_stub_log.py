@@ -3,7 +3,7 @@ side by side (``denoiser-pipeline pipeline=ablations`` trains two variants at on
 
 import subprocess
 
-from conftest import STUB_HEADER, stub_calls
+from helpers.stubs import STUB_HEADER, stub_calls
 
 
 def test_stubs_run_side_by_side_log_every_call_whole(tmp_path):

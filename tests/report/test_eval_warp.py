@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import compose_command, tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
+from helpers.configs import compose_command
 from helpers.eval_data import write_dataset
 
 from denoiser.data.exr import read_frame

@@ -9,7 +9,8 @@ import json
 import re
 import shutil
 
-from conftest import compose_command, tiny_checkpoint
+from helpers.checkpoints import tiny_checkpoint
+from helpers.configs import compose_command
 from helpers.eval_data import write_dataset
 from omegaconf import OmegaConf
 

@@ -75,7 +75,8 @@ from denoiser.atomic import atomic_write_text, remove_stale_temporaries
 from denoiser.buffers import FRAME_INPUTS
 from denoiser.errors import ConfigError, ExrError
 from denoiser.recurrent import RecurrentRunner
-from denoiser.report.flicker import FlickerMeter, denoise_report, flicker_buffers, read_motion
+from denoiser.report.flicker import FlickerMeter, flicker_buffers, read_motion
+from denoiser.report.flicker_report import denoise_report
 
 log = logging.getLogger(__name__)
 

@@ -44,15 +44,8 @@ from denoiser.configs import instantiate_config
 from denoiser.data import exr
 from denoiser.data.layouts.blender import exr_files
 from denoiser.errors import ConfigError, ExrError, UserError
-from denoiser.report.flicker import (
-    FlickerMeter,
-    flicker_buffers,
-    json_values,
-    plot_flicker,
-    read_motion,
-    summary_rows,
-    summary_table,
-)
+from denoiser.report.flicker import FlickerMeter, flicker_buffers, read_motion
+from denoiser.report.flicker_report import json_values, plot_flicker, summary_rows, summary_table
 
 #: the row of the noisy render's own frames (``input=true``)
 INPUT_ROW = "noisy input"

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from denoiser.data.synthetic import write_synthetic_sequence
-from denoiser.report.pareto import dominates, front_indices, group_seeds, seed_of, varying_overrides
+from denoiser.report.pareto import dominates, front_indices, group_seeds, read_job, seed_of, varying_overrides
 
 REPO = Path(__file__).resolve().parents[2]
 #: tiny, quiet training jobs: 2 steps of net=tiny on 16x16 crops, one validation at the end
@@ -345,3 +345,14 @@ def test_the_installed_package_finds_the_sweeper_plugin(tmp_path):
                           check=False, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "hydra_plugins.denoiser_optuna.optuna_pareto_sweeper.OptunaParetoSweeper" in proc.stdout.split()
+
+
+def test_a_job_of_an_older_sweep_names_its_lever_where_it_is_now(tmp_path):
+    """A job directory from before the levers left conf/ablation/ (issue 63) stores ``ablation=<lever>``
+    in .hydra/overrides.yaml: read_job gives ``lever=<lever>`` (so its label, its seed group and the
+    front's command lines are today's), an ablation as stored."""
+    for name, stored in (("old", "ablation=history_clamp"), ("ablated", "ablation=no_temporal")):
+        (tmp_path / name / ".hydra").mkdir(parents=True)
+        (tmp_path / name / ".hydra" / "overrides.yaml").write_text(f"- {stored}\n- seed=0\n")
+    assert read_job(tmp_path / "old")["overrides"] == ["lever=history_clamp", "seed=0"]
+    assert read_job(tmp_path / "ablated")["overrides"] == ["ablation=no_temporal", "seed=0"]

@@ -15,6 +15,13 @@ from helpers.session import session_folder
 if "DENOISER_CACHE" not in os.environ:
     os.environ["DENOISER_CACHE"] = str(session_folder("denoiser-test-cache-"))
 
+# make test runs one pytest-xdist worker per core (the Makefile's PYTEST_ISOLATION): each worker's torch
+# takes its share of the cores, so that the workers' thread pools do not oversubscribe them
+if (_workers := int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))) > 1:
+    import torch
+
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // _workers))
+
 
 def _absl_handler_on_the_real_stderr() -> None:
     """``import openvino`` imports ``absl.logging`` (through ``openvino.tools.ovc``), whose handler

@@ -60,6 +60,30 @@ def ordering_agreement(rows: Sequence[Mapping], methods: Sequence[str], resample
             "lo": lo, "hi": hi, "per_sequence": same}
 
 
+def agreement_lines(per_sequence: Mapping[str, Mapping[str, Mapping[str, float]]], methods: Sequence[str],
+                    goal: float = 0.8) -> list[str]:
+    """Markdown lines of :func:`ordering_agreement` for a summary: ``per_sequence`` is
+    ``{method or seed group: {column: {sequence: value}}}`` (a seed group's value is the mean over its
+    seeds, :func:`denoiser.report.seed_groups.group_sequences`); ``goal`` the share of sequences whose
+    orders must agree. A method without warp and tPSNR values is named in one line instead."""
+    missing = [m for m in methods if not per_sequence.get(m, {}).get("warp") or not per_sequence[m].get("tpsnr")]
+    head = ["## The warp error against tPSNR", ""]
+    if missing:
+        return [*head, f"No check: no per-sequence warp error and tPSNR for {', '.join(missing)}.", ""]
+    rows = [{"method": m, "sequence": seq, "warp": w, "tpsnr": per_sequence[m]["tpsnr"].get(seq)}
+            for m in methods for seq, w in per_sequence[m]["warp"].items()]
+    res = ordering_agreement(rows, methods)
+    verdict = "meets" if res["agreement"] >= goal else "misses"
+    return [*head,
+            (f"Per test sequence, the order of {', '.join(methods)} by warp error (no reference; lower is "
+             f"steadier) against their order by tPSNR (against the references): the same in "
+             f"**{res['agreement']:.0%}** of {res['sequences']} sequences ({verdict} the {goal:.0%} goal). "
+             f"Spearman's rank correlation of -warp error and tPSNR over every (method, sequence) pair: "
+             f"**{res['spearman']:+.3f}** (95% bootstrap interval over sequences {res['lo']:+.3f} to {res['hi']:+.3f})."),
+            "", "Sequences whose two orders differ: "
+            + (", ".join(f"`{s}`" for s, same in res["per_sequence"].items() if not same) or "none") + ".", ""]
+
+
 def _cell(value) -> float | None:
     if value in (None, ""):
         return None

@@ -301,3 +301,37 @@ def test_the_ledger_rows_a_run_appends_do_not_make_its_commit_dirty(tmp_path, mo
     assert clean and not clean.endswith("-dirty") and clean != "unknown"
     (tmp_path / "code.py").write_text("x = 2\n")
     assert git_commit() == clean + "-dirty"
+
+
+def test_summary_checks_the_warp_error_against_tpsnr_per_sequence(tmp_path):
+    """Issue 64: make demo's summary says in how many test sequences the warp error (no reference)
+    orders noisy input, OIDN-fast and the student (its seeds' mean) as tPSNR does."""
+    report = tmp_path / "report"
+    (report / "eval").mkdir(parents=True)
+    # per sequence (tpsnr, warp): noisy worst, then OIDN-fast, then the student, on both measures but in
+    # test/s3 (the warp error puts OIDN-fast ahead of the student there) and ...
+    table = {"noisy input": [(20, 9.0)] * 5, "OIDN-fast": [(30, 5.0)] * 5,
+             "student_distilled_s0": [(32, 3.0), (32, 3.0), (32, 3.0), (32, 6.0), (32, 7.0)],
+             "student_distilled_s1": [(32, 3.0), (32, 3.0), (32, 3.0), (32, 6.0), (32, 1.0)]}
+    # ... test/s4, where seed 0 alone would disagree but the seeds' mean (4.0) agrees
+    rows = [{"method": m, "scene": f"s{i}", "sequence": f"test/s{i}", "frames": 6, "psnr": t + 1, "ssim": 0.9,
+             "tpsnr": t, "warp": w, "flip": 0.1, "relmse": 0.01, "smape": 0.05, "ms_per_frame": 1.0}
+            for m, cells in table.items() for i, (t, w) in enumerate(cells)]
+    with open(report / "eval" / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, [*FIELDS, "warp"])
+        writer.writeheader()
+        writer.writerows(rows)
+    proc = subprocess.run([sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={report}",
+                           f"data_root={tmp_path / 'data'}", "seeds=[0,1]"], capture_output=True, text=True,
+                          cwd=tmp_path, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = (report / "summary.md").read_text()
+    section = summary.split("## The warp error against tPSNR", 1)[1].split("\n## ", 1)[0]
+    assert "**80%** of 5 sequences (meets the 80% goal)" in section, section
+    assert "differ: `test/s3`." in section, section
+    assert "Spearman's rank correlation" in section and "bootstrap interval" in section
+    off = subprocess.run([sys.executable, "-m", "denoiser.commands.tools.eval_summary", f"report={report}",
+                          f"data_root={tmp_path / 'data'}", "seeds=[0,1]", "flicker_check.goal=0.9"],
+                         capture_output=True, text=True, cwd=tmp_path, check=False)
+    assert off.returncode == 0, off.stderr
+    assert "(misses the 90% goal)" in (report / "summary.md").read_text()

@@ -52,6 +52,7 @@ from denoiser.errors import ConfigError, UserError
 from denoiser.metrics import COLUMNS
 from denoiser.report import ledger
 from denoiser.report.figure_tables import figure_sections
+from denoiser.report.flicker_report import agreement_lines
 from denoiser.report.provenance import commit_line, tree_hash
 from denoiser.report.seed_groups import (
     SUMMARY_COLUMNS,
@@ -293,6 +294,8 @@ def run(cfg: DictConfig) -> Path:
         markers(cfg.marker)[1],
         "",
         *(family_lines(claims, per_sequence, families(metrics_csv), cfg.family_metric) + [""] if claims else []),
+        *(agreement_lines(per_sequence, list(fc.methods), float(fc.get("goal", 0.8)))
+          if (fc := cfg.get("flicker_check")) else []),
         *extra_sections(report, cfg.get("extra_evals") or {}, claims, cfg.get("extra_family_metric"), book),
         "## Training runs (steps and best validation PSNR)",
         "",

@@ -93,6 +93,16 @@ public:
         const float* b[3] = {inputs[1].data<const float>(), inputs[3].data<const float>(),
                              inputs[5].data<const float>()};
         float* O = outputs[0].data<float>();
+        // the demo student's weights and biases broadcast (mlp: one vector read per multiply-add)
+        const bool demo = C == 10 && M == 16 && N == 16;
+        std::vector<Strip> wide[3], bias[3];
+        if (demo)
+            for (int i = 0; i < 3; ++i) {
+                wide[i] = broadcast_strips(w[i], static_cast<int64_t>(inputs[2 * i].get_size()));
+                bias[i] = broadcast_strips(b[i], static_cast<int64_t>(inputs[2 * i + 1].get_size()));
+            }
+        const Strip* const ws[3] = {wide[0].data(), wide[1].data(), wide[2].data()};
+        const Strip* const bs[3] = {bias[0].data(), bias[1].data(), bias[2].data()};
         const int64_t strips = (W + S - 1) / S;
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
             std::vector<Strip> x(C), h1(M), h2(M), y(N);
@@ -118,8 +128,8 @@ public:
                             x[c] = load_strip(t);
                         }
                     }
-                    if (C == 10 && M == 16 && N == 16) {  // the demo student's widths: values in registers
-                        mlp<10, 16, 16>(w, b, x.data(), y.data());
+                    if (demo) {  // the demo student's widths: values in registers
+                        mlp<10, 16, 16>(ws, bs, x.data(), y.data());
                     } else {
                         layer(w[0], b[0], x.data(), C, h1.data(), M);
                         layer(w[1], b[1], h1.data(), M, h2.data(), M);
@@ -145,7 +155,7 @@ public:
 private:
     // the three layers at compile-time widths (C inputs, M hidden, N outputs)
     template <int C, int M, int N>
-    void mlp(const float* const* w, const float* const* b, const Strip* x_in, Strip* y) const {
+    void mlp(const Strip* const* w, const Strip* const* b, const Strip* x_in, Strip* y) const {
         Strip x[C], h1[M], h2[M];
         for (int c = 0; c < C; ++c) x[c] = x_in[c];
         dense<C, M>(w[0], b[0], x, h1);
@@ -153,12 +163,20 @@ private:
         dense<M, N>(w[2], b[2], h2, y);
     }
 
+    // w, b: broadcast (broadcast_strips). Q outputs at a time, each its own sum in the same order
+    // (bias, then k = 0 .. NIN - 1): Q independent chains of multiply-adds, where one output at a
+    // time waits on each multiply-add's latency
     template <int NIN, int NOUT>
-    void dense(const float* w, const float* b, const Strip* in, Strip* out) const {
-        for (int j = 0; j < NOUT; ++j) {
-            Strip acc = Strip{} + b[j];
-            for (int k = 0; k < NIN; ++k) acc += w[j * NIN + k] * in[k];
-            out[j] = acc >= 0.0f ? acc : acc * m_slope;
+    void dense(const Strip* w, const Strip* b, const Strip* in, Strip* out) const {
+        constexpr int Q = NOUT % 4 == 0 ? 4 : 1;  // 4: faster than 8 on AVX2 (16 vector registers)
+        for (int j0 = 0; j0 < NOUT; j0 += Q) {
+            Strip acc[Q];
+            for (int q = 0; q < Q; ++q) acc[q] = b[j0 + q];
+            for (int k = 0; k < NIN; ++k) {
+                const Strip v = in[k];
+                for (int q = 0; q < Q; ++q) acc[q] += w[(j0 + q) * NIN + k] * v;
+            }
+            for (int q = 0; q < Q; ++q) out[j0 + q] = acc[q] >= 0.0f ? acc[q] : acc[q] * m_slope;
         }
     }
 

@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <cstring>
 #include <utility>
+#include <vector>
 
 namespace denoiser {
 
@@ -62,6 +63,14 @@ static inline Strip sqrt_strip(Strip v) {
     Strip r;
     for (int64_t l = 0; l < S; ++l) r[l] = __builtin_sqrtf(v[l]);
     return r;
+}
+
+// n floats each broadcast to a Strip (the weights of a product over strips: the multiply-add then
+// reads its weight as a vector, where a weight broadcast in the loop costs an instruction of its own)
+static inline std::vector<Strip> broadcast_strips(const float* w, int64_t n) {
+    std::vector<Strip> out(static_cast<size_t>(n));
+    for (int64_t i = 0; i < n; ++i) out[i] = Strip{} + w[i];
+    return out;
 }
 
 // 0, 1, ..., S - 1

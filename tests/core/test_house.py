@@ -234,6 +234,19 @@ def test_console_scripts_in_commands_and_python_m_tools_in_tools():
     assert tools and not tools & targets
 
 
+def test_readme_lists_every_console_script_and_tool():
+    """README's "Commands" section has a row for every ``denoiser-*`` console script and every
+    ``python -m denoiser.commands.tools`` tool, so a new command cannot ship unlisted."""
+    import tomllib
+
+    readme = (PACKAGE.parent / "README.md").read_text()
+    commands = readme.split("## Commands", 1)[1]
+    scripts = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())["project"]["scripts"]
+    tools = [p.stem for p in (PACKAGE / "commands" / "tools").glob("*.py") if p.name != "__init__.py"]
+    missing = [n for n in [*scripts, *tools] if f"| `{n}` |" not in commands]
+    assert not missing, f"README.md's Commands section has no row for {missing}"
+
+
 def test_commands_do_not_import_each_other():
     """Commands share library modules, never each other's code (``app`` is their shared start-up)."""
     offenders = {}

@@ -28,7 +28,8 @@ int main() {
     for (int64_t C : {1, 3, 4, 7, 8, 16, 17, 33})
         for (int64_t n : {S - 1, S, 3 * S + 5}) {
             const int64_t stride = n + 3;
-            std::vector<float> last(n * C), planar(C * stride, -9.0f), back(n * C, -9.0f);
+            // back: S floats past the row, which no store may reach
+            std::vector<float> last(n * C), planar(C * stride, -9.0f), back(n * C + S, -9.0f);
             for (auto& v : last) v = uni(rng);
             planar_from_channels_last(last.data(), C, n, planar.data(), stride);
             for (int64_t p = 0; p < n; ++p)
@@ -39,6 +40,7 @@ int main() {
                 for (int64_t p = n; p < stride; ++p) expect(planar[c * stride + p] == -9.0f, "planar padding", c, p, 0, 0);
             channels_last_from_planar(planar.data(), stride, C, n, back.data());
             for (int64_t i = 0; i < n * C; ++i) expect(same(back[i], last[i]), "channels_last_from_planar", C, i, back[i], last[i]);
+            for (int64_t i = n * C; i < n * C + S; ++i) expect(back[i] == -9.0f, "past the row", C, i, back[i], 0);
         }
 
     // an S x S block transposed between strides

@@ -120,8 +120,11 @@ static inline void transpose_block(const float* src, int64_t src_stride, float* 
 
 // Rows of n pixels and C channels between channels-last (value px * C + c) and planar (c * stride
 // + px): TO_PLANAR copies channels-last src into planar dst, else planar src into channels-last dst.
-// S pixels and S channels at a time, transposed in registers (partial loads or stores where C is
-// not a multiple of S).
+// S pixels and S channels at a time, transposed in registers. Where C < S a pixel's channels are
+// read and written as whole strips all the same (its lanes past C are the next pixels' values:
+// read and dropped, or written and then overwritten by those pixels' own stores, which come
+// later), except where that strip would pass the row's end (partial loads or stores there, and
+// where C > S is not a multiple of S).
 template <bool TO_PLANAR>
 static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, int64_t stride) {
     int64_t done = 0;
@@ -129,9 +132,11 @@ static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, 
         for (int64_t c0 = 0; c0 < C; c0 += S) {
             const int64_t nc = std::min<int64_t>(S, C - c0);
             Strip r[S];
+            // pixels below `whole` take a whole strip (C < S: within the row)
+            const int64_t whole = nc == S ? S : C < S ? std::min<int64_t>(S, (n * C - S) / C - done + 1) : 0;
             for (int64_t i = 0; i < S; ++i) {
                 if constexpr (TO_PLANAR)
-                    r[i] = nc == S ? load_strip(src + (done + i) * C + c0) : load_part(src + (done + i) * C + c0, nc);
+                    r[i] = i < whole ? load_strip(src + (done + i) * C + c0) : load_part(src + (done + i) * C + c0, nc);
                 else
                     r[i] = i < nc ? load_strip(src + (c0 + i) * stride + done) : Strip{};
             }
@@ -139,7 +144,7 @@ static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, 
             for (int64_t i = 0; i < S; ++i) {
                 if constexpr (TO_PLANAR) {
                     if (i < nc) store_strip(dst + (c0 + i) * stride + done, r[i]);
-                } else if (nc == S) {
+                } else if (i < whole) {
                     store_strip(dst + (done + i) * C + c0, r[i]);
                 } else {
                     store_part(dst + (done + i) * C + c0, r[i], nc);

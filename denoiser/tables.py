@@ -8,7 +8,7 @@ import csv
 import io
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 from denoiser.atomic import atomic_write_text
@@ -48,13 +48,15 @@ def _parse(value: str):
         return value
 
 
-def read_csv(path: str | os.PathLike) -> list[dict]:
-    """Rows of a CSV written by :func:`write_csv` (numbers parsed, empty cells -> NaN)."""
+def read_csv(path: str | os.PathLike, text: Collection[str] = ()) -> list[dict]:
+    """Rows of a CSV written by :func:`write_csv` (numbers parsed, empty cells -> NaN). ``text``:
+    columns kept as written, never parsed (identifiers that can look like numbers: a commit hash
+    ``0496959`` would read back as the integer 496959, ``12e4567`` as infinity)."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: CSV file does not exist")
     with open(path, newline="") as fh:
-        return [{k: _parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+        return [{k: v if k in text else _parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
 def format_value(value, fmt: str | None = None) -> str:

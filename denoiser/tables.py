@@ -48,10 +48,14 @@ def _parse(value: str):
         return value
 
 
-def read_csv(path: str | os.PathLike, text: Collection[str] = ()) -> list[dict]:
-    """Rows of a CSV written by :func:`write_csv` (numbers parsed, empty cells -> NaN). ``text``:
-    columns kept as written, never parsed (identifiers that can look like numbers: a commit hash
-    ``0496959`` would read back as the integer 496959, ``12e4567`` as infinity)."""
+#: columns that name things, read back as written: a user's sequence ``0001`` or a commit ``0496959``
+#: is not the number 1 or 496959 (nor ``12e4567`` infinity)
+IDENTIFIERS = ("commit", "sequence", "scene", "method", "split")
+
+
+def read_csv(path: str | os.PathLike, text: Collection[str] = IDENTIFIERS) -> list[dict]:
+    """Rows of a CSV written by :func:`write_csv` (numbers parsed, empty cells -> NaN); the
+    columns in ``text`` are kept as written, never parsed (default :data:`IDENTIFIERS`)."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: CSV file does not exist")

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from denoiser.atomic import atomic_write_text
 from denoiser.errors import UserError
-from denoiser.tables import markdown_table, read_csv, write_csv
+from denoiser.tables import IDENTIFIERS, markdown_table, read_csv, write_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the committed record and its rendering
@@ -41,7 +41,7 @@ COLUMNS = ["date", "commit", "cpu", "cpu_id", "cpu_class", "threads", "size", "s
 #: what makes a row the same measurement (``add`` skips it)
 KEY = ("date", "commit", "cpu_id", "size", "student", "student_ms")
 #: columns read back as written (a commit hash such as ``0496959`` is not a number)
-TEXT = ("date", "commit", "cpu", "cpu_id", "size", "student", "dtype", "baseline", "versions")
+TEXT = (*IDENTIFIERS, "date", "cpu", "cpu_id", "size", "student", "dtype", "baseline", "versions")
 
 
 def cpu_class(isa: dict[str, bool]) -> str:

@@ -29,3 +29,12 @@ def test_add_twice_keeps_one_row_and_the_commit_as_written(tmp_path, commit):
     rows = read_csv(csv, text=("commit",))
     assert len(rows) == 1 and rows[0]["commit"] == commit
     assert f"| {commit} |" in render(csv)
+
+
+def test_read_csv_keeps_names_that_look_like_numbers(tmp_path):
+    from denoiser.tables import write_csv
+
+    path = tmp_path / "metrics.csv"
+    write_csv(path, [{"sequence": "0001", "method": "007", "psnr": 30.5, "frames": 8}])
+    (row,) = read_csv(path)
+    assert row == {"sequence": "0001", "method": "007", "psnr": 30.5, "frames": 8}

@@ -18,6 +18,8 @@ import numpy as np
 
 #: resamples, confidence and Generator seed of every interval a summary prints
 RESAMPLES, CONFIDENCE, SEED = 10_000, 0.95, 0
+#: the fewest paired items (sequences) a verdict other than ``tied`` needs
+MIN_PAIRS = 2
 
 
 @dataclass(frozen=True)
@@ -38,7 +40,11 @@ class PairedInterval:
     def verdict(self, lower_is_better: bool = False) -> str:
         """``"ahead"`` when the whole interval is on the network's better side of 0, ``"behind"``
         when it is on the baseline's, else ``"tied"`` (for a lower-is-better metric the better
-        side of the difference network minus baseline is below 0)."""
+        side of the difference network minus baseline is below 0). Fewer than :data:`MIN_PAIRS`
+        pairs are always ``"tied"``: one sequence's interval is its one difference, ``[x, x]``,
+        which says nothing about a second sequence."""
+        if self.n < MIN_PAIRS:
+            return "tied"
         lo, hi = (-self.hi, -self.lo) if lower_is_better else (self.lo, self.hi)
         return "ahead" if lo > 0 else "behind" if hi < 0 else "tied"
 

@@ -68,6 +68,10 @@ def test_paired_interval_known_cases_and_verdicts():
     assert mixed.lo < 0 < mixed.hi and mixed.verdict() == "tied" == mixed.verdict(lower_is_better=True)
     with pytest.raises(ValueError, match="equal-length"):
         paired_interval([1.0, 2.0], [1.0])
+    # one sequence is no sample: its interval is the one difference, [x, x], and it decides nothing
+    one = paired_interval([31.0], [30.0])
+    assert (one.lo, one.hi, one.n) == (1.0, 1.0, 1) and one.verdict() == "tied" == one.verdict(lower_is_better=True)
+    assert paired_interval([31.0, 32.0], [30.0, 31.0]).verdict() == "ahead"
 
 
 # --- frames 2+ ------------------------------------------------------------------------------------

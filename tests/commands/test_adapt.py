@@ -22,7 +22,7 @@ from denoiser.errors import UserError
 def adapt(overrides):
     from denoiser.commands.adapt import run
 
-    return run(compose_command("adapt", [*overrides, "threads=2"]))
+    return run(compose_command("adapt", overrides))  # torch threads: the worker's share (tests/conftest.py)
 
 
 def nets(tmp_path: Path) -> list[str]:

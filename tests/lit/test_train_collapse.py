@@ -45,7 +45,7 @@ from denoiser.conf import CONF_DIR
 from denoiser.configs import instantiate_config
 from denoiser.data.synthetic import write_synthetic_sequence
 
-SETTING = ["data=tiny", "data.crop=32", "data.window=2", "threads=2", "trainer.enable_progress_bar=false",
+SETTING = ["data=tiny", "data.crop=32", "data.window=2", "trainer.enable_progress_bar=false",
            "callbacks.progress=null", "trainer.enable_model_summary=false", "trainer.max_steps=120",
            "trainer.val_check_interval=20", "model.image_interval=0", "~logger", "callbacks.lr_monitor=null",
            "model.optimizer.lr=2e-2", "model=teacher", "net=demo_teacher", "kernel=teacher",

@@ -143,7 +143,7 @@ def run(cfg: DictConfig) -> dict:
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     date, digest = ledger.utc_now(), tree_hash(Path(cfg.data.root) / cfg.split)
-    drawn = ledger.split_id(Path(cfg.data.root) / cfg.split)
+    drawn = ledger.split_ids(Path(cfg.data.root) / cfg.split)
     look_line, look, where = "", None, None
     if looked:  # after a complete evaluation: the look happened
         where = cfg.get("ledger") or ledger.default_ledger(cfg.data.root)

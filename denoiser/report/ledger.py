@@ -24,6 +24,10 @@ Looks are counted per ``split_id`` (a row from before that column, per ``split_s
 copied to another folder keeps its count, the same sequences rendered again keep it too (a fresh
 clone's ``make demo`` renders its test split anew: the render timings in each ``sequence.json``
 differ, and so may a frame's Monte Carlo bytes), and a split drawn afresh (new seeds) starts at 1.
+The metadata's floats count to :data:`FLOAT_DIGITS` significant digits: a camera matrix that numpy
+computes on another CPU can differ in its last bits (an AVX-512 and an AVX2 render of the same
+sequences gave two ids before 2026-12-02). Rows written before then hold the exact-float id, which
+:func:`split_ids` also gives, so they keep counting where the same floats come out again.
 
 Beside its tables, every evaluation writes :data:`PROVENANCE` (:func:`provenance`): the commit it
 ran at, its date, the split and its hash, and for a test split the look it recorded. A summary takes
@@ -56,6 +60,8 @@ COLUMNS = ["date", "dataset", "split", "split_sha256", "split_id", "sequences", 
 METADATA_FILES = ("sequence.json", "render.json")
 #: their keys that time a render rather than define what it draws
 VOLATILE_KEYS = ("render_seconds", "frame_seconds", "seconds")
+#: significant digits of the metadata's floats in :func:`split_id` (None: exact, the ids before 2026-12-02)
+FLOAT_DIGITS = 9
 #: the split name whose evaluations are recorded (and need a purpose)
 TEST_SPLIT = "test"
 #: the evaluation's provenance, a JSON file beside its metrics.csv (denoiser-eval's out_dir)
@@ -116,10 +122,21 @@ def run_id(checkpoint: str | os.PathLike) -> str:
     return path.name
 
 
-def split_id(root: str | os.PathLike) -> str:
+def _rounded(value, digits: int):
+    """``value`` (JSON data) with every float to ``digits`` significant digits."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {k: _rounded(v, digits) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rounded(v, digits) for v in value]
+    return value
+
+
+def split_id(root: str | os.PathLike, digits: int | None = FLOAT_DIGITS) -> str:
     """SHA-256 of the split under ``root`` as drawn: over its files in sorted order, a metadata file
     (:data:`METADATA_FILES`) by its relative path and its JSON without :data:`VOLATILE_KEYS` (keys
-    sorted), every other file in a folder that holds one by its relative path only (its bytes are one
+    sorted, floats to ``digits`` significant digits; None: exact), every other file in a folder that holds one by its relative path only (its bytes are one
     render of what the metadata draws), and a file elsewhere by its path and bytes (a split without
     metadata is its bytes, as :func:`denoiser.report.provenance.tree_hash`)."""
     root = Path(root)
@@ -135,6 +152,7 @@ def split_id(root: str | os.PathLike) -> str:
                 meta = None
             if isinstance(meta, dict):
                 meta = {k: v for k, v in meta.items() if k not in VOLATILE_KEYS}
+                meta = meta if digits is None else _rounded(meta, digits)
                 digest.update(json.dumps(meta, sort_keys=True).encode() + b"\0")
                 continue
         elif any(parent in described for parent in path.parents):
@@ -143,11 +161,24 @@ def split_id(root: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
-def same_split(row: Mapping[str, str], split_sha256: str, split_id: str | None = None) -> bool:
-    """Whether ledger ``row`` evaluated this split: by ``split_id`` where both have one, else (a row
-    or an evaluation from before that column) by the content hash."""
-    if split_id and row.get("split_id"):
-        return row["split_id"] == split_id
+def split_ids(root: str | os.PathLike) -> list[str]:
+    """The ids of the split under ``root`` a ledger row may hold: :func:`split_id`'s, then the
+    exact-float one of the rows before 2026-12-02 (once when they are the same)."""
+    ids = [split_id(root), split_id(root, digits=None)]
+    return ids[:1] if ids[0] == ids[1] else ids
+
+
+def _ids(split_id: str | Sequence[str] | None) -> list[str]:
+    return [split_id] if isinstance(split_id, str) else [i for i in (split_id or []) if i]
+
+
+def same_split(row: Mapping[str, str], split_sha256: str, split_id: str | Sequence[str] | None = None) -> bool:
+    """Whether ledger ``row`` evaluated this split: by ``split_id`` (one id, or the ids of
+    :func:`split_ids`) where both have one, else (a row or an evaluation from before that column)
+    by the content hash."""
+    ids = _ids(split_id)
+    if ids and row.get("split_id"):
+        return row["split_id"] in ids
     return row.get("split_sha256") == split_sha256
 
 
@@ -160,7 +191,7 @@ def read(ledger: str | os.PathLike = LEDGER) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str | None = None) -> int:
+def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str | Sequence[str] | None = None) -> int:
     """How many rows of ``ledger`` evaluated this split (:func:`same_split`; 0 when there is no ledger).
     Without ``split_id`` (an evaluation from before that column), the draw that the ledger's rows of
     the same content hash name, when they name one."""
@@ -173,11 +204,11 @@ def looks(split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str |
 
 def record(dataset: str, split: str, split_sha256: str, sequences: int, checkpoints: Sequence[str],
            baselines: Sequence[str], commit: str, purpose: str, ledger: str | os.PathLike = LEDGER,
-           date: str | None = None, split_id: str | None = None) -> int:
+           date: str | None = None, split_id: str | Sequence[str] | None = None) -> int:
     """Append one evaluation to ``ledger`` (created with its header when missing; an exclusive lock
     on a side file keeps concurrent evaluations from losing a row; the write is atomic). Returns the
     look number of this row. ``date``: the row's (:func:`utc_now`, now when None); ``split_id``: the
-    split as drawn (:func:`split_id`)."""
+    split as drawn (:func:`split_ids`: the row holds the first, earlier rows count under any)."""
     path = Path(ledger)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.with_name(path.name + ".lock"), "w") as lock:
@@ -185,7 +216,7 @@ def record(dataset: str, split: str, split_sha256: str, sequences: int, checkpoi
         rows: list[dict] = read(path)
         look = 1 + sum(1 for row in rows if same_split(row, split_sha256, split_id))
         rows.append({"date": date or utc_now(), "dataset": str(dataset),
-                     "split": str(split), "split_sha256": split_sha256, "split_id": split_id or "",
+                     "split": str(split), "split_sha256": split_sha256, "split_id": (_ids(split_id) or [""])[0],
                      "sequences": int(sequences),
                      "checkpoints": ";".join(checkpoints), "baselines": ";".join(baselines), "commit": commit,
                      "purpose": purpose, "look": look})
@@ -193,7 +224,8 @@ def record(dataset: str, split: str, split_sha256: str, sequences: int, checkpoi
     return look
 
 
-def look_sentence(look: int, split_sha256: str, ledger: str | os.PathLike = LEDGER, split_id: str | None = None) -> str:
+def look_sentence(look: int, split_sha256: str, ledger: str | os.PathLike = LEDGER,
+                  split_id: str | Sequence[str] | None = None) -> str:
     """One sentence for a report: which look this is, of how many recorded, naming the ledger."""
     total = looks(split_sha256, ledger, split_id)
     return (f"Test ledger: this evaluation is look {look} of {total} recorded at {split_sha256[:12]} "
@@ -201,15 +233,17 @@ def look_sentence(look: int, split_sha256: str, ledger: str | os.PathLike = LEDG
 
 
 def provenance(commit: str, date: str, dataset: str, split: str, split_sha256: str, sequences: int,
-               look: int | None, ledger: str | os.PathLike | None, split_id: str | None = None) -> dict:
+               look: int | None, ledger: str | os.PathLike | None,
+               split_id: str | Sequence[str] | None = None) -> dict:
     """What :data:`PROVENANCE` holds: the commit the evaluation ran at (``-dirty`` with uncommitted
     changes), its UTC date, the data root, the split, its SHA-256, how many sequences, and for a
     test split the look it recorded and the ledger it recorded it in (None for another split); with
-    ``split_id`` (:func:`split_id`), that too."""
+    ``split_id`` (:func:`split_ids`), the first as ``split_id`` and all as ``split_ids``."""
     told = {"commit": commit, "date": date, "dataset": str(dataset), "split": str(split), "split_sha256": split_sha256,
             "sequences": int(sequences), "look": look, "ledger": None if ledger is None else str(Path(ledger).resolve())}
-    if split_id:
-        told["split_id"] = split_id
+    ids = _ids(split_id)
+    if ids:
+        told["split_id"], told["split_ids"] = ids[0], ids
     return told
 
 
@@ -243,7 +277,7 @@ def looks_line(evaluation: Mapping | None, ledger: str | os.PathLike = LEDGER) -
         return (f"Test ledger: looks not recorded (split `{evaluation.get('split')}` is not a test split; only a "
                 f"split named {TEST_SPLIT} is).")
     digest, look = str(evaluation["split_sha256"]), int(evaluation["look"])
-    total = looks(digest, ledger, evaluation.get("split_id"))
+    total = looks(digest, ledger, evaluation.get("split_ids") or evaluation.get("split_id"))
     text = (f"Test ledger: this test split (SHA-256 {digest[:12]}) has been evaluated {total} "
             f"time{'' if total == 1 else 's'} ({named(ledger)}); this summary's evaluation is look {look}")
     if look > total:

@@ -212,7 +212,8 @@ def test_a_look_at_the_test_split_needs_a_purpose_and_is_recorded(setup, tmp_pat
         told = json.loads((tmp_path / str(k) / "evaluation.json").read_text())
         assert told == {"commit": row["commit"], "date": row["date"], "dataset": str(root / "data"), "split": "test",
                         "split_sha256": digest, "sequences": 2, "look": k + 1, "ledger": str(book.resolve()),
-                        "split_id": ledger.split_id(root / "data" / "test")}
+                        "split_id": ledger.split_id(root / "data" / "test"),
+                        "split_ids": ledger.split_ids(root / "data" / "test")}
     copy = tmp_path / "copy"
     shutil.copytree(root / "data", copy)
     shutil.copytree(copy / "test", copy / "val")

@@ -136,15 +136,40 @@ def _rounded(value, digits: int):
 def split_id(root: str | os.PathLike, digits: int | None = FLOAT_DIGITS) -> str:
     """SHA-256 of the split under ``root`` as drawn: over its files in sorted order, a metadata file
     (:data:`METADATA_FILES`) by its relative path and its JSON without :data:`VOLATILE_KEYS` (keys
-    sorted, floats to ``digits`` significant digits; None: exact), every other file in a folder that holds one by its relative path only (its bytes are one
-    render of what the metadata draws), and a file elsewhere by its path and bytes (a split without
-    metadata is its bytes, as :func:`denoiser.report.provenance.tree_hash`)."""
+    sorted, floats to ``digits`` significant digits; None: exact), every other file in a folder that
+    holds one by its relative path only (its bytes are one render of what the metadata draws), and a
+    file elsewhere by its path and bytes (a split without metadata is its bytes, as
+    :func:`denoiser.report.provenance.tree_hash`)."""
+    return _split_digests(root, [digits])[0]
+
+
+def split_ids(root: str | os.PathLike) -> list[str]:
+    """The ids of the split under ``root`` a ledger row may hold: :func:`split_id`'s, then the
+    exact-float one of the rows before 2026-12-02 (once when they are the same), in one pass over
+    the files."""
+    ids = _split_digests(root, [FLOAT_DIGITS, None])
+    return ids[:1] if ids[0] == ids[1] else ids
+
+
+class _Digests:
+    """hashlib objects fed alike (a file's bytes read once for every id of :func:`_split_digests`)."""
+
+    def __init__(self, n: int):
+        self.all = [hashlib.sha256() for _ in range(n)]
+
+    def update(self, data: bytes) -> None:
+        for d in self.all:
+            d.update(data)
+
+
+def _split_digests(root: str | os.PathLike, digits: Sequence[int | None]) -> list[str]:
+    """:func:`split_id` of ``root`` for each entry of ``digits``, in one walk of the split."""
     root = Path(root)
     files = sorted(p for p in root.rglob("*") if p.is_file())
     described = {p.parent for p in files if p.name in METADATA_FILES}
-    digest = hashlib.sha256()
+    digests = _Digests(len(digits))
     for path in files:
-        digest.update(str(path.relative_to(root)).encode() + b"\0")
+        digests.update(str(path.relative_to(root)).encode() + b"\0")
         if path.name in METADATA_FILES:
             try:
                 meta = json.loads(path.read_text())
@@ -152,20 +177,13 @@ def split_id(root: str | os.PathLike, digits: int | None = FLOAT_DIGITS) -> str:
                 meta = None
             if isinstance(meta, dict):
                 meta = {k: v for k, v in meta.items() if k not in VOLATILE_KEYS}
-                meta = meta if digits is None else _rounded(meta, digits)
-                digest.update(json.dumps(meta, sort_keys=True).encode() + b"\0")
+                for d, n in zip(digests.all, digits):
+                    d.update(json.dumps(meta if n is None else _rounded(meta, n), sort_keys=True).encode() + b"\0")
                 continue
         elif any(parent in described for parent in path.parents):
             continue
-        hash_bytes(digest, path)
-    return digest.hexdigest()
-
-
-def split_ids(root: str | os.PathLike) -> list[str]:
-    """The ids of the split under ``root`` a ledger row may hold: :func:`split_id`'s, then the
-    exact-float one of the rows before 2026-12-02 (once when they are the same)."""
-    ids = [split_id(root), split_id(root, digits=None)]
-    return ids[:1] if ids[0] == ids[1] else ids
+        hash_bytes(digests, path)
+    return [d.hexdigest() for d in digests.all]
 
 
 def _ids(split_id: str | Sequence[str] | None) -> list[str]:

@@ -245,12 +245,17 @@ class OpenVinoStep:
     ``profile``: per-node performance counters on (``PERF_COUNT``), read by :meth:`last_profile`.
     """
 
+    #: the last step's milliseconds per node, ``{(node name, node type): ms}`` (``profile=True``)
+    last_nodes: dict[tuple[str, str], float]
+
     def __init__(self, path: str | os.PathLike, threads: int | None = None, precision: str = "f32",
                  device: str = "CPU", profile: bool = False):
         if precision not in OPENVINO_PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(OPENVINO_PRECISIONS)}")
         self._compiled: dict[tuple[int, ...], tuple] = {}
         self._last = None
+        self._counters: dict[tuple[int, ...], tuple[int, dict[str, float]]] = {}  # per compiled model: steps, means
+        self.last_nodes = {}
         with sigstack.kept():  # OpenVINO's plugin sets the thread's signal stack (denoiser.inference.sigstack)
             self._open(path, threads, precision, device, profile)
 
@@ -321,6 +326,8 @@ class OpenVinoStep:
         with sigstack.kept():
             slot.infer(feed)
         self._last = slot.request
+        if "PERF_COUNT" in self.config:
+            self._count_step((b, h, w), slot.request)
         return slot.arrays["output"].copy(), {k: slot.arrays[f"next_state_{k}"] for k in self.keys}
 
     def close(self) -> None:
@@ -342,14 +349,30 @@ class OpenVinoStep:
             raise RuntimeError("threads_in_use needs a step run first (OpenVINO resolves it when compiling)")
         return int(self._last.get_compiled_model().get_property("INFERENCE_NUM_THREADS"))
 
+    def _count_step(self, key: tuple[int, ...], request) -> None:
+        """:attr:`last_nodes` from the counters after a step. The CPU plugin reports each node's
+        *mean* over every infer of the compiled model so far (its infer requests share one graph
+        under the ``LATENCY`` hint), the first, cold one included; so the step just run took
+        ``n * mean_n - (n - 1) * mean_(n-1)``."""
+        n, means = self._counters.get(key, (0, {}))
+        n += 1
+        now: dict[str, float] = {}
+        self.last_nodes = {}
+        for node in request.profiling_info:
+            ms = node.real_time.total_seconds() * 1000
+            now[node.node_name] = ms
+            self.last_nodes[(node.node_name, node.node_type)] = n * ms - (n - 1) * means.get(node.node_name, 0.0)
+        self._counters[key] = (n, now)
+
     def last_profile(self) -> dict[str, float]:
         """Milliseconds per node type (``Convolution``, ``Reorder``, ``Subgraph`` for fused
-        elementwise ops, ...) of the last :meth:`step`, largest first; needs ``profile=True``."""
+        elementwise ops, ...) of the last :meth:`step` alone (not OpenVINO's mean over every step,
+        see :meth:`_count_step`), largest first; needs ``profile=True``."""
         if self._last is None or "PERF_COUNT" not in self.config:
             raise RuntimeError("last_profile needs OpenVinoStep(profile=True) and a step run first")
         totals: dict[str, float] = {}
-        for node in self._last.profiling_info:
-            totals[node.node_type] = totals.get(node.node_type, 0.0) + node.real_time.total_seconds() * 1000
+        for (_, node_type), ms in self.last_nodes.items():
+            totals[node_type] = totals.get(node_type, 0.0) + ms
         return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
 
 

@@ -92,17 +92,20 @@ class Stepper:
     """A prepared network: ``step(frame, state) -> (output, state)`` (the contract above:
     ``state=None`` starts a sequence); ``sync()`` waits for the device.
     ``profile()``, where the backend can say, gives the last step's time per operation type:
-    ``{op type: ms}``; None where it cannot. ``threads()``, where the engine can say, is the
+    ``{op type: ms}``; None where it cannot; ``extension_profile()`` the same for the operations of
+    the project's OpenVINO extension alone (within the op type ``Reference``). ``threads()``, where the engine can say, is the
     thread count it actually uses, read back from it (after a step: OpenVINO resolves it when
     compiling); ``engine`` names the library that runs the step (``torch``, ``onnxruntime``,
     ``openvino``, ``oidn``), for its version in the tables."""
 
     def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
                  profile: Callable[[], dict[str, float]] | None = None,
-                 threads: Callable[[], int] | None = None, engine: str = ""):
+                 threads: Callable[[], int] | None = None, engine: str = "",
+                 extension_profile: Callable[[], dict[str, float]] | None = None):
         self.step = step
         self.sync = sync
         self.profile = profile
+        self.extension_profile = extension_profile
         self.threads = threads
         self.engine = engine
 

@@ -345,7 +345,8 @@ class OpenVinoBackend(_ExportedGraphBackend):
         runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device,
                               profile=self.profile)
         return Stepper(runner.step, profile=runner.last_profile if self.profile else None,
-                       threads=runner.threads_in_use, engine="openvino")
+                       threads=runner.threads_in_use, engine="openvino",
+                       extension_profile=runner.last_extension_profile if self.profile else None)
 
 
 @dataclass(frozen=True)

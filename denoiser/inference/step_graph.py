@@ -364,6 +364,20 @@ class OpenVinoStep:
             self.last_nodes[(node.node_name, node.node_type)] = n * ms - (n - 1) * means.get(node.node_name, 0.0)
         self._counters[key] = (n, now)
 
+    def last_extension_profile(self) -> dict[str, float]:
+        """Milliseconds per operation of the project's OpenVINO extension (``PyramidFilterHead``,
+        ``EmbedNet``, ...: the nodes :meth:`last_profile` counts as ``Reference``) in the last
+        :meth:`step` alone, largest first; empty for a graph without them; needs ``profile=True``."""
+        self.last_profile()  # the same checks
+        if not hasattr(self, "_extension_ops"):
+            self._extension_ops = extension_node_names(self.model)
+        totals: dict[str, float] = {}
+        for (name, node_type), ms in self.last_nodes.items():
+            if node_type == "Reference" and name in self._extension_ops:
+                op = self._extension_ops[name]
+                totals[op] = totals.get(op, 0.0) + ms
+        return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
+
     def last_profile(self) -> dict[str, float]:
         """Milliseconds per node type (``Convolution``, ``Reorder``, ``Subgraph`` for fused
         elementwise ops, ...) of the last :meth:`step` alone (not OpenVINO's mean over every step,
@@ -374,6 +388,34 @@ class OpenVinoStep:
         for (_, node_type), ms in self.last_nodes.items():
             totals[node_type] = totals.get(node_type, 0.0) + ms
         return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
+
+
+def extension_node_names(model) -> dict[str, str]:
+    """``{node name: op type}`` of an OpenVINO model's operations of the project's extension
+    (domain ``denoiser``), by every name the CPU plugin's counters may give such a node: its own,
+    its outputs', and a graph output's where the op feeds that output through single-input nodes
+    the plugin folds into it (``next_state_guide``: GuideFeatures through a Convert)."""
+    def ours(node) -> bool:
+        return node.get_type_info().version_id == "denoiser"
+
+    names = {}
+    for op in model.get_ops():
+        if ours(op):
+            for name in (op.get_friendly_name(), *(n for out in op.outputs() for n in out.get_names())):
+                names[name] = op.get_type_name()
+    for result in model.get_results():
+        source = result.input_value(0)
+        aliases = {result.get_friendly_name(), *source.get_names()}
+        node = source.get_node()
+        for _ in range(4):
+            if ours(node) or node.get_input_size() != 1:
+                break
+            aliases |= {node.get_friendly_name()}
+            node = node.input_value(0).get_node()
+        if ours(node):
+            for name in aliases:
+                names.setdefault(name, node.get_type_name())
+    return names
 
 
 def graph_feed(frame: dict, state: dict | None, reset: bool, keys: list[str], channels: dict[str, int],

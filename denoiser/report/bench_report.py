@@ -199,9 +199,17 @@ def profile_section(rows: list[dict], top: int = 8) -> list[str]:
         rest = ops[top:]
         shown = ops[:top] + ([{"op_type": f"{len(rest)} other op types", "ms": sum(p["ms"] for p in rest),
                                "share": sum(p["share"] for p in rest)}] if rest else [])
-        parts += [f"**{key[0]}**, {key[1]}, {key[3]}x{key[2]}: {sum(p['ms'] for p in ops):.0f} ms of node time\n",
+        total = sum(p["ms"] for p in ops)
+        parts += [f"**{key[0]}**, {key[1]}, {key[3]}x{key[2]}: {total:.0f} ms of node time\n",
                   markdown_table(shown, ["op_type", "ms", "share"], {"ms": ".1f", "share": ".1%"},
                                  {"op_type": "op type"}), ""]
+        row = next(r for r in rows if (r["method"], r["backend"], r["height"], r["width"]) == key)
+        extension = [{"op": op, "ms": ms, "share": ms / total if total else float("nan")}
+                     for op, ms in (row.get("extension_profile") or {}).items()]
+        if extension:
+            parts += ["The extension's operations (the `Reference` nodes above), per operation:\n",
+                      markdown_table(extension, ["op", "ms", "share"], {"ms": ".1f", "share": ".1%"},
+                                     {"share": "share of node time"}), ""]
     return parts
 
 

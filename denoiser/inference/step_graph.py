@@ -394,7 +394,7 @@ def extension_node_names(model) -> dict[str, str]:
     """``{node name: op type}`` of an OpenVINO model's operations of the project's extension
     (domain ``denoiser``), by every name the CPU plugin's counters may give such a node: its own,
     its outputs', and a graph output's where the op feeds that output through single-input nodes
-    the plugin folds into it (``next_state_guide``: GuideFeatures through a Convert)."""
+    the plugin folds into it (``next_state_guide``: GuideFeatures through Convert nodes)."""
     def ours(node) -> bool:
         return node.get_type_info().version_id == "denoiser"
 

@@ -12,7 +12,7 @@ PYTEST_ARGS ?=
 PYTEST_WORKERS ?= auto
 PYTEST_ISOLATION ?= -p xdist -n $(PYTEST_WORKERS) --dist worksteal --max-worker-restart=100
 
-.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val blender-venv release
+.PHONY: gpu-check setup test demo readme readme-check ovext pareto compare ablations paper lint blender blender-val blender-venv release neon-tools
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -118,6 +118,15 @@ $(BLENDER_VENV)/.installed:
 
 # the bpy venv alone (denoiser-render-blender runs in it)
 blender-venv: $(BLENDER_VENV)/.installed
+
+# Debian's aarch64 cross compiler and QEMU, so that the extension's SIMD layer is also checked on NEON
+# (tests/inference/test_ovext_simd.py; issue 66): needs root and apt-get (about 20 s), fails otherwise
+neon-tools:
+	@if command -v aarch64-linux-gnu-g++ >/dev/null && command -v qemu-aarch64 >/dev/null; then exit 0; fi; \
+	if [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null; then \
+		echo "neon-tools: needs root and apt-get (apt-get install g++-aarch64-linux-gnu qemu-user)"; exit 1; fi; \
+	apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+		g++-aarch64-linux-gnu qemu-user >/dev/null
 
 blender-val: $(BLENDER_VENV)/.installed
 	$(BLENDER_VENV)/bin/python scripts/blender_sequences.py --root $(BLENDER_DATA) --split val $(BLENDER_VAL_ARGS)

@@ -15,6 +15,7 @@ over a sequence in tests/inference/test_openvino.py.
 import hashlib
 import math
 import os
+import platform
 import stat
 import time
 from pathlib import Path
@@ -694,6 +695,7 @@ class FakeBuild:
         self.cache = tmp_path / "cache"
         self.log = tmp_path / "cxx.log"
         monkeypatch.setenv("DENOISER_CACHE", str(self.cache))
+        monkeypatch.delenv(ovext.MARCH_ENV, raising=False)  # the native build, whatever the caller's target
 
     def compiler(self, body: str, name: str = "fake-cxx"):
         """``$CXX`` becomes a script that logs its arguments, sets ``$OUT`` to its ``-o`` path, then runs ``body``."""
@@ -883,6 +885,57 @@ def test_dispatch_targets_are_the_widest_the_cpu_has():
         assert "avx512f" not in native
     assert "avx512f" not in ovext.dispatch_targets(cxx, ovext.FLAGS).split()  # the default target: portable
     assert ovext.dispatch_targets(str(Path(cxx).with_name("no-such-compiler")), ovext.FLAGS) == ""
+
+
+def _real_compiler_and_cpu():
+    cxx = ovext.compiler()
+    if cxx is None or ovext._cpu_flags() is None or platform.machine() != "x86_64":
+        pytest.skip("needs a C++ compiler and an x86-64 CPU whose flags /proc/cpuinfo names")
+    return cxx, set(ovext._cpu_flags().split(":", 1)[1].split())
+
+
+def test_march_from_the_environment_is_its_own_build(fake, monkeypatch):
+    """$DENOISER_OVEXT_MARCH builds for that target in place of -march=native, under another key
+    than the native library; unset again, the native library is the one found."""
+    cxx, cpu = _real_compiler_and_cpu()
+    fake.compiler(BUILDS)
+    real = ovext._defined_macros  # the target's macros from the real compiler, the builds by the fake one
+    monkeypatch.setattr(ovext, "_defined_macros", lambda c, flags: real(cxx, flags))
+    native, reason = fake.status()
+    assert reason is None and ovext.NATIVE in fake.runs()[0].split()
+    monkeypatch.setenv(ovext.MARCH_ENV, "x86-64")  # SSE2: every x86-64 CPU has it
+    other, reason = fake.status()
+    assert reason is None and other.parent != native.parent
+    assert "-march=x86-64" in fake.runs()[1].split() and ovext.NATIVE not in fake.runs()[1].split()
+    monkeypatch.delenv(ovext.MARCH_ENV)
+    assert fake.status()[0] == native and len(fake.runs()) == 2
+
+
+@pytest.mark.parametrize("march", ["not a target", "no-such-cpu-name", "a wider CPU"])
+def test_a_march_this_cpu_cannot_run_is_refused(fake, monkeypatch, march):
+    """A malformed or unknown target, or one that enables an ISA -march=native does not (an
+    AVX-512 build on an AVX2 CPU, AVX512-FP16 and AMX on a CPU without them), is refused in one
+    line naming the variable, and nothing is compiled."""
+    cxx, cpu = _real_compiler_and_cpu()
+    fake.compiler(BUILDS)
+    real = ovext._defined_macros  # the target's macros from the real compiler, the builds by the fake one
+    monkeypatch.setattr(ovext, "_defined_macros", lambda c, flags: real(cxx, flags))
+    if march == "a wider CPU":
+        macros = real(cxx, ("-march=sapphirerapids",))
+        if macros is None:
+            pytest.skip(f"{cxx} does not know -march=sapphirerapids")
+        if "avx512fp16" in cpu and "amx_tile" in cpu:
+            pytest.skip("this CPU has every ISA of sapphirerapids")
+        march = "sapphirerapids"
+    monkeypatch.setenv(ovext.MARCH_ENV, march)
+    path, reason = fake.status()
+    assert path is None and fake.runs() == [] and "\n" not in reason
+    assert reason.startswith(f"${ovext.MARCH_ENV}={march!r}"), reason
+    expect = {"not a target": "not a -march= target name", "no-such-cpu-name": "does not know that target",
+              "sapphirerapids": "which this CPU lacks"}[march]
+    assert expect in reason, reason
+    if march == "sapphirerapids":
+        assert "avx512fp16" in reason or "amx_tile" in reason, reason
 
 
 def warp_history_loop(motion, keep, buffers, cover_min=1e-4):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -83,3 +84,37 @@ def test_simd_layer_on_neon_under_qemu(tmp_path):
     assert "neon" in ovext.dispatch_targets(cross, ()).split()
     binary = build(cross, ["-static"], tmp_path / "check_arm")
     assert run_check([qemu, str(binary)]) == "ok S=4"
+
+
+@pytest.mark.slow
+def test_the_operations_on_an_avx2_build(cxx, monkeypatch):
+    """Where the CPU has AVX-512, the extension's own tests (tests/inference/test_ovext.py: every
+    operation against its plain reference) run again on an AVX2 build of it (8 lanes:
+    ``$DENOISER_OVEXT_MARCH=x86-64-v3``), so one machine checks both ISAs' kernels. On an AVX2-only
+    CPU the native build is that build, and the AVX-512 one cannot run."""
+    if "avx512f" not in cpu_flags():
+        pytest.skip("this CPU has no AVX-512: its native build is the AVX2 one, tested by test_ovext.py")
+    targets = ovext.dispatch_targets(cxx, (*ovext.FLAGS, "-march=x86-64-v3")).split()
+    if "avx2" not in targets or "avx512f" in targets:
+        pytest.skip(f"{cxx} does not target AVX2 alone with -march=x86-64-v3 ({' '.join(targets)})")
+    monkeypatch.delenv(ovext.MARCH_ENV, raising=False)
+    ovext._status.cache_clear()
+    native = ovext.kernel_extension()
+    ovext._status.cache_clear()
+    if native is None:
+        pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
+    env = {**os.environ, ovext.MARCH_ENV: "x86-64-v3", "PYTEST_ADDOPTS": ""}
+    for name in ("PYTEST_XDIST_WORKER", "PYTEST_XDIST_WORKER_COUNT"):
+        env.pop(name, None)
+    root = Path(__file__).parents[2]
+    which = subprocess.run([sys.executable, "-c", "from denoiser.inference import ovext; "
+                            "print(ovext.kernel_extension(), ovext.unavailable_reason())"],
+                           capture_output=True, text=True, timeout=600, env=env, cwd=root)
+    assert which.returncode == 0, which.stderr[-2000:]
+    library, reason = which.stdout.split()[-2:]
+    assert reason == "None" and Path(library).parent != native.parent, which.stdout + which.stderr
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-W", "ignore",
+                           str(Path(__file__).with_name("test_ovext.py"))],
+                          capture_output=True, text=True, timeout=1200, env=env, cwd=root)
+    tail = proc.stdout[-3000:] + proc.stderr[-2000:]
+    assert proc.returncode == 0 and " passed" in proc.stdout and " failed" not in proc.stdout, tail

@@ -39,7 +39,12 @@ code is written once and compiled for the widest, see ``common.hpp``), the machi
   later processes say that reason instead of compiling again; delete the file to retry;
 * where ``/proc/cpuinfo`` has no ``flags`` line (or cannot be read) ``-march=native`` is left out:
   the CPU cannot be told apart from another, so only a portable library (the compiler's default
-  target) is cached and reused.
+  target) is cached and reused;
+* ``$DENOISER_OVEXT_MARCH`` (:data:`MARCH_ENV`, e.g. ``x86-64-v3`` or ``haswell``: AVX2 and FMA)
+  builds for that target in place of ``-march=native``, under its own key: a library for the
+  older CPUs of a cluster, or the AVX2 kernels tested on an AVX-512 machine. On x86 a target
+  with an ISA this CPU lacks (its :func:`dispatch_targets` against the ``flags`` line) is
+  refused with that reason, not run into an illegal instruction.
 
 The build is atomic: a failed or interrupted build leaves no library behind.
 
@@ -55,6 +60,7 @@ import functools
 import hashlib
 import os
 import platform
+import re
 import shutil
 import signal
 import stat
@@ -79,6 +85,8 @@ CPUINFO = Path("/proc/cpuinfo")
 #: seconds the compiler may run (``$DENOISER_OVEXT_TIMEOUT`` overrides)
 BUILD_TIMEOUT_S = 300.0
 TIMEOUT_ENV = "DENOISER_OVEXT_TIMEOUT"
+#: a ``-march=`` target in place of :data:`NATIVE` (empty or unset: native)
+MARCH_ENV = "DENOISER_OVEXT_MARCH"
 LIBRARY = "libdenoiser_openvino.so"
 #: in a key's folder: the reason its build failed (later processes do not compile again)
 FAILED = "build-failed"
@@ -134,25 +142,34 @@ def _cpu_flags() -> str | None:
         return None
 
 
-def dispatch_targets(cxx: str, flags: tuple[str, ...]) -> str:
-    """The vector ISAs ``cxx`` compiles for with ``flags`` (the :data:`TARGET_MACROS` its
-    preprocessor defines, e.g. ``avx2 avx fma sse2``): what the kernels' vector code becomes, in
-    the cache key. ``""`` where the compiler cannot say (it does not run, prints no macros, or runs
-    past ``$DENOISER_OVEXT_TIMEOUT``)."""
+def _defined_macros(cxx: str, flags: tuple[str, ...]) -> set[str] | None:
+    """The macros ``cxx``'s preprocessor defines with ``flags``' target options (``-m``, ``-f``);
+    None where the compiler cannot say (it does not run, fails, or runs past
+    ``$DENOISER_OVEXT_TIMEOUT``)."""
     target = [f for f in flags if f.startswith(("-m", "-f"))]
     timeout = _timeout()
     try:  # in its own process group, all of it killed at the timeout (as _compile)
         proc = subprocess.Popen([cxx, *target, "-dM", "-E", "-x", "c++", os.devnull], stdout=subprocess.PIPE,
                                 stderr=subprocess.DEVNULL, text=True, start_new_session=True)
     except OSError:
-        return ""
+        return None
     try:
         out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate()
-        return ""
-    defined = {line.split()[1] for line in out.splitlines() if line.startswith("#define ") and len(line.split()) > 1}
+        return None
+    if proc.returncode != 0:
+        return None
+    return {line.split()[1] for line in out.splitlines() if line.startswith("#define ") and len(line.split()) > 1}
+
+
+def dispatch_targets(cxx: str, flags: tuple[str, ...]) -> str:
+    """The vector ISAs ``cxx`` compiles for with ``flags`` (the :data:`TARGET_MACROS` its
+    preprocessor defines, e.g. ``avx2 avx fma sse2``): what the kernels' vector code becomes, in
+    the cache key. ``""`` where the compiler cannot say (it does not run, prints no macros, or runs
+    past ``$DENOISER_OVEXT_TIMEOUT``)."""
+    defined = _defined_macros(cxx, flags) or set()
     return " ".join(dict.fromkeys(name for macro, name in TARGET_MACROS.items() if macro in defined))
 
 
@@ -269,11 +286,34 @@ def _compile(cmd: list[str], timeout: float) -> None:
         raise _BuildFailed(f"building {SOURCE.name} failed: {error}")
 
 
+def _target_flags(cxx: str, cpu: str | None) -> tuple[tuple[str, ...], str]:
+    """The build's flags and their :func:`dispatch_targets`: :data:`FLAGS` with ``-march=native``
+    where the CPU's flags are known, or with ``$DENOISER_OVEXT_MARCH``'s target. That target is
+    refused where it enables an instruction set ``-march=native`` does not (an ISA macro such as
+    ``__AVX512F__`` or ``__AVX512FP16__`` that the compiler defines for it and not for this CPU)."""
+    march = os.environ.get(MARCH_ENV, "").strip()
+    if not march:
+        flags = (*FLAGS, NATIVE) if cpu else FLAGS
+        return flags, dispatch_targets(cxx, flags)
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._+-]*", march):
+        raise _Unavailable(f"${MARCH_ENV}={march!r}: not a -march= target name (e.g. x86-64-v3, haswell)")
+    flags = (*FLAGS, f"-march={march}")
+    wanted = _defined_macros(cxx, flags)
+    if wanted is None:
+        raise _Unavailable(f"${MARCH_ENV}={march!r}: {cxx} does not know that target (-march={march})")
+    native = _defined_macros(cxx, (*FLAGS, NATIVE))
+    isa = re.compile(r"__[A-Z][A-Z0-9_]*__")  # ISA macros are upper case; the CPU names' (__znver4__) lower
+    lacking = sorted(m.strip("_").lower() for m in wanted - (native or wanted) if isa.fullmatch(m))
+    if lacking:
+        raise _Unavailable(f"${MARCH_ENV}={march!r} enables {', '.join(lacking)}, which this CPU lacks "
+                           f"(-march=native does not)")
+    return flags, dispatch_targets(cxx, flags)
+
+
 def _build() -> Path:
     tools = _toolchain()
     cpu = _cpu_flags()
-    flags = (*FLAGS, NATIVE) if cpu else FLAGS
-    targets = dispatch_targets(tools.cxx, flags)
+    flags, targets = _target_flags(tools.cxx, cpu)
     key = hashlib.sha256()
     sources = (p.name.encode() + b"\0" + p.read_bytes() for p in SOURCES)
     for part in (*sources, tools.version, tools.cxx, " ".join(flags), targets, platform.machine(), cpu or ""):
@@ -292,7 +332,11 @@ def _build() -> Path:
         raise _Unavailable(f"{failed.read_text().strip()} (remembered from an earlier try: delete {failed} to "
                            "build again)")
     timeout = _timeout()
-    how = "" if cpu else f", without {NATIVE}: {CPUINFO} names no CPU flags"
+    march = next((f for f in flags if f.startswith("-march=")), None)
+    if march is None:
+        how = f", without {NATIVE}: {CPUINFO} names no CPU flags"
+    else:
+        how = "" if march == NATIVE else f", {march} from ${MARCH_ENV}"
     isa = f" for {targets}" if targets else ""
     print(f"building the OpenVINO extension {SOURCE.name}{isa} (once per machine{how}) ...", file=sys.stderr,
           flush=True)

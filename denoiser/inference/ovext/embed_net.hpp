@@ -93,10 +93,16 @@ public:
         const float* b[3] = {inputs[1].data<const float>(), inputs[3].data<const float>(),
                              inputs[5].data<const float>()};
         float* O = outputs[0].data<float>();
-        // the demo student's weights and biases broadcast (mlp: one vector read per multiply-add)
+        // the demo student's widths: values in registers (mlp). Its weights and biases are read
+        // broadcast from a table of strips (one vector read per multiply-add) where that table is
+        // small: 704 strips, 22.5 KiB at S = 8, which stays in L1 beside the strips. At S = 16
+        // (AVX-512) it would be 45 KiB, more than a 32 KiB L1, and the multiply-add reads a scalar
+        // weight broadcast from memory ({1to16}) at no cost: on the AVX-512 AMD EPYC family 26
+        // the table made the op 24% slower than the scalars (scripts/ovext_op_bench.cpp, 1 thread)
         const bool demo = C == 10 && M == 16 && N == 16;
+        const bool table = demo && (C * M + M * M + N * M + 2 * M + N) * sizeof(Strip) <= 24 * 1024;
         std::vector<Strip> wide[3], bias[3];
-        if (demo)
+        if (table)
             for (int i = 0; i < 3; ++i) {
                 wide[i] = broadcast_strips(w[i], static_cast<int64_t>(inputs[2 * i].get_size()));
                 bias[i] = broadcast_strips(b[i], static_cast<int64_t>(inputs[2 * i + 1].get_size()));
@@ -128,8 +134,10 @@ public:
                             x[c] = load_strip(t);
                         }
                     }
-                    if (demo) {  // the demo student's widths: values in registers
+                    if (table) {
                         mlp<10, 16, 16>(ws, bs, x.data(), y.data());
+                    } else if (demo) {
+                        mlp<10, 16, 16>(w, b, x.data(), y.data());
                     } else {
                         layer(w[0], b[0], x.data(), C, h1.data(), M);
                         layer(w[1], b[1], h1.data(), M, h2.data(), M);
@@ -153,9 +161,10 @@ public:
     }
 
 private:
-    // the three layers at compile-time widths (C inputs, M hidden, N outputs)
-    template <int C, int M, int N>
-    void mlp(const Strip* const* w, const Strip* const* b, const Strip* x_in, Strip* y) const {
+    // the three layers at compile-time widths (C inputs, M hidden, N outputs); Wt: Strip (the
+    // broadcast table) or float (the weights as given)
+    template <int C, int M, int N, class Wt>
+    void mlp(const Wt* const* w, const Wt* const* b, const Strip* x_in, Strip* y) const {
         Strip x[C], h1[M], h2[M];
         for (int c = 0; c < C; ++c) x[c] = x_in[c];
         dense<C, M>(w[0], b[0], x, h1);
@@ -163,15 +172,15 @@ private:
         dense<M, N>(w[2], b[2], h2, y);
     }
 
-    // w, b: broadcast (broadcast_strips). Q outputs at a time, each its own sum in the same order
-    // (bias, then k = 0 .. NIN - 1): Q independent chains of multiply-adds, where one output at a
-    // time waits on each multiply-add's latency
-    template <int NIN, int NOUT>
-    void dense(const Strip* w, const Strip* b, const Strip* in, Strip* out) const {
+    // w, b: broadcast (broadcast_strips) or scalars. Q outputs at a time, each its own sum in the
+    // same order (bias, then k = 0 .. NIN - 1): Q independent chains of multiply-adds, where one
+    // output at a time waits on each multiply-add's latency
+    template <int NIN, int NOUT, class Wt>
+    void dense(const Wt* w, const Wt* b, const Strip* in, Strip* out) const {
         constexpr int Q = NOUT % 4 == 0 ? 4 : 1;  // 4: faster than 8 on AVX2 (16 vector registers)
         for (int j0 = 0; j0 < NOUT; j0 += Q) {
             Strip acc[Q];
-            for (int q = 0; q < Q; ++q) acc[q] = b[j0 + q];
+            for (int q = 0; q < Q; ++q) acc[q] = Strip{} + b[j0 + q];
             for (int k = 0; k < NIN; ++k) {
                 const Strip v = in[k];
                 for (int q = 0; q < Q; ++q) acc[q] += w[(j0 + q) * NIN + k] * v;

@@ -89,6 +89,20 @@ int main() {
         for (int64_t l = 0; l <= S; ++l) expect(same(out[l], l < n ? in[l] : -7.0f), "store_part", n, l, out[l], 0);
     }
 
+    // lane_min, lane_max, any_lane: over every lane, extremes and one non-zero lane anywhere
+    std::uniform_int_distribution<int32_t> ints(std::numeric_limits<int32_t>::min(), std::numeric_limits<int32_t>::max());
+    for (int t = 0; t < 300; ++t) {
+        IntStrip v;
+        for (int64_t l = 0; l < S; ++l) v[l] = t % 3 == 0 ? ints(rng) % 1000 : ints(rng);
+        int32_t lo = v[0], hi = v[0];
+        for (int64_t l = 1; l < S; ++l) lo = std::min(lo, v[l]), hi = std::max(hi, v[l]);
+        expect(lane_min(v) == lo, "lane_min", t, 0, lane_min(v), lo);
+        expect(lane_max(v) == hi, "lane_max", t, 0, lane_max(v), hi);
+        IntStrip one = {};
+        one[t % S] = t % 2 ? -1 : 1 << (t % 31);
+        expect(any_lane(one) && !any_lane(IntStrip{}), "any_lane", t, t % S, any_lane(one), 1);
+    }
+
     // pick2: lane j of a then b by a variable selector (GCC); Clang has none (PICK false)
     if (PICK) {
         float ab[2 * S];

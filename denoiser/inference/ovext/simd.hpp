@@ -195,6 +195,30 @@ static inline Strip exp2_strip(Strip u) {
     return p * scale;
 }
 
+// lanes j and j + D (mod S) of v: the halving steps of a reduction over a strip's lanes
+template <int64_t D, size_t... J>
+static inline IntStrip rotate_lanes(IntStrip v, std::index_sequence<J...>) {
+    return __builtin_shufflevector(v, v, ((J + D) % S)...);
+}
+// the smallest and the largest lane of v, and whether any lane is non-zero (log2 S shuffles each)
+template <int64_t D = S / 2>
+static inline int32_t lane_min(IntStrip v) {
+    const IntStrip r = rotate_lanes<D>(v, std::make_index_sequence<S>{});
+    v = r < v ? r : v;
+    if constexpr (D > 1) return lane_min<D / 2>(v); else return v[0];
+}
+template <int64_t D = S / 2>
+static inline int32_t lane_max(IntStrip v) {
+    const IntStrip r = rotate_lanes<D>(v, std::make_index_sequence<S>{});
+    v = r > v ? r : v;
+    if constexpr (D > 1) return lane_max<D / 2>(v); else return v[0];
+}
+template <int64_t D = S / 2>
+static inline bool any_lane(IntStrip v) {
+    v = v | rotate_lanes<D>(v, std::make_index_sequence<S>{});
+    if constexpr (D > 1) return any_lane<D / 2>(v); else return v[0] != 0;
+}
+
 #if defined(__GNUC__) && !defined(__clang__) && defined(__AVX2__)
 constexpr bool PICK = true;
 // lane j of the result: lane idx[j] of the 2 S lanes of a then b, idx[j] in [0, 2 S) (GCC's

@@ -262,14 +262,18 @@ private:
         const int64_t strips = W / S;
         done = strips * S;
         int32_t* start = r.start.data();  // kept in r: no allocation per row
+        constexpr int32_t NONE = -2;      // no pixel of the strip is covered: zeros
         for (int64_t j = 0; j < strips; ++j) {
             const int64_t px = j * S;
-            int32_t lo = std::numeric_limits<int32_t>::max(), hi = std::numeric_limits<int32_t>::min();
-            for (int64_t l = 0; l < S; ++l)
-                if (r.cover[px + l] != 0.0f && r.inside[px + l] != 0) {
-                    lo = std::min(lo, r.index[px + l]);
-                    hi = std::max(hi, r.index[px + l]);
-                }
+            const IntStrip ok = load_strip(r.cover.data() + px) != 0.0f;
+            if (!any_lane(ok)) {
+                start[j] = NONE;
+                continue;
+            }
+            const IntStrip used = ok & (load_int_strip(r.inside.data() + px) != 0);
+            const IntStrip idx = load_int_strip(r.index.data() + px);
+            int32_t lo = lane_min(used != 0 ? idx : IntStrip{} + std::numeric_limits<int32_t>::max());
+            int32_t hi = lane_max(used != 0 ? idx : IntStrip{} + std::numeric_limits<int32_t>::min());
             if (lo > hi) lo = hi = 0;
             start[j] = PICK && hi - lo <= 2 * S - 2 && lo >= 0 && static_cast<int64_t>(lo) + W + 2 * S <= HW ? lo : -1;
         }
@@ -279,14 +283,12 @@ private:
             float* out = outs[k];
             for (int64_t j = 0; j < strips; ++j) {
                 const int64_t px = j * S;
-                const Strip cover = load_strip(r.cover.data() + px);
-                const IntStrip ok = cover != 0.0f;
-                bool none = true;
-                for (int64_t l = 0; l < S; ++l) none = none && ok[l] == 0;
-                if (none) {
+                if (start[j] == NONE) {
                     store_strip(out + px, Strip{});
                     continue;
                 }
+                const Strip cover = load_strip(r.cover.data() + px);
+                const IntStrip ok = cover != 0.0f;
                 const IntStrip in = load_int_strip(r.inside.data() + px) & ok;
                 const IntStrip idx = load_int_strip(r.index.data() + px);
                 Strip a, b, c, d;

@@ -76,7 +76,7 @@ static void log1p_range(const float* x, float* y, int64_t begin, int64_t end) {
         bad |= ~((u >= lo) & (u <= hi));
         store_strip(y + i, log_normal_strip(u));
     }
-    for (int64_t l = 0; l < S; ++l) outside = outside || bad[l] != 0;
+    outside = any_lane(bad);
     for (; i < end; ++i) {
         const float u = 1.0f + x[i];
         y[i] = log_normal(u);

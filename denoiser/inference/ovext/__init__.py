@@ -42,9 +42,9 @@ code is written once and compiled for the widest, see ``common.hpp``), the machi
   target) is cached and reused;
 * ``$DENOISER_OVEXT_MARCH`` (:data:`MARCH_ENV`, e.g. ``x86-64-v3`` or ``haswell``: AVX2 and FMA)
   builds for that target in place of ``-march=native``, under its own key: a library for the
-  older CPUs of a cluster, or the AVX2 kernels tested on an AVX-512 machine. On x86 a target
-  with an ISA this CPU lacks (its :func:`dispatch_targets` against the ``flags`` line) is
-  refused with that reason, not run into an illegal instruction.
+  older CPUs of a cluster, or the AVX2 kernels tested on an AVX-512 machine. A target that
+  enables an ISA ``-march=native`` does not (an ISA macro the compiler defines for it and not for
+  this CPU) is refused with that reason, not run into an illegal instruction.
 
 The build is atomic: a failed or interrupted build leaves no library behind.
 
@@ -169,7 +169,11 @@ def dispatch_targets(cxx: str, flags: tuple[str, ...]) -> str:
     preprocessor defines, e.g. ``avx2 avx fma sse2``): what the kernels' vector code becomes, in
     the cache key. ``""`` where the compiler cannot say (it does not run, prints no macros, or runs
     past ``$DENOISER_OVEXT_TIMEOUT``)."""
-    defined = _defined_macros(cxx, flags) or set()
+    return _targets_of(_defined_macros(cxx, flags) or set())
+
+
+def _targets_of(defined: set[str]) -> str:
+    """The :data:`TARGET_MACROS` names among the macros ``defined`` (:func:`dispatch_targets`)."""
     return " ".join(dict.fromkeys(name for macro, name in TARGET_MACROS.items() if macro in defined))
 
 
@@ -307,7 +311,7 @@ def _target_flags(cxx: str, cpu: str | None) -> tuple[tuple[str, ...], str]:
     if lacking:
         raise _Unavailable(f"${MARCH_ENV}={march!r} enables {', '.join(lacking)}, which this CPU lacks "
                            f"(-march=native does not)")
-    return flags, dispatch_targets(cxx, flags)
+    return flags, _targets_of(wanted)
 
 
 def _build() -> Path:

@@ -1,5 +1,5 @@
 // The OpenVINO extension's portable SIMD layer (denoiser/inference/ovext/simd.hpp) against plain
-// loops, on whatever ISA this file is compiled for (tests/inference/test_ovext_simd.py builds it for
+// loops, and a row's logit statistics (logit_stats.hpp) against a strip's, on whatever ISA this file is compiled for (tests/inference/test_ovext_simd.py builds it for
 // the compiler's default target, -march=native and, where a cross compiler and QEMU are there,
 // aarch64 NEON). Prints "ok S=<lanes>" and exits 0, or prints the first mismatch and exits 1.
 #include <cmath>
@@ -8,6 +8,7 @@
 #include <random>
 #include <vector>
 
+#include "logit_stats.hpp"
 #include "simd.hpp"
 
 using namespace denoiser;
@@ -42,6 +43,26 @@ int main() {
             for (int64_t i = 0; i < n * C; ++i) expect(same(back[i], last[i]), "channels_last_from_planar", C, i, back[i], last[i]);
             for (int64_t i = n * C; i < n * C + S; ++i) expect(back[i] == -9.0f, "past the row", C, i, back[i], 0);
         }
+
+    // a row's logit statistics (whole strips, several at a time) against one strip's, bit for bit
+    for (int64_t K : {1, 9, 25})
+        for (bool has_scale : {false, true})
+            for (int64_t W : {S - 1, S, 5 * S + 3, 9 * S}) {
+                const int64_t plane = W + 7;
+                std::vector<float> Z(K * plane), mean(W, -9.0f), s(W, -9.0f);
+                for (auto& v : Z) v = uni(rng);
+                const RowStats st = logit_stats_row(Z.data(), plane, K, W, 5.0f, has_scale, mean.data(), s.data());
+                expect(st.n == W / S * S, "logit_stats_row whole strips", W, 0, st.n, W / S * S);
+                for (int64_t px0 = 0; px0 + S <= st.n; px0 += S) {
+                    float m1[S], s1[S];
+                    filter_strip_stats(Z.data(), plane, K, S, px0, 5.0f, has_scale, m1, s1);
+                    for (int64_t l = 0; l < S; ++l) {
+                        expect(same(mean[px0 + l], m1[l]), "logit_stats_row mean", K, px0 + l, mean[px0 + l], m1[l]);
+                        expect(same(s[px0 + l], s1[l]), "logit_stats_row scale", K, px0 + l, s[px0 + l], s1[l]);
+                    }
+                }
+                for (int64_t px = st.n; px < W; ++px) expect(mean[px] == -9.0f, "logit_stats_row past n", K, px, 0, 0);
+            }
 
     // an S x S block transposed between strides
     std::vector<float> src(S * 21), dst(S * 19);

@@ -24,6 +24,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include "logit_stats.hpp"
 #include "simd.hpp"
 
 
@@ -147,29 +148,18 @@ static inline void filter_strip_taps(const SourceRows& X, const float* Z, int64_
 // rows; Z: k*k logit rows `plane` apart.
 template <int NC, bool EDGE>
 static void filter_strip(const SourceRows& X, int64_t C_, int64_t W, const float* Z, int64_t plane, int64_t k,
-                         int64_t px0, float scale, bool has_scale, float* acc_rows, int64_t acc_plane) {
+                         int64_t px0, float scale, bool has_scale, const RowStats& stats, float* acc_rows,
+                         int64_t acc_plane) {
     const int64_t C = NC > 0 ? NC : C_;
     const int64_t r = k / 2, K = k * k, cs = X.cstride;
     const int64_t n = EDGE ? std::min<int64_t>(S, W - px0) : S;
     float mean[S] = {}, s[S], shift[S], sum[S] = {};
     float acc[NC > 0 ? NC : 8][S] = {};
-    for (int64_t t = 0; t < K; ++t) {
-        const float* z = Z + t * plane + px0;
-        for (int64_t l = 0; l < S; ++l) mean[l] += l < n ? z[l] : 0.0f;
-    }
-    for (int64_t l = 0; l < S; ++l) mean[l] *= 1.0f / K;
-    if (has_scale) {
-        float var[S] = {};
-        for (int64_t t = 0; t < K; ++t) {
-            const float* z = Z + t * plane + px0;
-            for (int64_t l = 0; l < S; ++l) {
-                const float d = (l < n ? z[l] : 0.0f) - mean[l];
-                var[l] += d * d;
-            }
-        }
-        for (int64_t l = 0; l < S; ++l) s[l] = scale / std::sqrt(var[l] * (1.0f / K) + 1.0f);
+    if (px0 + S <= stats.n) {  // a whole strip: its statistics from the row's pass (logit_stats_row)
+        std::memcpy(mean, stats.mean + px0, sizeof(mean));
+        std::memcpy(s, stats.s + px0, sizeof(s));
     } else {
-        for (int64_t l = 0; l < S; ++l) s[l] = 1.0f;
+        filter_strip_stats(Z, plane, K, n, px0, scale, has_scale, mean, s);
     }
     if (mean_shift_ok(K, scale, has_scale)) {
         for (int64_t l = 0; l < S; ++l) shift[l] = mean[l] * s[l];
@@ -225,13 +215,13 @@ static void filter_strip(const SourceRows& X, int64_t C_, int64_t W, const float
 
 template <int NC>
 static void filter_row_c(const SourceRows& X, int64_t C, int64_t W, const float* Z, int64_t plane, int64_t k,
-                         float scale, bool has_scale, float* acc, int64_t acc_plane) {
+                         float scale, bool has_scale, const RowStats& stats, float* acc, int64_t acc_plane) {
     const int64_t r = k / 2;
     for (int64_t px0 = 0; px0 < W; px0 += S) {
         if (px0 >= r && px0 + S + r <= W)
-            filter_strip<NC, false>(X, C, W, Z, plane, k, px0, scale, has_scale, acc, acc_plane);
+            filter_strip<NC, false>(X, C, W, Z, plane, k, px0, scale, has_scale, stats, acc, acc_plane);
         else
-            filter_strip<NC, true>(X, C, W, Z, plane, k, px0, scale, has_scale, acc, acc_plane);
+            filter_strip<NC, true>(X, C, W, Z, plane, k, px0, scale, has_scale, stats, acc, acc_plane);
     }
 }
 
@@ -240,14 +230,18 @@ static void filter_row_c(const SourceRows& X, int64_t C, int64_t W, const float*
 // rows `plane` apart.
 static void filter_row(const SourceRows& X, int64_t C, int64_t W, const float* Z, int64_t plane, int64_t k,
                        float scale, bool has_scale, float* acc, int64_t acc_plane) {
-    if (C == 3) return filter_row_c<3>(X, C, W, Z, plane, k, scale, has_scale, acc, acc_plane);
-    if (C == 4) return filter_row_c<4>(X, C, W, Z, plane, k, scale, has_scale, acc, acc_plane);
+    static thread_local std::vector<float> stats_buffer;  // the row's means and scales, kept between rows
+    if (stats_buffer.size() < static_cast<size_t>(2 * W)) stats_buffer.resize(static_cast<size_t>(2 * W));
+    const RowStats stats =
+        logit_stats_row(Z, plane, k * k, W, scale, has_scale, stats_buffer.data(), stats_buffer.data() + W);
+    if (C == 3) return filter_row_c<3>(X, C, W, Z, plane, k, scale, has_scale, stats, acc, acc_plane);
+    if (C == 4) return filter_row_c<4>(X, C, W, Z, plane, k, scale, has_scale, stats, acc, acc_plane);
     for (int64_t c0 = 0; c0 < C; c0 += 8) {  // other channel counts, 8 at a time
         const int64_t cn = std::min<int64_t>(8, C - c0);
         SourceRows part = X;
         for (int64_t i = 0; i < k; ++i)
             if (part.rows[i] != nullptr) part.rows[i] += c0 * X.cstride;
-        filter_row_c<0>(part, cn, W, Z, plane, k, scale, has_scale, acc + c0 * acc_plane, acc_plane);
+        filter_row_c<0>(part, cn, W, Z, plane, k, scale, has_scale, stats, acc + c0 * acc_plane, acc_plane);
     }
 }
 

@@ -128,6 +128,15 @@ static inline void transpose_block(const float* src, int64_t src_stride, float* 
 template <bool TO_PLANAR>
 static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, int64_t stride) {
     int64_t done = 0;
+    if (C % S == 0) {  // whole S x S blocks only (PyramidFilterHead's 16-channel skip): no per-lane tests
+        for (; done + S <= n; done += S)
+            for (int64_t c0 = 0; c0 < C; c0 += S) {
+                if constexpr (TO_PLANAR)
+                    transpose_block(src + done * C + c0, C, dst + c0 * stride + done, stride);
+                else
+                    transpose_block(src + c0 * stride + done, stride, dst + done * C + c0, C);
+            }
+    }
     for (; done + S <= n; done += S)
         for (int64_t c0 = 0; c0 < C; c0 += S) {
             const int64_t nc = std::min<int64_t>(S, C - c0);

@@ -114,21 +114,26 @@ public:
             std::vector<Strip> x(C), h1(M), h2(M), y(N);
             std::vector<const float*> src(C);
             float tile[S * 64];  // one strip's output, channels-last (N <= 64 here; else in pieces)
+            // the row's colour feature, channel by channel, padded with 0 to whole strips (as each
+            // strip's would be): log1p_range over the row at once, not once per strip
+            const int64_t padded = strips * S;
+            std::vector<float> urow(static_cast<size_t>(padded), 0.0f), frow(static_cast<size_t>(m_color * padded));
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t bi = row / H, yy = row % H;
                 for (int64_t c = 0; c < C; ++c) src[c] = planes[c] + bi * per_image[c] + yy * W;
                 float* orow = O + (bi * HW + yy * W) * N;
+                for (int64_t c = 0; c < m_color; ++c) {
+                    int64_t px = 0;
+                    for (; px + S <= W; px += S)
+                        store_strip(urow.data() + px, max_strip(load_strip(src[c] + px), Strip{}) / scale[bi]);
+                    for (; px < W; ++px) urow[px] = std::max(src[c][px], 0.0f) / scale[bi];
+                    log1p_range(urow.data(), frow.data() + c * padded, 0, padded);
+                }
                 for (int64_t s = 0; s < strips; ++s) {
                     const int64_t px0 = s * S, m = std::min<int64_t>(S, W - px0);
                     for (int64_t c = 0; c < C; ++c) {
                         if (c < m_color) {  // the colour feature of the strip (a partial strip's rest is 0)
-                            float u[S] = {}, f[S];
-                            if (m == S)  // as a strip: the loop below stays scalar (a quarter of the op's time)
-                                store_strip(u, max_strip(load_strip(src[c] + px0), Strip{}) / scale[bi]);
-                            else
-                                for (int64_t p = 0; p < m; ++p) u[p] = std::max(src[c][px0 + p], 0.0f) / scale[bi];
-                            log1p_range(u, f, 0, S);
-                            x[c] = load_strip(f);
+                            x[c] = load_strip(frow.data() + c * padded + px0);
                         } else if (m == S) {
                             x[c] = load_strip(src[c] + px0);
                         } else {

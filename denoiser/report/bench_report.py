@@ -87,8 +87,8 @@ def machine_description(info: dict) -> str:
     versions = ", ".join(f"{k} {v}" for k, v in info["versions"].items())
     return (f"CPU: {info['cpu']}, {info['logical_cores']} logical cores ({isa}), {info['threads_requested']} thread(s) "
             f"requested for every method (the threads column: what each engine reports it uses); "
-            f"fp32 matmul peak {info['matmul_peak_gflops']:.1f} GFLOP/s (2048x2048 torch.mm, best of 5, the larger of the "
-            f"measurements before and after the methods); GPU: {info['gpu']}; versions: {versions}; "
+            f"fp32 matmul peak {info['matmul_peak_gflops']:.1f} GFLOP/s (2048x2048, the faster of torch.mm and OpenVINO's MatMul, best of 5, "
+            f"the larger of the measurements before and after the methods); GPU: {info['gpu']}; versions: {versions}; "
             f"OIDN computes in {oidn_dtype(info['isa'])} on this CPU")
 
 

@@ -12,8 +12,8 @@
 // each build's smallest wall time, the median and range of the ratios B / A of the pairs and how many
 // output values differ in their bits between the builds. Where
 // two processes are compared, the time of an operation can move by half between processes on one VM
-// (the same binary: 35 or 53 ms for EmbedNet, steady within a process; the physical pages the
-// planes land on); in one process both builds read the same pages.
+// (the same binary: 35 or 53 ms for EmbedNet, steady within a process, on either vCPU and with huge
+// pages too; the cause is not known); in one process both builds meet the same conditions.
 //
 //   OV=$(.venv/bin/python -c 'import openvino, os; print(os.path.dirname(openvino.__file__))')
 //   g++ -O3 -fno-math-errno -std=c++17 -march=native -I$OV/include scripts/ovext_op_bench.cpp \

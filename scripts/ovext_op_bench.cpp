@@ -48,27 +48,15 @@
 #include <ctime>
 namespace ext_a {}
 namespace ext_b {}
-struct A {  // the operations of each build, by name
-    template <class... X> static auto PyramidFilterHead(X&&... x) { return std::make_shared<ext_a::PyramidFilterHead>(x...); }
-    template <class... X> static auto EmbedNet(X&&... x) { return std::make_shared<ext_a::EmbedNet>(x...); }
-    template <class... X> static auto WarpHistory(X&&... x) { return std::make_shared<ext_a::WarpHistory>(x...); }
-    template <class... X> static auto GuideGate(X&&... x) { return std::make_shared<ext_a::GuideGate>(x...); }
-    template <class... X> static auto ClampBlend(X&&... x) { return std::make_shared<ext_a::ClampBlend>(x...); }
-    template <class... X> static auto GuideFeatures(X&&... x) { return std::make_shared<ext_a::GuideFeatures>(x...); }
-    template <class... X> static auto FactoredHead(X&&... x) { return std::make_shared<ext_a::FactoredHead>(x...); }
-    template <class... X> static auto ColorFeature(X&&... x) { return std::make_shared<ext_a::ColorFeature>(x...); }
-};
+// the operations of each build, by name: A::EmbedNet(args...) makes ext_a's
+#define OP(ns, name) \
+    template <class... X> static auto name(X&&... x) { return std::make_shared<ns::name>(x...); }
+#define OPS(ns) \
+    OP(ns, PyramidFilterHead) OP(ns, EmbedNet) OP(ns, WarpHistory) OP(ns, GuideGate) OP(ns, ClampBlend) \
+    OP(ns, GuideFeatures) OP(ns, FactoredHead) OP(ns, ColorFeature)
+struct A { OPS(ext_a) };
 #ifdef EXT_B
-struct B {
-    template <class... X> static auto PyramidFilterHead(X&&... x) { return std::make_shared<ext_b::PyramidFilterHead>(x...); }
-    template <class... X> static auto EmbedNet(X&&... x) { return std::make_shared<ext_b::EmbedNet>(x...); }
-    template <class... X> static auto WarpHistory(X&&... x) { return std::make_shared<ext_b::WarpHistory>(x...); }
-    template <class... X> static auto GuideGate(X&&... x) { return std::make_shared<ext_b::GuideGate>(x...); }
-    template <class... X> static auto ClampBlend(X&&... x) { return std::make_shared<ext_b::ClampBlend>(x...); }
-    template <class... X> static auto GuideFeatures(X&&... x) { return std::make_shared<ext_b::GuideFeatures>(x...); }
-    template <class... X> static auto FactoredHead(X&&... x) { return std::make_shared<ext_b::FactoredHead>(x...); }
-    template <class... X> static auto ColorFeature(X&&... x) { return std::make_shared<ext_b::ColorFeature>(x...); }
-};
+struct B { OPS(ext_b) };
 #endif
 static std::mt19937 rng(1);
 static ov::Tensor T(ov::Shape s, float lo = 0.f, float hi = 1.f) {

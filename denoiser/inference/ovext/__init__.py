@@ -1,7 +1,8 @@
 """The project's OpenVINO CPU extension: the kernel filters as single operations, one C++
 header per operation (``kernel_apply.hpp``, ``pyramid_filter.hpp``, ``pyramid_filter_head.hpp``,
 ``embed_net.hpp``, ``log1p.hpp``, ``color_feature.hpp``, ``guide_features.hpp``, ``factored_head.hpp``,
-``clamp_blend.hpp``, ``guide_gate.hpp``, with ``common.hpp``), registered
+``clamp_blend.hpp``, ``guide_gate.hpp``, ``warp_history.hpp``, with ``common.hpp``, ``logit_stats.hpp`` and
+``simd.hpp``), registered
 in ``extension.cpp``, the one file
 compiled; their names, inputs and attributes are :data:`denoiser.nn.graph_ops.OPERATIONS`. ``denoiser::KernelApply`` is the per-pixel kernel filter
 (:func:`denoiser.nn.kernels.apply_kernels_graph`), ``denoiser::PyramidFilter`` the whole

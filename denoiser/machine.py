@@ -5,9 +5,9 @@ report names and divides by.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from denoiser.measure import Clock, summarize
@@ -69,55 +69,24 @@ def has_bf16(isa: dict[str, bool] | None = None) -> bool:
     return bool(isa.get("avx512_bf16") or isa.get("amx_bf16"))
 
 
-def torch_matmul_peak(size: int = 2048, repeats: int = 5, dtype: torch.dtype = torch.float32, warmup: int = 2) -> float:
-    """GFLOP/s of a ``size`` x ``size`` matrix product ``torch.mm`` on the CPU in ``dtype``
-    (fastest of ``repeats`` after ``warmup`` untimed products). A 1024 product, once warmed up
-    only once, read 163-199 GFLOP/s on the same idle 2 cores as 2048 with two."""
-    a, b = torch.randn(size, size).to(dtype), torch.randn(size, size).to(dtype)
+def product_rate(run: Callable[[], object], size: int, repeats: int = 5, warmup: int = 2) -> float:
+    """GFLOP/s of ``run()``, one ``size`` x ``size`` by ``size`` x ``size`` matrix product
+    (``2 size^3`` operations): the fastest of ``repeats`` calls after ``warmup`` untimed ones."""
     for _ in range(warmup):
-        torch.mm(a, b)
+        run()
     runs = []
     for _ in range(repeats):
         with Clock() as clock:
-            torch.mm(a, b)
-        runs.append(clock.wall)
-    return 2 * size**3 / summarize(runs)["min"] / 1e9
-
-
-def openvino_matmul_peak(size: int = 2048, repeats: int = 5, warmup: int = 2) -> float | None:
-    """GFLOP/s of the same f32 product as an OpenVINO ``MatMul`` compiled for the CPU on
-    ``torch.get_num_threads()`` threads (fastest of ``repeats`` after ``warmup``); None without
-    OpenVINO. Where torch's MKL takes a narrower path than the CPU has (AVX2 code on AMD CPUs
-    with AVX-512: 138 GFLOP/s on 2 cores of the AMD EPYC family 26, whose student graph ran at
-    230), this is the peak the graphs' engine reaches."""
-    try:
-        import openvino as ov
-        from openvino import opset8 as ops
-    except ImportError:
-        return None
-    a = ops.parameter([size, size], ov.Type.f32)
-    b = ops.constant(np.random.default_rng(0).standard_normal((size, size), dtype=np.float32))
-    model = ov.Model([ops.matmul(a, b, False, False)], [a])
-    compiled = ov.Core().compile_model(model, "CPU", {"INFERENCE_NUM_THREADS": torch.get_num_threads(),
-                                                      "INFERENCE_PRECISION_HINT": "f32"})
-    request = compiled.create_infer_request()
-    x = np.random.default_rng(1).standard_normal((size, size), dtype=np.float32)
-    for _ in range(warmup):
-        request.infer([x])
-    runs = []
-    for _ in range(repeats):
-        with Clock() as clock:
-            request.infer([x])
+            run()
         runs.append(clock.wall)
     return 2 * size**3 / summarize(runs)["min"] / 1e9
 
 
 def matmul_peak(size: int = 2048, repeats: int = 5, dtype: torch.dtype = torch.float32, warmup: int = 2) -> float:
-    """The machine's practical matmul peak, GFLOP/s: the faster of ``torch.mm``
-    (:func:`torch_matmul_peak`) and, in f32, OpenVINO's ``MatMul`` (:func:`openvino_matmul_peak`)
-    on a ``size`` x ``size`` product, each the fastest of ``repeats`` after ``warmup``. The
-    defaults (2048, two warm-up products, best of 5) are what every benchmark uses."""
-    peak = torch_matmul_peak(size, repeats, dtype, warmup)
-    if dtype == torch.float32:
-        peak = max(peak, openvino_matmul_peak(size, repeats, warmup) or 0.0)
-    return peak
+    """GFLOP/s of a ``size`` x ``size`` matrix product ``torch.mm`` on the CPU in ``dtype``
+    (:func:`product_rate`): torch's practical peak (with OpenVINO's beside it, the graphs' peak is
+    :func:`denoiser.inference.peak.engines_matmul_peak`). The defaults (2048, two warm-up
+    products, best of 5) are what every benchmark uses; a 1024 product, once warmed up only once,
+    read 163-199 GFLOP/s on the same idle 2 cores."""
+    a, b = torch.randn(size, size).to(dtype), torch.randn(size, size).to(dtype)
+    return product_rate(lambda: torch.mm(a, b), size, repeats, warmup)

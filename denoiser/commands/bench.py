@@ -83,7 +83,8 @@ import torch
 from omegaconf import DictConfig
 
 from denoiser.configs import plain
-from denoiser.machine import cpu_isa, matmul_peak
+from denoiser.inference.peak import engines_matmul_peak
+from denoiser.machine import cpu_isa
 from denoiser.report.bench_report import (
     COLUMNS,
     FORMATS,
@@ -112,10 +113,10 @@ def run(cfg: DictConfig) -> list[dict]:
                                    samples=baselines_use_samples(cfg.get("baselines")))
     # the peak before and after the methods, the larger one counts (a share of the peak must
     # not look better because the machine was briefly slower when the peak was taken)
-    peak_before = matmul_peak()
+    peak_before = engines_matmul_peak()
     versions, isa = engine_versions(), cpu_isa()
     rows, checks = run_benchmark(cfg, frames, threads, versions, isa)
-    peak = max(peak_before, matmul_peak())
+    peak = max(peak_before, engines_matmul_peak())
     for r in rows:
         if r.get("device") == "cpu" and "gflops_per_s" in r:
             r["peak_fraction"] = r["gflops_per_s"] / peak

@@ -102,7 +102,7 @@ def render(csv: Path = CSV) -> str:
              "the student and OIDN-fast timed in the same interleaved rounds on the same frames; speed-up = OIDN-fast "
              "ms / student ms, the median of the per-round ratios with its distribution-free interval. Rows of "
              "different runs are different machines or loads: compare ratios, not milliseconds. Of fp32 peak: the "
-             "student's GFLOP/s over the run's matmul peak (denoiser.machine.matmul_peak), since 2026-12-02 the "
+             "student's GFLOP/s over the run's matmul peak (denoiser.inference.peak.engines_matmul_peak), since 2026-12-02 the "
              "faster of torch.mm and OpenVINO's MatMul; earlier rows took torch.mm alone, whose MKL runs AVX2 code "
              "on AMD CPUs with AVX-512 (so those rows read above 100% on the family 26 EPYC)."), ""]
     for klass in ("AMX", "AVX-512 + BF16", "AVX-512", "AVX2", "other"):

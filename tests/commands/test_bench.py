@@ -426,7 +426,7 @@ def test_share_of_the_peak_uses_the_larger_of_the_peaks_before_and_after(setup, 
     import denoiser.commands.bench as bench_module
 
     peaks = iter([100.0, 250.0])
-    monkeypatch.setattr(bench_module, "matmul_peak", lambda *a, **k: next(peaks))
+    monkeypatch.setattr(bench_module, "engines_matmul_peak", lambda *a, **k: next(peaks))
     root, ckpt = setup
     out = tmp_path / "bench"
     rows = bench_module.run(compose("bench", ["data=tiny", f"data.root={root / 'data'}", "threads=1", f"ckpt=[{ckpt}]",

@@ -289,7 +289,7 @@ def run(cfg: DictConfig) -> list[dict]:
 
     from denoiser.configs import build_net, compose_net_config
     from denoiser.inference.backends import backend_names
-    from denoiser.machine import has_bf16, torch_matmul_peak
+    from denoiser.machine import has_bf16, matmul_peak
     from denoiser.measure import count_flops
 
     names = [*backend_names(), *(v for v in VARIANTS if v not in BACKEND_VARIANTS)]
@@ -306,9 +306,9 @@ def run(cfg: DictConfig) -> list[dict]:
         del net
 
     started = time.time()
-    peak = torch_matmul_peak()  # the eager networks against torch's own product (the label below)
+    peak = matmul_peak()
     # a CPU without native bf16 runs the bf16 product on a reference path: minutes, and no peak
-    bf16 = f"bf16 {torch_matmul_peak(dtype=torch.bfloat16):.1f} GFLOP/s" if has_bf16() else \
+    bf16 = f"bf16 {matmul_peak(dtype=torch.bfloat16):.1f} GFLOP/s" if has_bf16() else \
         "bf16 not measured (the CPU has no AVX512-BF16 or AMX-BF16)"
     print(f"# bench_networks: torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}, load average {os.getloadavg()[0]:.1f}")

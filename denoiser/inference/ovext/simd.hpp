@@ -80,13 +80,12 @@ static inline Strip lane_index() {
     return v;
 }
 
-// floor per lane, as std::floor: t = trunc(x) through int32 (exact for |x| < 2^23, where a float
-// can have a fraction), minus 1 where that rounded up; integers (-0 too), |x| >= 2^23 and NaN unchanged.
+// floor per lane, as std::floor, for |x| < 2^31 (the caller bounds x): t = trunc(x) through int32
+// (exact there: integers above 2^23 too), minus 1 where that rounded up. -0 gives +0; NaN and
+// |x| >= 2^31 are not handled (four instructions where the general floor takes ten).
 static inline Strip floor_strip(Strip x) {
     const Strip t = __builtin_convertvector(__builtin_convertvector(x, IntStrip), Strip);
-    const Strip fl = t > x ? t - 1.0f : t;
-    const Strip ax = x < 0.0f ? -x : x;
-    return (ax < 8388608.0f) & (t != x) ? fl : x;
+    return t > x ? t - 1.0f : t;
 }
 
 // Lane j of the result: lane j of a where bit D of j is clear, else lane j - D of b (HI: lane j + D
@@ -136,6 +135,23 @@ static inline void relayout(const float* src, float* dst, int64_t C, int64_t n, 
                 else
                     transpose_block(src + c0 * stride + done, stride, dst + done * C + c0, C);
             }
+    }
+    if (C < S) {  // the blocks whose every pixel's strip lies within the row: no per-lane tests either
+        // (a planar source's rows past C: its last row again, whose lanes are dropped or overwritten)
+        const int64_t reach = (S + C - 1) / C;  // pixels one strip of channels-last floats spans
+        for (; done + S - 1 + reach <= n; done += S) {
+            Strip r[S];
+            for (int64_t i = 0; i < S; ++i)
+                r[i] = TO_PLANAR ? load_strip(src + (done + i) * C) : load_strip(src + std::min(i, C - 1) * stride + done);
+            transpose_regs(r);
+            for (int64_t i = 0; i < S; ++i) {
+                if constexpr (TO_PLANAR) {
+                    if (i < C) store_strip(dst + i * stride + done, r[i]);
+                } else {
+                    store_strip(dst + (done + i) * C, r[i]);
+                }
+            }
+        }
     }
     for (; done + S <= n; done += S)
         for (int64_t c0 = 0; c0 < C; c0 += S) {

@@ -30,8 +30,10 @@ struct WarpRow {
     std::vector<int32_t> index;
     std::vector<float> nw, ne, sw, se, cover;
     std::vector<int32_t> inside;
-    // per strip of S pixels (gather_row): where the corners' window starts (-1: gathers)
-    std::vector<int32_t> start;
+    // per strip of S pixels (gather_row): twice where the corners' window starts, plus 1 where no
+    // lane needs a select (-1: gathers, -2: nothing covered); a picked strip's index then holds its
+    // lanes' offsets from that start
+    std::vector<int64_t> start;
     explicit WarpRow(int64_t W) : index(W), nw(W), ne(W), sw(W), se(W), cover(W), inside(W), start(W / S) {}
 };
 
@@ -127,7 +129,12 @@ public:
         float* valid = outputs[n].data<float>();
         const float* M = inputs[0].data<const float>();
         const float* keep = inputs[1].data<const float>();
-        const float limit = m_motion_limit * static_cast<float>(std::max(H, W));
+        // the clamp at 2^30 (and the outside position's, a NaN one far outside as torch's sampler
+        // takes it) moves no position into the image (W, H < 2^30 - 2 by the size check above)
+        // and keeps every position below 2^31 for floor_strip
+        constexpr float FAR = 1073741824.0f;
+        const float limit = std::min(m_motion_limit * static_cast<float>(std::max(H, W)), FAR);
+        const float outside = std::isnan(m_outside) ? -FAR : std::min(std::max(m_outside, -FAR), FAR);
         int64_t last_channels = 0;  // the channels-last buffers' rows are gathered planar first
         for (size_t i = 0; i < n; ++i) last_channels += last(i) ? channels[i] : 0;
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
@@ -140,7 +147,7 @@ public:
                 const bool kept = keep[b] != 0.0f;
                 const float* mx = M + (b * 2) * HW + y * W;
                 const float* my = mx + HW;
-                sample_row(mx, my, W, H, y, kept, limit, r, valid + b * HW + y * W);
+                sample_row(mx, my, W, H, y, kept, limit, outside, r, valid + b * HW + y * W);
                 planes.clear(), rows_out.clear();
                 for (size_t i = 0, p = 0; i < n; ++i)
                     for (int64_t c = 0; c < channels[i]; ++c) {
@@ -167,7 +174,7 @@ private:
     __attribute__((optimize("fp-contract=off")))
 #endif
     void sample_row(const float* mx, const float* my, int64_t W, int64_t H, int64_t y, bool kept, float limit,
-                    WarpRow& r, float* valid) const {
+                    float outside, WarpRow& r, float* valid) const {
 #if defined(__clang__)
 #pragma clang fp contract(off)
 #endif
@@ -191,7 +198,7 @@ private:
             };
             for (; px + S <= W; px += S) {
                 const Strip dx = clean(load_strip(mx + px)), dy = clean(load_strip(my + px));
-                const Strip sx = kept ? (lanes + static_cast<float>(px)) + dx : Strip{} + m_outside;
+                const Strip sx = kept ? (lanes + static_cast<float>(px)) + dx : Strip{} + outside;
                 const Strip sy = static_cast<float>(y) + dy;
                 const Strip gx = (sx + 0.5f) * gx_scale - 1.0f, gy = (sy + 0.5f) * gy_scale - 1.0f;
                 const Strip ix = (gx + 1.0f) * halfW - 0.5f, iy = (gy + 1.0f) * halfH - 0.5f;
@@ -218,7 +225,7 @@ private:
         for (; px < W; ++px) {
             const float dx = std::min(std::max(sanitized(mx[px], m_posinf), -limit), limit);
             const float dy = std::min(std::max(sanitized(my[px], m_posinf), -limit), limit);
-            const float sx = kept ? static_cast<float>(px) + dx : m_outside;
+            const float sx = kept ? static_cast<float>(px) + dx : outside;
             const float sy = static_cast<float>(y) + dy;
             const float gx = (sx + 0.5f) * gx_scale - 1.0f, gy = (sy + 0.5f) * gy_scale - 1.0f;
             const float ix = (gx + 1.0f) * halfW - 0.5f, iy = (gy + 1.0f) * halfH - 0.5f;  // torch's CPU sampler
@@ -247,7 +254,9 @@ private:
     // within 2 S floats of one another (motion that varies by less than S - 1 pixels across them),
     // the two rows' windows of 2 S floats are loaded once per plane and the corners picked from
     // them (pick2: one or two permutes, where a gather costs several times more); elsewhere, and
-    // without pick2, the corners are loaded one by one.
+    // without pick2, the corners are loaded one by one. What does not depend on the plane is
+    // worked out once per strip: whether it is picked, and whether every pixel of it is covered
+    // with its four corners in the image (then no lane needs a select: most strips of a frame).
 #if defined(__GNUC__) && !defined(__clang__)
     __attribute__((optimize("fp-contract=off")))
 #endif
@@ -257,12 +266,10 @@ private:
 #pragma clang fp contract(off)
 #endif
         const size_t np = planes.size();
-        int64_t done = 0;  // pixels the vector loop covers
-        // per strip of S pixels, once for every plane: where the corners' window starts (-1: gathers)
-        const int64_t strips = W / S;
-        done = strips * S;
-        int32_t* start = r.start.data();  // kept in r: no allocation per row
-        constexpr int32_t NONE = -2;      // no pixel of the strip is covered: zeros
+        const int64_t strips = W / S, done = strips * S;  // done: the pixels the vector loop covers
+        int64_t* start = r.start.data();  // kept in r: no allocation per row
+        int32_t* index = r.index.data();  // a picked strip's lanes: relative to its window's start
+        constexpr int64_t NONE = -2;      // no pixel of the strip is covered: zeros
         for (int64_t j = 0; j < strips; ++j) {
             const int64_t px = j * S;
             const IntStrip ok = load_strip(r.cover.data() + px) != 0.0f;
@@ -270,12 +277,20 @@ private:
                 start[j] = NONE;
                 continue;
             }
-            const IntStrip used = ok & (load_int_strip(r.inside.data() + px) != 0);
-            const IntStrip idx = load_int_strip(r.index.data() + px);
+            const IntStrip in = load_int_strip(r.inside.data() + px);
+            const IntStrip used = ok & (in != 0);
+            const IntStrip idx = load_int_strip(index + px);
             int32_t lo = lane_min(used != 0 ? idx : IntStrip{} + std::numeric_limits<int32_t>::max());
             int32_t hi = lane_max(used != 0 ? idx : IntStrip{} + std::numeric_limits<int32_t>::min());
             if (lo > hi) lo = hi = 0;
-            start[j] = PICK && hi - lo <= 2 * S - 2 && lo >= 0 && static_cast<int64_t>(lo) + W + 2 * S <= HW ? lo : -1;
+            const bool pick = PICK && hi - lo <= 2 * S - 2 && lo >= 0 && static_cast<int64_t>(lo) + W + 2 * S <= HW;
+            if (!pick) {
+                start[j] = -1;
+                continue;
+            }
+            store_int_strip(index + px, idx - lo);
+            // 2 lo + 1 >= 1: every lane covered, all four corners in the image; 2 lo >= 0: selects
+            start[j] = 2 * static_cast<int64_t>(lo) + (any_lane(~(ok & (in == 15))) ? 0 : 1);
         }
         // plane by plane (a few memory streams at a time, not two rows of every plane at once)
         for (size_t k = 0; k < np; ++k) {
@@ -283,27 +298,33 @@ private:
             float* out = outs[k];
             for (int64_t j = 0; j < strips; ++j) {
                 const int64_t px = j * S;
-                if (start[j] == NONE) {
+                const int64_t st = start[j];
+                if (st == NONE) {
                     store_strip(out + px, Strip{});
                     continue;
                 }
                 const Strip cover = load_strip(r.cover.data() + px);
-                const IntStrip ok = cover != 0.0f;
-                const IntStrip in = load_int_strip(r.inside.data() + px) & ok;
-                const IntStrip idx = load_int_strip(r.index.data() + px);
+                const bool full = st >= 0 && (st & 1) != 0;
                 Strip a, b, c, d;
-                if (start[j] >= 0) {  // the corners picked from two rows' windows of 2 S floats
-                    const int32_t lo = start[j];
-                    const IntStrip rel = idx - lo, rel1 = rel + 1;
+                if (st >= 0) {  // the corners picked from two rows' windows of 2 S floats
+                    const int64_t lo = st >> 1;
+                    const IntStrip rel = load_int_strip(index + px), rel1 = rel + 1;
                     const Strip t0 = load_strip(plane + lo), t1 = load_strip(plane + lo + S);
                     const Strip b0 = load_strip(plane + lo + W), b1 = load_strip(plane + lo + W + S);
-                    a = (in & 1) != 0 ? pick2(t0, t1, rel) : Strip{};
-                    b = (in & 2) != 0 ? pick2(t0, t1, rel1) : Strip{};
-                    c = (in & 4) != 0 ? pick2(b0, b1, rel) : Strip{};
-                    d = (in & 8) != 0 ? pick2(b0, b1, rel1) : Strip{};
+                    a = pick2(t0, t1, rel), b = pick2(t0, t1, rel1);
+                    c = pick2(b0, b1, rel), d = pick2(b0, b1, rel1);
+                    if (!full) {  // some corner outside the image, or some pixel not covered
+                        const IntStrip in = load_int_strip(r.inside.data() + px);
+                        a = (in & 1) != 0 ? a : Strip{};
+                        b = (in & 2) != 0 ? b : Strip{};
+                        c = (in & 4) != 0 ? c : Strip{};
+                        d = (in & 8) != 0 ? d : Strip{};
+                    }
                 } else {
+                    const IntStrip idx = load_int_strip(index + px);
+                    const IntStrip in = load_int_strip(r.inside.data() + px);
                     for (int64_t l = 0; l < S; ++l) {
-                        const int32_t i = idx[l], m = in[l];
+                        const int32_t i = idx[l], m = cover[l] != 0.0f ? in[l] : 0;
                         a[l] = (m & 1) ? plane[i] : 0.0f;
                         b[l] = (m & 2) ? plane[i + 1] : 0.0f;
                         c[l] = (m & 4) ? plane[i + W] : 0.0f;
@@ -314,7 +335,7 @@ private:
                 v = v + b * load_strip(r.ne.data() + px);
                 v = v + c * load_strip(r.sw.data() + px);
                 v = v + d * load_strip(r.se.data() + px);
-                store_strip(out + px, ok != 0 ? v / cover : Strip{});
+                store_strip(out + px, full ? v / cover : cover != 0.0f ? v / cover : Strip{});
             }
         }
         for (int64_t px = done; px < W; ++px) {

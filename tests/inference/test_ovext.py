@@ -535,7 +535,7 @@ def export_clamp_blend(path, k: float, *inputs):
 
 
 @needs_extension
-@pytest.mark.parametrize(("hw", "k"), [((7, 11), 1.0), ((1, 5), 0.5), ((4, 1), 2.0), ((33, 47), 1.0)])
+@pytest.mark.parametrize(("hw", "k"), [((7, 11), 1.0), ((1, 5), 0.5), ((4, 1), 2.0), ((3, 2), 1.0), ((2, 3), 1.5), ((33, 47), 1.0)])
 def test_clamp_blend_matches_the_loop_over_pixels(tmp_path, hw, k):
     """``denoiser::ClampBlend`` (the history clamp and blend of
     :class:`~denoiser.nn.temporal.TemporalRecurrence`) against a loop over pixels and against

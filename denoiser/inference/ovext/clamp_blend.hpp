@@ -14,7 +14,8 @@
 namespace denoiser {
 
 // One row of one channel: out[px] for px in [0, W). r0, r1, r2: base rows y - 1, y, y + 1 (edges
-// replicated), each padded by one replicated value at both ends (W + 2 floats, index px + 1 is px).
+// replicated), pixel px's three neighbours in each at px, px + 1, px + 2 (W + 2 floats: a row one
+// pixel to the left of the output's, read in place, or a copy padded by its replicated ends).
 // A strip of S pixels at a time (the compilers leave the pixel loop scalar), the same operations
 // in the same order for the rest.
 static inline void clamp_blend_row(const float* __restrict r0, const float* __restrict r1,
@@ -106,20 +107,36 @@ public:
         const float* A = inputs[2].data<const float>();
         float* O = outputs[0].data<float>();
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
-            std::vector<float> pad(static_cast<size_t>(3 * (W + 2)));
+            std::vector<float> pad(3 * 3);  // an edge pixel's 3 x 3 neighbourhood (W >= 3), or three padded rows
+            if (W < 3) pad.resize(static_cast<size_t>(3 * (W + 2)));
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
                 for (int64_t c = 0; c < C; ++c) {
                     const float* plane = X + (b * C + c) * HW;
-                    for (int64_t i = 0; i < 3; ++i) {  // rows y - 1, y, y + 1, replicated at the edges
-                        const int64_t yy = std::min(std::max(y + i - 1, int64_t(0)), H - 1);
-                        float* p = pad.data() + i * (W + 2);
-                        std::memcpy(p + 1, plane + yy * W, W * sizeof(float));
-                        p[0] = p[1], p[W + 1] = p[W];
+                    const float* src[3];  // rows y - 1, y, y + 1, replicated at the edges
+                    for (int64_t i = 0; i < 3; ++i)
+                        src[i] = plane + std::min(std::max(y + i - 1, int64_t(0)), H - 1) * W;
+                    const int64_t o = (b * C + c) * HW + y * W;
+                    if (W < 3) {  // both ends at once: the rows copied with their padding
+                        for (int64_t i = 0; i < 3; ++i) {
+                            float* p = pad.data() + i * (W + 2);
+                            std::memcpy(p + 1, src[i], W * sizeof(float));
+                            p[0] = p[1], p[W + 1] = p[W];
+                        }
+                        clamp_blend_row(pad.data(), pad.data() + (W + 2), pad.data() + 2 * (W + 2), P + o,
+                                        A + b * HW + y * W, m_k, W, O + o);
+                        continue;
                     }
-                    clamp_blend_row(pad.data(), pad.data() + (W + 2), pad.data() + 2 * (W + 2),
-                                    P + (b * C + c) * HW + y * W, A + b * HW + y * W, m_k, W,
-                                    O + (b * C + c) * HW + y * W);
+                    // the inner pixels 1 .. W - 2 read the rows in place (pixel px + 1's neighbours
+                    // at px .. px + 2); the two end pixels from their neighbourhoods, replicated
+                    clamp_blend_row(src[0], src[1], src[2], P + o + 1, A + b * HW + y * W + 1, m_k, W - 2, O + o + 1);
+                    for (const int64_t px : {int64_t(0), W - 1}) {
+                        const int64_t l = std::max<int64_t>(px - 1, 0), r = std::min<int64_t>(px + 1, W - 1);
+                        for (int64_t i = 0; i < 3; ++i)
+                            pad[i * 3] = src[i][l], pad[i * 3 + 1] = src[i][px], pad[i * 3 + 2] = src[i][r];
+                        clamp_blend_row(pad.data(), pad.data() + 3, pad.data() + 6, P + o + px,
+                                        A + b * HW + y * W + px, m_k, 1, O + o + px);
+                    }
                 }
             }
         });

@@ -79,6 +79,8 @@ SOURCE = Path(__file__).with_name("extension.cpp")
 SOURCES = tuple(sorted([SOURCE, *Path(__file__).parent.glob("*.hpp")]))
 #: compiler flags (part of the cache key); :data:`NATIVE` is added where the CPU's flags are known.
 #: ``-fno-math-errno``: ``std::sqrt`` then vectorises (errno is never read; the values are the same)
+# a target's ISA macros (__AVX2__, __AVX512F__): upper case, where the CPU names' (__znver4__) are lower
+ISA_MACRO = re.compile(r"__[A-Z][A-Z0-9_]*__")
 FLAGS = ("-O3", "-fno-math-errno", "-std=c++17", "-fPIC", "-shared", "-fvisibility=hidden")
 NATIVE = "-march=native"
 #: the CPU description whose ``flags`` line keys (and allows) a ``-march=native`` build
@@ -307,8 +309,7 @@ def _target_flags(cxx: str, cpu: str | None) -> tuple[tuple[str, ...], str]:
     if wanted is None:
         raise _Unavailable(f"${MARCH_ENV}={march!r}: {cxx} does not know that target (-march={march})")
     native = _defined_macros(cxx, (*FLAGS, NATIVE))
-    isa = re.compile(r"__[A-Z][A-Z0-9_]*__")  # ISA macros are upper case; the CPU names' (__znver4__) lower
-    lacking = sorted(m.strip("_").lower() for m in wanted - (native or wanted) if isa.fullmatch(m))
+    lacking = sorted(m.strip("_").lower() for m in wanted - (native or wanted) if ISA_MACRO.fullmatch(m))
     if lacking:
         raise _Unavailable(f"${MARCH_ENV}={march!r} enables {', '.join(lacking)}, which this CPU lacks "
                            f"(-march=native does not)")

@@ -107,8 +107,7 @@ public:
         const float* A = inputs[2].data<const float>();
         float* O = outputs[0].data<float>();
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
-            std::vector<float> pad(3 * 3);  // an edge pixel's 3 x 3 neighbourhood (W >= 3), or three padded rows
-            if (W < 3) pad.resize(static_cast<size_t>(3 * (W + 2)));
+            float pad[3 * 4];  // an end pixel's 3 x 3 neighbourhood (W >= 3), or three padded rows (W + 2 <= 4)
             for (int64_t row = rows.begin(); row != rows.end(); ++row) {
                 const int64_t b = row / H, y = row % H;
                 for (int64_t c = 0; c < C; ++c) {
@@ -119,11 +118,11 @@ public:
                     const int64_t o = (b * C + c) * HW + y * W;
                     if (W < 3) {  // both ends at once: the rows copied with their padding
                         for (int64_t i = 0; i < 3; ++i) {
-                            float* p = pad.data() + i * (W + 2);
+                            float* p = pad + i * (W + 2);
                             std::memcpy(p + 1, src[i], W * sizeof(float));
                             p[0] = p[1], p[W + 1] = p[W];
                         }
-                        clamp_blend_row(pad.data(), pad.data() + (W + 2), pad.data() + 2 * (W + 2), P + o,
+                        clamp_blend_row(pad, pad + (W + 2), pad + 2 * (W + 2), P + o,
                                         A + b * HW + y * W, m_k, W, O + o);
                         continue;
                     }
@@ -134,7 +133,7 @@ public:
                         const int64_t l = std::max<int64_t>(px - 1, 0), r = std::min<int64_t>(px + 1, W - 1);
                         for (int64_t i = 0; i < 3; ++i)
                             pad[i * 3] = src[i][l], pad[i * 3 + 1] = src[i][px], pad[i * 3 + 2] = src[i][r];
-                        clamp_blend_row(pad.data(), pad.data() + 3, pad.data() + 6, P + o + px,
+                        clamp_blend_row(pad, pad + 3, pad + 6, P + o + px,
                                         A + b * HW + y * W + px, m_k, 1, O + o + px);
                     }
                 }

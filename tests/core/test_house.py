@@ -427,3 +427,19 @@ def test_the_first_layout_checkpoint_loads_as_a_training_module():
     module = SupervisedModule.load_from_checkpoint(FIXTURES / "student_v0.ckpt", map_location="cpu",
                                                    weights_only=True)
     assert type(module.loss) is DenoiseLoss
+
+
+def test_every_path_to_the_checkout_names_the_checkout():
+    """A module's ``ROOT``/``CHECKOUT = Path(__file__).resolve().parents[n]`` (the checkout, for the
+    scripts, configs and train.py it runs) points at the directory holding pyproject.toml: a module
+    moved one package deeper once ran ``denoiser/train.py``, which does not exist."""
+    package = Path(denoiser.__file__).resolve().parent
+    pattern = re.compile(r"^(ROOT|CHECKOUT) = Path\(__file__\)\.resolve\(\)\.parents\[\d\]", re.MULTILINE)
+    found = []
+    for path in sorted(package.rglob("*.py")):
+        for match in pattern.finditer(path.read_text()):
+            module = ".".join(path.relative_to(package.parent).with_suffix("").parts)
+            found.append((module, match.group(1)))
+            root = getattr(importlib.import_module(module), match.group(1))
+            assert (root / "pyproject.toml").is_file() and (root / "denoiser").is_dir(), (module, root)
+    assert len(found) >= 4, found  # ledger, cpu_speed, gpu_check, render_blender at least

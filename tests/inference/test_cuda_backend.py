@@ -297,3 +297,29 @@ def test_gpu_check_evaluates_a_gpu_trained_checkpoint_on_this_cpu(tmp_path):
 
     (row,) = ledger.read(tmp_path / "ledger.csv")  # the look at the test split, with its purpose
     assert row["purpose"].startswith("make gpu-check") and row["checkpoints"] == "gpu.ckpt"
+    assert (tmp_path / "eval" / ".hydra" / "overrides.yaml").is_file()  # Hydra's record beside the metrics
+
+
+def test_gpu_check_training_run_trains_from_the_checkout(tmp_path):
+    """The training-run section runs the checkout's ``train.py`` (a tiny run on the CPU here) into
+    <out>/train: a checkpoint, exit 0, the data module's rate. The module's path to the checkout
+    once pointed into the package (``denoiser/train.py``, absent) after a move of the module."""
+    from helpers.configs import compose_command
+    from helpers.eval_data import write_dataset
+
+    from denoiser.commands.tools.gpu_check import ROOT, Report, code_commit, train_run
+
+    assert (ROOT / "train.py").is_file() and (ROOT / "pyproject.toml").is_file()
+    root = write_dataset(tmp_path / "demo", split="train", sequences=1, frames=4, size=32)
+    overrides = ["experiment=demo", "net=tiny", "kernel=student", "threads=1", "trainer.max_steps=2",
+                 "trainer.enable_progress_bar=false", "callbacks.progress=null", "model.image_interval=0",
+                 "data.extra_share=null", "data.extra_roots=[]", "data.window=2", "data.crop=16",
+                 "data.batch_size=1", "data.num_workers=0", "data.pin_memory=false"]
+    cfg = compose_command("gpu_check", [f"out={tmp_path}", "train_run.loader_batches=2"])
+    cfg.train_run.overrides = overrides
+    report = Report(tmp_path / "gpu.md")
+    ckpt = train_run(cfg, root, tmp_path, [], report)
+    body = report.sections["Training run"]
+    assert ckpt == tmp_path / "train" / "checkpoints" / "last.ckpt" and ckpt.is_file(), body
+    assert "exit 0" in body and "frames/s delivered" in body, body
+    assert code_commit() not in ("", "unknown")  # this checkout's git commit

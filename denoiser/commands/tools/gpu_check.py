@@ -42,7 +42,7 @@ from omegaconf import DictConfig
 
 from denoiser.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]  # the checkout
 
 
 #: sections of gpu.md that its README block (``<!-- gpu:begin -->``, copied by ``make readme``) repeats
@@ -330,7 +330,7 @@ def cpu_eval(cfg: DictConfig, root: Path, ckpt: Path, out: Path, report: Report)
 
     split = next((s for s in ("test", "val", "train") if (root / s).is_dir()), "train")
     overrides = ["data=demo", f"data.root={root}", f"split={split}", f"ckpt={{gpu_student: {ckpt}}}",
-                 "device=cpu", f"out_dir={out / 'eval'}", f"purpose='{cfg.eval.purpose}'",
+                 "device=cpu", f"out_dir={out / 'eval'}", f"hydra.run.dir={out / 'eval'}", f"purpose='{cfg.eval.purpose}'",
                  *([f"ledger={cfg.eval.ledger}"] if cfg.eval.get("ledger") else []), *cfg.eval.overrides]
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}  # the CPU: the checkpoint loads with map_location=cpu
     try:

@@ -292,13 +292,14 @@ def test_pyramid_filter_head_matches_the_module(tmp_path, skip, hw, mode):
 
 
 @needs_extension
-@pytest.mark.parametrize(("parts", "hidden", "out", "hw", "color"), [
-    ((3, 7), 16, 16, (5, 37), True),  # the demo student's widths (the register path), a partial strip
-    ((3, 7), 16, 16, (3, 32), True),  # whole strips: the channels-last store through 16 x 16 blocks
-    ((3, 7), 16, 16, (3, 32), False),  # the parts as given
-    ((2, 4), 6, 5, (4, 19), False),  # any other widths
+@pytest.mark.parametrize(("parts", "hidden", "out", "hw", "color", "slope"), [
+    ((3, 7), 16, 16, (5, 37), True, 0.1),  # the demo student's widths (the register path), a partial strip
+    ((3, 7), 16, 16, (3, 32), True, 0.1),  # whole strips: the channels-last store through 16 x 16 blocks
+    ((3, 7), 16, 16, (3, 32), False, 0.1),  # the parts as given
+    ((3, 7), 16, 16, (3, 32), True, 1.5),  # a slope above 1: the select, not the maximum
+    ((2, 4), 6, 5, (4, 19), False, 0.1),  # any other widths
 ])
-def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw, color):
+def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw, color, slope):
     """``denoiser::EmbedNet`` (the f32 graph's EmbedNet on its input parts, channels-last out)
     against the eager :class:`~denoiser.nn.embed.EmbedNet` on the parts' concatenation, with
     negative values through every LeakyReLU; with ``color`` the first part is linear colour whose
@@ -308,7 +309,7 @@ def test_embed_net_matches_the_module(tmp_path, parts, hidden, out, hw, color):
     from denoiser.nn.inputs import color_feature
 
     torch.manual_seed(len(parts) + hidden)
-    embed = EmbedNet(sum(parts), hidden, out).eval()
+    embed = EmbedNet(sum(parts), hidden, out, negative_slope=slope).eval()
     xs = [torch.randn(2, c, *hw) * 2 for c in parts]
     scale = torch.tensor([0.5, 4.0]).view(2, 1, 1, 1)
 

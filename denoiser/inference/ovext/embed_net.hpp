@@ -110,6 +110,9 @@ public:
         const Strip* const ws[3] = {wide[0].data(), wide[1].data(), wide[2].data()};
         const Strip* const bs[3] = {bias[0].data(), bias[1].data(), bias[2].data()};
         const int64_t strips = (W + S - 1) / S;
+        // 0 <= slope <= 1: lrelu(v) = max(v, slope v), the same bits (v >= 0: v, also for -0; v < 0:
+        // slope v; NaN: v) in two instructions, where the select takes three or four on AVX2
+        const bool maxed = m_slope >= 0.0f && m_slope <= 1.0f;
         parallel_rows(B * H, [&](const tbb::blocked_range<int64_t>& rows) {
             std::vector<Strip> x(C), h1(M), h2(M), y(N);
             std::vector<const float*> src(C);
@@ -142,10 +145,14 @@ public:
                             x[c] = load_strip(t);
                         }
                     }
-                    if (table) {
-                        mlp<10, 16, 16>(ws, bs, x.data(), y.data());
+                    if (table && maxed) {
+                        mlp<10, 16, 16, true>(ws, bs, x.data(), y.data());
+                    } else if (table) {
+                        mlp<10, 16, 16, false>(ws, bs, x.data(), y.data());
+                    } else if (demo && maxed) {
+                        mlp<10, 16, 16, true>(w, b, x.data(), y.data());
                     } else if (demo) {
-                        mlp<10, 16, 16>(w, b, x.data(), y.data());
+                        mlp<10, 16, 16, false>(w, b, x.data(), y.data());
                     } else {
                         layer(w[0], b[0], x.data(), C, h1.data(), M);
                         layer(w[1], b[1], h1.data(), M, h2.data(), M);
@@ -170,20 +177,20 @@ public:
 
 private:
     // the three layers at compile-time widths (C inputs, M hidden, N outputs); Wt: Strip (the
-    // broadcast table) or float (the weights as given)
-    template <int C, int M, int N, class Wt>
+    // broadcast table) or float (the weights as given); MAXED: lrelu as a maximum (0 <= slope <= 1)
+    template <int C, int M, int N, bool MAXED, class Wt>
     void mlp(const Wt* const* w, const Wt* const* b, const Strip* x_in, Strip* y) const {
         Strip x[C], h1[M], h2[M];
         for (int c = 0; c < C; ++c) x[c] = x_in[c];
-        dense<C, M>(w[0], b[0], x, h1);
-        dense<M, M>(w[1], b[1], h1, h2);
-        dense<M, N>(w[2], b[2], h2, y);
+        dense<C, M, MAXED>(w[0], b[0], x, h1);
+        dense<M, M, MAXED>(w[1], b[1], h1, h2);
+        dense<M, N, MAXED>(w[2], b[2], h2, y);
     }
 
     // w, b: broadcast (broadcast_strips) or scalars. Q outputs at a time, each its own sum in the
     // same order (bias, then k = 0 .. NIN - 1): Q independent chains of multiply-adds, where one
     // output at a time waits on each multiply-add's latency
-    template <int NIN, int NOUT, class Wt>
+    template <int NIN, int NOUT, bool MAXED, class Wt>
     void dense(const Wt* w, const Wt* b, const Strip* in, Strip* out) const {
         // 4 on AVX2 (faster than 1 or 8 with its 16 vector registers); 1 at S = 16, where the 4 chains
         // were 6-9% slower on the AVX-512 AMD EPYC family 26 (median ratios over 16 alternated rounds)
@@ -195,7 +202,8 @@ private:
                 const Strip v = in[k];
                 for (int q = 0; q < Q; ++q) acc[q] += w[(j0 + q) * NIN + k] * v;
             }
-            for (int q = 0; q < Q; ++q) out[j0 + q] = acc[q] >= 0.0f ? acc[q] : acc[q] * m_slope;
+            for (int q = 0; q < Q; ++q)
+                out[j0 + q] = MAXED ? max_strip(acc[q], acc[q] * m_slope) : acc[q] >= 0.0f ? acc[q] : acc[q] * m_slope;
         }
     }
 

@@ -27,4 +27,4 @@ def mount() -> None:
     module = importlib.util.module_from_spec(spec)
     sys.modules["denoiser.conf"] = module
     spec.loader.exec_module(module)
-    setattr(sys.modules["denoiser"], "conf", module)
+    sys.modules["denoiser"].conf = module

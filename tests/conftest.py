@@ -7,7 +7,6 @@ import sys
 from collections import defaultdict
 
 import pytest
-
 from helpers.ovext import REQUIRE_OVEXT
 from helpers.session import session_folder
 

@@ -34,7 +34,7 @@ def openvino_matmul_peak(size: int = 2048, repeats: int = 5, warmup: int = 2) ->
         compiled = ov.Core().compile_model(model, "CPU", {"INFERENCE_NUM_THREADS": torch.get_num_threads(),
                                                           "INFERENCE_PRECISION_HINT": "f32"})
         request = compiled.create_infer_request()
-        rate = product_rate(lambda: request.infer([x]), size, repeats, warmup)
+        rate = product_rate(lambda r=request: r.infer([x]), size, repeats, warmup)
         del request, compiled, model
     return rate
 

@@ -90,7 +90,7 @@ def test_fp16_output_error_is_small_for_a_small_network_and_grows_with_huge_weig
 def test_denoise_without_ckpt_uses_the_release_student(shipped, tmp_path, capsys):
     from denoiser.commands.denoise import run
 
-    out, _, student = shipped
+    out, _, _student = shipped
     seq = write_sequence(tmp_path / "shot", frames=3, size=(24, 32), seed=4)
     run(compose_command("denoise", [f"input={seq}", f"output={tmp_path / 'a'}", "backend=eager", "precision=f32"], threads=1))
     assert "release student" in capsys.readouterr().err
@@ -113,5 +113,5 @@ def test_readme_check_fails_on_a_shipped_folder_whose_card_disagrees(shipped, tm
     out.rename(repo / "denoiser" / "models")
     assert check["release_problems"](repo) == []
     (repo / "denoiser" / "models" / "README.md").write_text("# typed by hand\n")
-    assert check["release_problems"](repo) == [f"{repo / 'denoiser' / 'models' / 'README.md'}: not the card "
-                                               "release.json renders to (generated, never edited): ship again"]
+    assert check["release_problems"](repo) == [(f"{repo / 'denoiser' / 'models' / 'README.md'}: not the card "
+                                                "release.json renders to (generated, never edited): ship again")]

@@ -47,9 +47,9 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers also when run as a script (below)
-from helpers.session import TEST_LEDGER  # noqa: E402
+from helpers.session import TEST_LEDGER
 
-from denoiser.conf import CONF_DIR  # noqa: E402
+from denoiser.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent

@@ -48,10 +48,10 @@ def test_every_option_instantiates():
 
 def test_commands_accept_exactly_the_group():
     """bench, denoise, pareto and the train objective name the same options when one is unknown."""
-    from denoiser.report.bench_timing import load_backends
     from denoiser.commands.denoise import make_backend
     from denoiser.commands.pareto import select_backend
     from denoiser.commands.train import measure_time
+    from denoiser.report.bench_timing import load_backends
 
     errors = []
     for call in (lambda: load_backends(OmegaConf.create({"use_backends": ["eager", "tensorrt"]})),

@@ -632,8 +632,7 @@ def test_guide_gate_matches_the_loop_over_pixels(tmp_path, hw, t, last):
     same bits with 1 and 2 threads."""
     import onnx
 
-    from denoiser.nn.temporal import GuideGateOp
-    from denoiser.nn.temporal import TemporalRecurrence
+    from denoiser.nn.temporal import GuideGateOp, TemporalRecurrence
 
     class Gate(torch.nn.Module):
         def forward(self, previous, current):
@@ -898,7 +897,7 @@ def _real_compiler_and_cpu():
 def test_march_from_the_environment_is_its_own_build(fake, monkeypatch):
     """$DENOISER_OVEXT_MARCH builds for that target in place of -march=native, under another key
     than the native library; unset again, the native library is the one found."""
-    cxx, cpu = _real_compiler_and_cpu()
+    cxx, _cpu = _real_compiler_and_cpu()
     fake.compiler(BUILDS)
     real = ovext._defined_macros  # the target's macros from the real compiler, the builds by the fake one
     monkeypatch.setattr(ovext, "_defined_macros", lambda c, flags: real(cxx, flags))

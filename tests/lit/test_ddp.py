@@ -19,12 +19,12 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
+from helpers.train_args import NARROW
 from hydra import compose, initialize_config_dir
 
 from denoiser.conf import CONF_DIR
 from denoiser.configs import instantiate_config
 from denoiser.data.synthetic import write_synthetic_sequence
-from helpers.train_args import NARROW
 
 REPO = Path(__file__).resolve().parents[2]
 VAL_FRAMES = (5, 3, 6)  # uneven: 2-frame pieces 3 + 2 + 3, and an odd number of sequences for 2 ranks

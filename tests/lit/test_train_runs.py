@@ -22,8 +22,10 @@ from denoiser.data.synthetic import write_synthetic_sequence
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from denoiser.commands import train as train_script
 from helpers.train_args import FAST, NARROW
+
+from denoiser.commands import train as train_script
+
 
 class CrashAtStep(pl.Callback):
     """Raises RuntimeError once ``global_step`` reaches ``step`` (a simulated crash)."""

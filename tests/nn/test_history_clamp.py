@@ -8,16 +8,16 @@ import math
 
 import pytest
 import torch
-
-from denoiser.configs import build_net, compose_net_config
-from denoiser.errors import ConfigError
-from denoiser.frames import random_frame
-from denoiser.nn.temporal import TemporalRecurrence, neighbourhood_clamp
 from helpers.levers import (
     max_blend_identity_filter,
     moving_object_sequence,
     two_steps_stay_finite,
 )
+
+from denoiser.configs import build_net, compose_net_config
+from denoiser.errors import ConfigError
+from denoiser.frames import random_frame
+from denoiser.nn.temporal import TemporalRecurrence, neighbourhood_clamp
 
 
 def tiny(history_clamp=None, reject_threshold=None, seed=0):

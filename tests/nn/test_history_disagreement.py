@@ -9,11 +9,11 @@ import math
 
 import pytest
 import torch
+from helpers.levers import moving_object_sequence, two_steps_stay_finite
 
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import random_frame
 from denoiser.nn.temporal import DISAGREEMENT_EPS, TemporalRecurrence, history_disagreement
-from helpers.levers import moving_object_sequence, two_steps_stay_finite
 
 
 def tiny(disagreement=True, seed=0, **temporal):

@@ -3,11 +3,11 @@
 import pytest
 import torch
 import torch.nn.functional as F
+from helpers.kernels import reference_apply
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from denoiser.nn.kernels import apply_kernels, apply_kernels_graph, apply_kernels_unfold, kernel_weights
-from helpers.kernels import reference_apply
 
 
 def assert_close_rel(a, b, tol=1e-5):

@@ -9,14 +9,14 @@ import copy
 
 import pytest
 import torch
+from helpers.kernels import reference_apply
+from helpers.levers import max_blend_identity_filter, moving_object_sequence, two_steps_stay_finite
 
 from denoiser.configs import build_net, compose_net_config
 from denoiser.errors import ConfigError
 from denoiser.frames import random_frame
 from denoiser.nn.inputs import ALBEDO_MAX, DEMOD_MIN, demodulation_albedo, sanitize
 from denoiser.nn.temporal import TemporalRecurrence, guide_disagreement
-from helpers.kernels import reference_apply
-from helpers.levers import max_blend_identity_filter, moving_object_sequence, two_steps_stay_finite
 
 
 def tiny(demodulate=False, reject_threshold=None, seed=0):

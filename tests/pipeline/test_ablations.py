@@ -105,8 +105,8 @@ def summary(tmp_path: Path, *overrides: str) -> Done:
     import contextlib
     import io
 
-    from denoiser.commands.tools.ablation_summary import run
     from denoiser.commands.app import guarded
+    from denoiser.commands.tools.ablation_summary import run
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("ablation_summary", overrides=[f"report={tmp_path / 'report'}", f"data_root={tmp_path / 'data'}",

@@ -65,7 +65,7 @@ def test_release_val_holds_families_train_never_sees_and_test_holds_only_test_fa
     trained = set(train_counts(planned, RELEASE_TRAINING))
     val = {j.scene_name for n in RELEASE_TRAINING for j in planned[n][1] if j.split == "val"}
     assert val - trained >= {"courtyard", "lamp_room", "fast_spin"}
-    test_cfg, test_jobs = planned["release_test"]
+    _test_cfg, test_jobs = planned["release_test"]
     assert {j.split for j in test_jobs} == {"test"} and len(test_jobs) >= 42
     assert {j.scene_name for j in test_jobs} == {j.scene_name for j in planned["demo"][1] if j.split == "test"}
     assert not {j.scene_name for j in test_jobs} & (trained | val)

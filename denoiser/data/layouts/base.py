@@ -72,7 +72,7 @@ class SequenceSource:
     buffers: tuple[str, ...]
     sample_count: int = 0
     extra: Mapping[str, object] = field(default_factory=dict)
-    layout: "Layout | None" = None
+    layout: Layout | None = None
 
     @property
     def frames(self) -> int:

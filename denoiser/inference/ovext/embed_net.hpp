@@ -198,6 +198,7 @@ private:
         for (int j0 = 0; j0 < NOUT; j0 += Q) {
             Strip acc[Q];
             for (int q = 0; q < Q; ++q) acc[q] = Strip{} + b[j0 + q];
+#pragma GCC unroll 16  // GCC kept this a loop at Q = 4 (AVX2): unrolled, 0.93-0.95 of its time
             for (int k = 0; k < NIN; ++k) {
                 const Strip v = in[k];
                 for (int q = 0; q < Q; ++q) acc[q] += w[(j0 + q) * NIN + k] * v;

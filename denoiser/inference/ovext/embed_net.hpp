@@ -192,13 +192,15 @@ private:
     // output at a time waits on each multiply-add's latency
     template <int NIN, int NOUT, bool MAXED, class Wt>
     void dense(const Wt* w, const Wt* b, const Strip* in, Strip* out) const {
-        // 4 on AVX2 (faster than 1 or 8 with its 16 vector registers); 1 at S = 16, where the 4 chains
-        // were 6-9% slower on the AVX-512 AMD EPYC family 26 (median ratios over 16 alternated rounds)
-        constexpr int Q = NOUT % 4 == 0 && S < 16 ? 4 : 1;
+        // 8 on AVX2 (of its 16 vector registers: 8 sums, the input, the weights read as operands):
+        // with the input loop unrolled, 0.85-0.93 of 4's time on the Intel Xeon with AMX (4 had been
+        // faster than 1 or 8 while the loop stayed a loop); 1 at S = 16, where 4 chains were 6-9%
+        // slower on the AVX-512 AMD EPYC family 26 (median ratios over 16 alternated rounds)
+        constexpr int Q = NOUT % 8 == 0 && S < 16 ? 8 : NOUT % 4 == 0 && S < 16 ? 4 : 1;
         for (int j0 = 0; j0 < NOUT; j0 += Q) {
             Strip acc[Q];
             for (int q = 0; q < Q; ++q) acc[q] = Strip{} + b[j0 + q];
-#pragma GCC unroll 16  // GCC kept this a loop at Q = 4 (AVX2): unrolled, 0.93-0.95 of its time
+#pragma GCC unroll 16  // GCC kept this a loop at Q = 4 (AVX2); unrolled, 0.93-0.95 of its time
             for (int k = 0; k < NIN; ++k) {
                 const Strip v = in[k];
                 for (int q = 0; q < Q; ++q) acc[q] += w[(j0 + q) * NIN + k] * v;

@@ -153,11 +153,12 @@ static void filter_strip(const SourceRows& X, int64_t C_, int64_t W, const float
     const int64_t C = NC > 0 ? NC : C_;
     const int64_t r = k / 2, K = k * k, cs = X.cstride;
     const int64_t n = EDGE ? std::min<int64_t>(S, W - px0) : S;
-    if constexpr (!EDGE && NC > 0) {
-        // a whole strip shifted by the mean: its statistics from the row's pass as vectors. (Copied
-        // into the arrays below, they were stored in 16-byte pieces where S is 8, GCC's largest move
-        // for the AVX2 targets, and read back whole: a load the stores cannot forward, which stalled
-        // for 15% of the AVX2 build's samples in filter_row.)
+    if constexpr (!EDGE && NC > 0) {  // every tap inside (so a whole strip, px0 + S <= stats.n)
+        // shifted by the mean (the exponents lie within scale sqrt(K) log2(e) <= 116 of 0): the
+        // strip's statistics from the row's pass as vectors. (Copied into the arrays below, they were
+        // stored in 16-byte pieces where S is 8, GCC's largest move for the AVX2 targets, and read
+        // back whole: a load the stores cannot forward, which stalled for 15% of the AVX2 build's
+        // samples in filter_row.)
         if (px0 + S <= stats.n && mean_shift_ok(K, scale, has_scale)) {
             const Strip sv = load_strip(stats.s + px0);
             filter_strip_taps<NC, false>(X, Z, plane, k, px0, sv, load_strip(stats.mean + px0) * sv, acc_rows,
@@ -189,12 +190,8 @@ static void filter_strip(const SourceRows& X, int64_t C_, int64_t W, const float
             }
         }
     }
-    if constexpr (!EDGE && NC > 0) {  // every tap inside: the strip as vectors (exp2_strip)
-        // shifted by the mean, the exponents lie within scale sqrt(K) log2(e) <= 116 of 0
-        if (mean_shift_ok(K, scale, has_scale))
-            filter_strip_taps<NC, false>(X, Z, plane, k, px0, load_strip(s), load_strip(shift), acc_rows, acc_plane);
-        else
-            filter_strip_taps<NC, true>(X, Z, plane, k, px0, load_strip(s), load_strip(shift), acc_rows, acc_plane);
+    if constexpr (!EDGE && NC > 0) {  // every tap inside, shifted by the maximum: the strip as vectors
+        filter_strip_taps<NC, true>(X, Z, plane, k, px0, load_strip(s), load_strip(shift), acc_rows, acc_plane);
         return;
     }
     for (int64_t i = 0; i < k; ++i) {

@@ -64,30 +64,20 @@ struct FactoredHead0 {
         float* out = buf + ring * C * Wp;
         up->row(z + (b * N0 + c0) * h * w, n, y, out, Wp, out + n * Wp);
         for (int64_t t = 0; t < n; ++t) std::fill(out + t * Wp + W, out + (t + 1) * Wp, 0.0f);
-        // AVX2: 8 of the strip's skip channels in registers at a time (its 16 registers do not hold NC = 16
-        // and the sums; each sum goes through memory between the halves, the same adds in the same order)
-        if constexpr (NC > 0 && S < 16 && NC % 8 == 0) {
+        if constexpr (NC > 0) {  // strip by strip, G of the strip's skip channels in registers at a time:
+            // all NC, but 8 on AVX2, whose 16 registers do not hold NC = 16 and the sums (each sum then
+            // goes through memory between the groups: the same adds in the same order)
+            constexpr int64_t G = S < 16 && NC % 8 == 0 ? 8 : NC;
             for (int64_t px0 = 0; px0 < Wp; px0 += S) {
-                for (int64_t c0s = 0; c0s < NC; c0s += 8) {
-                    Strip col[8];
-                    for (int64_t c = 0; c < 8; ++c) col[c] = load_strip(planar + (c0s + c) * Wp + px0);
+                for (int64_t g = 0; g < NC; g += G) {
+                    Strip col[G];
+                    for (int64_t c = 0; c < G; ++c) col[c] = load_strip(planar + (g + c) * Wp + px0);
                     for (int64_t t = 0; t < n; ++t) {
-                        const float* wt = weight + (c0 + t) * NC + c0s;
+                        const float* wt = weight + (c0 + t) * NC + g;
                         Strip acc = load_strip(out + t * Wp + px0);
-                        for (int64_t c = 0; c < 8; ++c) acc += wt[c] * col[c];
+                        for (int64_t c = 0; c < G; ++c) acc += wt[c] * col[c];
                         store_strip(out + t * Wp + px0, acc);
                     }
-                }
-            }
-        } else if constexpr (NC > 0) {  // strip by strip, the strip's skip channels in registers
-            for (int64_t px0 = 0; px0 < Wp; px0 += S) {
-                Strip col[NC];
-                for (int64_t c = 0; c < NC; ++c) col[c] = load_strip(planar + c * Wp + px0);
-                for (int64_t t = 0; t < n; ++t) {
-                    const float* wt = weight + (c0 + t) * NC;
-                    Strip acc = load_strip(out + t * Wp + px0);
-                    for (int64_t c = 0; c < NC; ++c) acc += wt[c] * col[c];
-                    store_strip(out + t * Wp + px0, acc);
                 }
             }
         } else {

@@ -16,6 +16,24 @@ from denoiser.measure import Clock, summarize
 ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_fp16")
 
 
+#: environment variables that cap the instruction set a library's kernels use below what the CPU
+#: has, and who reads each: a run under them times another CPU's code paths on this one (to see an
+#: AVX2 CPU's profile on an AVX-512 machine); OIDN (pyoidn) reads none of them
+ISA_CAPS = {"ONEDNN_MAX_CPU_ISA": "oneDNN: OpenVINO's CPU plugin and torch's convolutions",
+            "DNNL_MAX_CPU_ISA": "oneDNN (its older name)",
+            "MKL_ENABLE_INSTRUCTIONS": "MKL: torch's matrix products",
+            "DENOISER_OVEXT_MARCH": "the project's OpenVINO extension, built for that -march"}
+
+
+def isa_caps(environ=None) -> dict[str, str]:
+    """``{variable: value}`` of the :data:`ISA_CAPS` set (non-empty) in ``environ`` (default
+    ``os.environ``)."""
+    import os
+
+    environ = os.environ if environ is None else environ
+    return {k: environ[k].strip() for k in ISA_CAPS if environ.get(k, "").strip()}
+
+
 def cpu_model() -> str:
     """The CPU's model name from ``/proc/cpuinfo``, else :func:`platform.processor` or the machine
     type: what every timing report names its machine by."""

@@ -93,7 +93,11 @@ class Stepper:
     ``state=None`` starts a sequence); ``sync()`` waits for the device.
     ``profile()``, where the backend can say, gives the last step's time per operation type:
     ``{op type: ms}``; None where it cannot; ``extension_profile()`` the same for the operations of
-    the project's OpenVINO extension alone (within the op type ``Reference``). ``threads()``, where the engine can say, is the
+    the project's OpenVINO extension alone (within the op type ``Reference``). ``kernels()``, where
+    the engine can say, names the implementations the last step ran: ``{"openvino": {node type:
+    {implementation: count}}, "extension": what the extension was built for, or None}``
+    (:func:`denoiser.inference.step_graph.compiled_kernels`, :func:`denoiser.inference.ovext.built_for`).
+    ``threads()``, where the engine can say, is the
     thread count it actually uses, read back from it (after a step: OpenVINO resolves it when
     compiling); ``engine`` names the library that runs the step (``torch``, ``onnxruntime``,
     ``openvino``, ``oidn``), for its version in the tables."""
@@ -101,8 +105,10 @@ class Stepper:
     def __init__(self, step: Callable, sync: Callable[[], None] = lambda: None,
                  profile: Callable[[], dict[str, float]] | None = None,
                  threads: Callable[[], int] | None = None, engine: str = "",
-                 extension_profile: Callable[[], dict[str, float]] | None = None):
+                 extension_profile: Callable[[], dict[str, float]] | None = None,
+                 kernels: Callable[[], dict] | None = None):
         self.step = step
+        self.kernels = kernels
         self.sync = sync
         self.profile = profile
         self.extension_profile = extension_profile

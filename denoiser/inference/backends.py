@@ -331,6 +331,9 @@ class OpenVinoBackend(_ExportedGraphBackend):
             return f"OpenVINO device {self.ov_device} not available"
         if self.precision == "bf16" and not bf16:
             return f"{self.ov_device} has no bf16 support (OpenVINO would run f32)"
+        capped = self.precision == "bf16" and self.ov_device == "CPU" and bf16_capped()
+        if capped:
+            return capped
         if self.fused:
             from denoiser.inference import ovext
 
@@ -344,9 +347,34 @@ class OpenVinoBackend(_ExportedGraphBackend):
         self._fused()
         runner = OpenVinoStep(self._export(net), threads, precision=self.precision, device=self.ov_device,
                               profile=self.profile)
+        fused = self.fused_kernels
+
+        def kernels() -> dict:
+            from denoiser.inference import ovext
+
+            return {"openvino": runner.last_kernels, "extension": ovext.built_for() if fused else None}
+
         return Stepper(runner.step, profile=runner.last_profile if self.profile else None,
                        threads=runner.threads_in_use, engine="openvino",
-                       extension_profile=runner.last_extension_profile if self.profile else None)
+                       extension_profile=runner.last_extension_profile if self.profile else None, kernels=kernels)
+
+
+#: oneDNN's instruction-set names (``$ONEDNN_MAX_CPU_ISA``) below its native bfloat16 ones
+_BELOW_BF16 = {"SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2", "AVX512_CORE", "AVX512_CORE_VNNI"}
+
+
+def bf16_capped(environ=None) -> str | None:
+    """Why OpenVINO's CPU bf16 cannot run under this environment's oneDNN cap
+    (:data:`denoiser.machine.ISA_CAPS`), one line; None where nothing caps it. Under a cap below
+    bfloat16 the CPU plugin still reports BF16 and then fails to compile a bf16 model
+    (OpenVINO 2026.4: ``Object is not initialized``)."""
+    from denoiser.machine import isa_caps
+
+    caps = isa_caps(environ)
+    for name in ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA"):
+        if caps.get(name, "").upper() in _BELOW_BF16:
+            return f"${name}={caps[name]} caps oneDNN below bfloat16 (OpenVINO would fail to compile bf16)"
+    return None
 
 
 @dataclass(frozen=True)

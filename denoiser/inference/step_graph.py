@@ -247,6 +247,8 @@ class OpenVinoStep:
 
     #: the last step's milliseconds per node, ``{(node name, node type): ms}`` (``profile=True``)
     last_nodes: dict[tuple[str, str], float]
+    #: the implementations the compiled model of the last step runs, :func:`compiled_kernels` (empty before a step)
+    last_kernels: dict[str, dict[str, int]]
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None, precision: str = "f32",
                  device: str = "CPU", profile: bool = False):
@@ -256,6 +258,8 @@ class OpenVinoStep:
         self._last = None
         self._counters: dict[tuple[int, ...], tuple[int, dict[str, float]]] = {}  # per compiled model: steps, means
         self.last_nodes = {}
+        self.last_kernels = {}
+        self._kernels: dict[tuple[int, ...], dict[str, dict[str, int]]] = {}  # per compiled model
         with sigstack.kept():  # OpenVINO's plugin sets the thread's signal stack (denoiser.inference.sigstack)
             self._open(path, threads, precision, device, profile)
 
@@ -298,6 +302,7 @@ class OpenVinoStep:
                 compiled = self.core.compile_model(model, self.device, self.config)
                 self._compiled[key] = (compiled, [_Slot.make(compiled, self.outputs, self.keys)
                                                   for _ in range(2 if self.keys else 1)])
+                self._kernels[key] = compiled_kernels(compiled)
                 del compiled, model
         return self._compiled[key]
 
@@ -317,6 +322,7 @@ class OpenVinoStep:
         feed = graph_feed(frame, state, reset, self.keys, self.channels, self.inputs)
         b, _, h, w = feed["color"].shape
         compiled, slots = self.compiled(b, h, w)
+        self.last_kernels = self._kernels[(b, h, w)]
         slot = next((s for s in slots if not s.held(slots)), None)
         if slot is None:
             slot = _Slot.make(compiled, self.outputs, self.keys)
@@ -388,6 +394,29 @@ class OpenVinoStep:
         for (_, node_type), ms in self.last_nodes.items():
             totals[node_type] = totals.get(node_type, 0.0) + ms
         return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
+
+
+#: runtime-model node types that run no kernel of their own (their implementation is ``unknown_*``)
+_NO_KERNEL = {"Input", "Output", "Const"}
+
+
+def compiled_kernels(compiled) -> dict[str, dict[str, int]]:
+    """The implementations an OpenVINO compiled model runs: ``{node type: {implementation:
+    count}}`` from its runtime model (the ``layerType`` and ``primitiveType`` of each node, e.g.
+    ``{"Convolution": {"brgconv_avx2_f32": 19}}``), node types ordered by their count, without the
+    graph's inputs, outputs and constants. The name says the instruction set the CPU plugin chose
+    (``avx512``, ``avx2``, ...: the widest the CPU has, or ``$ONEDNN_MAX_CPU_ISA``'s cap); the
+    extension's operations are ``Reference`` nodes whatever their build (see
+    :func:`denoiser.inference.ovext.built_for`)."""
+    kernels: dict[str, dict[str, int]] = {}
+    for node in compiled.get_runtime_model().get_ordered_ops():
+        rt = node.get_rt_info()
+        kind, impl = rt["layerType"].astype(str), rt["primitiveType"].astype(str)
+        if kind not in _NO_KERNEL:
+            per = kernels.setdefault(kind, {})
+            per[impl] = per.get(impl, 0) + 1
+    order = sorted(kernels, key=lambda k: -sum(kernels[k].values()))
+    return {k: dict(sorted(kernels[k].items(), key=lambda kv: -kv[1])) for k in order}
 
 
 def extension_node_names(model) -> dict[str, str]:

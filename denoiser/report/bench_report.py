@@ -18,7 +18,7 @@ import torch
 from omegaconf import DictConfig
 
 from denoiser.atomic import atomic_write_text
-from denoiser.machine import cpu_model, cpu_signature
+from denoiser.machine import ISA_CAPS, cpu_model, cpu_signature, isa_caps
 from denoiser.methods.baselines import oidn_dtype
 from denoiser.report.speedup import interval_text
 from denoiser.tables import markdown_table
@@ -70,14 +70,15 @@ def engine_versions() -> dict[str, str]:
 def machine_info(threads: int, peak_gflops: float, versions: dict[str, str], isa: dict[str, bool]) -> dict:
     """The machine and software of a run: ``cpu`` (model name), ``cpu_id`` (:func:`cpu_signature`),
     ``logical_cores``, ``isa`` (:func:`cpu_isa`), ``versions`` (:func:`engine_versions`),
-    ``threads_requested``, ``matmul_peak_gflops``, ``gpu``, and the run's UTC ``date`` and code
-    ``commit`` (:func:`denoiser.report.provenance.git_commit`)."""
+    ``threads_requested``, ``matmul_peak_gflops``, ``gpu``, ``isa_caps`` (:func:`denoiser.machine.isa_caps`:
+    the instruction-set caps in the environment) and the run's UTC ``date`` and code ``commit``
+    (:func:`denoiser.report.provenance.git_commit`)."""
     from denoiser.report.provenance import git_commit
 
     return {"cpu": cpu_model(), "cpu_id": cpu_signature(), "logical_cores": os.cpu_count(), "isa": dict(isa),
             "versions": dict(versions), "threads_requested": threads, "matmul_peak_gflops": peak_gflops,
             "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none",
-            "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": git_commit()}
+            "isa_caps": isa_caps(), "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": git_commit()}
 
 
 
@@ -89,7 +90,42 @@ def machine_description(info: dict) -> str:
             f"requested for every method (the threads column: what each engine reports it uses); "
             f"fp32 matmul peak {info['matmul_peak_gflops']:.1f} GFLOP/s (2048x2048, the faster of torch.mm and OpenVINO's MatMul, best of 5, "
             f"the larger of the measurements before and after the methods); GPU: {info['gpu']}; versions: {versions}; "
-            f"OIDN computes in {oidn_dtype(info['isa'])} on this CPU")
+            f"OIDN computes in {oidn_dtype(info['isa'])} on this CPU" + caps_sentence(info.get("isa_caps") or {}))
+
+
+def caps_sentence(caps: dict[str, str]) -> str:
+    """The machine line's sentence on the instruction-set caps of a run (:func:`denoiser.machine.isa_caps`);
+    ``""`` for none."""
+    if not caps:
+        return ""
+    named = "; ".join(f"${k}={v} ({ISA_CAPS[k]})" for k, v in caps.items())
+    return (f". **Instruction sets capped** below this CPU's: {named}. OIDN reads no such cap, so a ratio "
+            "against OIDN here is neither this CPU's nor that of a CPU without the instructions; the "
+            "kernels that ran are named under \"Which kernels ran\"")
+
+
+def kernels_section(rows: list[dict]) -> list[str]:
+    """report.md lines: per row whose engine named them (``kernels``: :class:`denoiser.recurrent.Stepper`),
+    the implementations its last step ran, by node type (those without a kernel of their own left
+    out), and what the project's extension was built for; the sizes of one method and backend that
+    ran the same ones share a line."""
+    sizes: dict[tuple[str, str, str], list[str]] = {}  # (method, backend, what ran) -> its sizes
+    for r in rows:
+        k = r.get("kernels")
+        if not k:
+            continue
+        ran = "; ".join(f"{kind} " + ", ".join(f"{impl} x{n}" for impl, n in impls.items())
+                        for kind, impls in (k.get("openvino") or {}).items()
+                        if not all(impl.startswith("unknown") for impl in impls))
+        if k.get("extension"):
+            ran += f"; the extension's operations (`Reference`) built for {k['extension']}"
+        sizes.setdefault((r["method"], r["backend"], ran), []).append(f"{r['width']}x{r['height']}")
+    if not sizes:
+        return []
+    out = ["## Which kernels ran\n", ("OpenVINO's implementation of each node type (from the compiled model: the "
+                                      "instruction set is in the name), with the node count:\n")]
+    out += [f"- **{method}**, {backend} ({', '.join(at)}): {ran}" for (method, backend, ran), at in sizes.items()]
+    return [*out, ""]
 
 
 
@@ -122,7 +158,9 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
              *[line + "\n" for line in check_lines(checks or [])]]
     if ratios:
         parts += ["## Student vs " + ratios[0]["baseline"] + " (same frames, interleaved rounds)\n",
-                  f"Each precision against OIDN's own ({interval}).\n",
+                  f"Each precision against OIDN's own ({interval})."
+                  + (" **Not a like-for-like ratio: this run capped the instruction sets of every engine but OIDN "
+                     "(the machine line).**" if isa_caps() else "") + "\n",
                   markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline_ms", "speedup_text",
                                           "student_psnr", "baseline_psnr", "psnr_gain"],
                                  FORMATS, {"student_ms": "student ms", "baseline_ms": f"{ratios[0]['baseline']} ms",
@@ -139,6 +177,9 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
     profiled = profile_section(rows)
     if profiled:
         parts += ["", *profiled]
+    kernels = kernels_section(rows)
+    if kernels:
+        parts += ["", *kernels]
     if plot is not None:
         from denoiser.report.plot_tradeoff import pareto_front_of_rows
 

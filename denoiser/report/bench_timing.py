@@ -258,6 +258,8 @@ def run_benchmark(cfg: DictConfig, frames: list[dict], threads: int, versions: d
                 row["profile"] = stepper.profile()  # {op type: ms} of the last timed step
             if stepper.extension_profile is not None:
                 row["extension_profile"] = stepper.extension_profile()  # {extension op: ms}, within Reference
+            if stepper.kernels is not None:
+                row["kernels"] = stepper.kernels()  # the implementations the last step ran
             if "gflop" in row:
                 row["gflops_per_s"] = row["gflop"] / (row["ms_median"] / 1000)
             size_rows[key] = row

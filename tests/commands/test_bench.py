@@ -15,6 +15,7 @@ from helpers.eval_data import write_dataset
 
 from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import resize_frame
+from denoiser.inference import ovext
 from denoiser.measure import PeakRss, time_steps
 from denoiser.recurrent import Stepper
 from denoiser.report.plot_tradeoff import pareto_front, pareto_front_of_rows
@@ -240,6 +241,44 @@ def test_bench_openvino_rows(setup, tmp_path):
         assert ("bf16 pays on this CPU" if bf16 < f32 else "bf16 does not pay on this CPU") in report
     else:
         assert "## bf16 or f32" not in report
+    # which implementations ran, named by OpenVINO's compiled model (issue 66: the profile per ISA)
+    kernels = by["openvino f32"]["kernels"]
+    assert list(kernels["openvino"]["Convolution"]) and "Input" not in kernels["openvino"], kernels
+    assert "## Which kernels ran" in report and "Convolution " in report.split("## Which kernels ran")[1]
+    if "(fused)" in by["openvino f32"]["backend"]:
+        assert kernels["extension"] == ovext.built_for() and kernels["extension"] in report
+    else:
+        assert kernels["extension"] is None
+
+
+def test_the_kernels_section_and_the_isa_caps(monkeypatch):
+    """The sizes of one method and backend that ran the same kernels share a line, a size that ran
+    others gets its own; node types without a kernel of their own are left out.
+    An instruction-set cap in the environment is named on the machine line and the ratio's."""
+    from denoiser.machine import ISA_CAPS, isa_caps
+    from denoiser.report.bench_report import caps_sentence, kernels_section
+
+    def row(h, w, conv, ext="avx2 avx fma sse2 (-march=x86-64-v3 from $DENOISER_OVEXT_MARCH)"):
+        return {"method": "student", "backend": "openvino f32 (fused)", "height": h, "width": w,
+                "kernels": {"openvino": {"Convolution": {conv: 19}, "Reshape": {"unknown_f32": 3},
+                                         "Reference": {"ref_f32": 10}}, "extension": ext}}
+
+    lines = kernels_section([row(16, 24, "brgconv_avx2_f32"), row(32, 48, "brgconv_avx2_f32"),
+                             row(64, 96, "jit_avx2_f32"), {"method": "OIDN-fast", "backend": "OIDN", "height": 16,
+                                                           "width": 24}])
+    items = [line for line in lines if line.startswith("- ")]
+    ext = "the extension's operations (`Reference`) built for avx2 avx fma sse2 (-march=x86-64-v3 from $DENOISER_OVEXT_MARCH)"
+    assert items == [f"- **student**, openvino f32 (fused) (24x16, 48x32): Convolution brgconv_avx2_f32 x19; Reference ref_f32 x10; {ext}",
+                     f"- **student**, openvino f32 (fused) (96x64): Convolution jit_avx2_f32 x19; Reference ref_f32 x10; {ext}"], items
+    assert kernels_section([{"method": "m", "backend": "eager"}]) == []
+    for name in ISA_CAPS:
+        monkeypatch.delenv(name, raising=False)
+    assert isa_caps() == {} and caps_sentence({}) == ""
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    monkeypatch.setenv("MKL_ENABLE_INSTRUCTIONS", " ")  # blank: not a cap
+    assert isa_caps() == {"ONEDNN_MAX_CPU_ISA": "AVX2"}
+    sentence = caps_sentence(isa_caps())
+    assert "$ONEDNN_MAX_CPU_ISA=AVX2 (oneDNN: OpenVINO's CPU plugin" in sentence and "OIDN reads no such cap" in sentence
 
 
 def test_bench_profile_says_where_the_time_goes(setup, tmp_path):

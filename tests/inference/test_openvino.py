@@ -23,7 +23,7 @@ from denoiser.configs import build_net, compose_net_config
 from denoiser.frames import random_frame
 from denoiser.inference import ovext
 from denoiser.inference.backends import OpenVinoBackend, TorchBackend
-from denoiser.inference.step_graph import OpenVinoStep, export_onnx
+from denoiser.inference.step_graph import OpenVinoStep, compiled_kernels, export_onnx
 from denoiser.recurrent import RecurrentRunner
 
 F32_RTOL = 1e-4
@@ -266,3 +266,65 @@ def test_the_profile_is_the_last_step_alone(tiny):
     means = sum(node.real_time.total_seconds() * 1000 for node in step._last.profiling_info)
     # the first step is the cold one: OpenVINO's means sit above the fastest later step's own time
     assert min(totals[1:]) < means < totals[0], (totals, means)
+
+
+def test_the_kernels_that_ran(tiny):
+    """OpenVinoStep.last_kernels: the implementations of the compiled model the last step ran
+    (node type -> implementation -> count), the graph's inputs, outputs and constants left out."""
+    _, path, frames, _ = tiny
+    step = OpenVinoStep(path, threads=1)
+    assert step.last_kernels == {}
+    RecurrentRunner(step.step)(frames[0], True)
+    b, _, h, w = frames[0]["color"].shape
+    compiled, _ = step.compiled(b, h, w)
+    assert step.last_kernels == compiled_kernels(compiled)
+    assert sum(step.last_kernels["Convolution"].values()) >= 3, step.last_kernels
+    assert not {"Input", "Output", "Const"} & set(step.last_kernels)
+
+
+CAPPED = """
+import numpy as np, openvino as ov
+from openvino import opset13 as ops
+from denoiser.inference.step_graph import compiled_kernels
+x = ops.parameter([1, 8, 16, 16], np.float32)
+y = ops.convolution(x, ops.constant(np.ones((8, 8, 3, 3), np.float32)), [1, 1], [1, 1], [1, 1], [1, 1])
+compiled = ov.Core().compile_model(ov.Model([y], [x]), "CPU", {"INFERENCE_PRECISION_HINT": "f32"})
+print(" ".join(compiled_kernels(compiled)["Convolution"]))
+from denoiser.inference.backends import OpenVinoBackend
+print(OpenVinoBackend(precision="bf16", fused=False).available())
+"""
+
+
+def test_an_isa_cap_shows_in_the_kernels_that_ran():
+    """$ONEDNN_MAX_CPU_ISA=AVX2 makes OpenVINO's CPU plugin run its AVX2 convolutions on an AVX-512
+    CPU (how the bench shows an AVX2 CPU's profile on one: docs/export.md), and the kernels' names
+    say so: the cap is checked by what ran, not inferred from a time. Under it the bf16 backend
+    says in one line why it is skipped (OpenVINO still reports BF16 there, then fails to compile)."""
+    import os
+    import subprocess
+    import sys
+
+    from denoiser.machine import cpu_isa
+
+    if not cpu_isa()["avx512f"]:
+        pytest.skip("this CPU has no AVX-512: there is nothing to cap")
+    env = {k: v for k, v in os.environ.items() if k not in ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA")}
+    ran = {}
+    for cap in ("", "AVX2"):
+        proc = subprocess.run([sys.executable, "-c", CAPPED], env={**env, **({"ONEDNN_MAX_CPU_ISA": cap} if cap else {})},
+                              capture_output=True, text=True, timeout=300, check=False)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        ran[cap] = proc.stdout.splitlines()
+    (plain, bf16), (capped, bf16_capped) = ran[""], ran["AVX2"]
+    assert plain.split() == [plain] and "avx512" in plain, ran
+    assert capped.split() == [capped] and "avx2" in capped and "avx512" not in capped, ran
+    assert bf16_capped == "$ONEDNN_MAX_CPU_ISA=AVX2 caps oneDNN below bfloat16 (OpenVINO would fail to compile bf16)"
+    assert bf16 == "None" or "no bf16 support" in bf16, ran
+
+
+def test_bf16_capped_reads_the_onednn_caps():
+    from denoiser.inference.backends import bf16_capped
+
+    assert bf16_capped({}) is None and bf16_capped({"ONEDNN_MAX_CPU_ISA": "AVX512_CORE_AMX"}) is None
+    assert bf16_capped({"MKL_ENABLE_INSTRUCTIONS": "AVX2"}) is None  # MKL's cap is not OpenVINO's
+    assert "$DNNL_MAX_CPU_ISA=avx2 caps" in bf16_capped({"DNNL_MAX_CPU_ISA": "avx2"})

@@ -100,6 +100,7 @@ def test_the_operations_on_an_avx2_build(cxx, monkeypatch):
     monkeypatch.delenv(ovext.MARCH_ENV, raising=False)
     ovext._status.cache_clear()
     native = ovext.kernel_extension()
+    native_for = ovext.built_for()
     ovext._status.cache_clear()
     if native is None:
         pytest.skip(f"the OpenVINO extension is unavailable: {ovext.unavailable_reason()}")
@@ -108,11 +109,15 @@ def test_the_operations_on_an_avx2_build(cxx, monkeypatch):
         env.pop(name, None)
     root = Path(__file__).parents[2]
     which = subprocess.run([sys.executable, "-c", ("from denoiser.inference import ovext; "
-                                                   "print(ovext.kernel_extension(), ovext.unavailable_reason())")],
+                                                   "print(ovext.built_for()); print(ovext.kernel_extension(), ovext.unavailable_reason())")],
                            capture_output=True, text=True, timeout=600, env=env, cwd=root, check=False)
     assert which.returncode == 0, which.stderr[-2000:]
     library, reason = which.stdout.split()[-2:]
     assert reason == "None" and Path(library).parent != native.parent, which.stdout + which.stderr
+    # what each build was made for, as the bench's report names it
+    built_for = which.stdout.strip().splitlines()[-2]
+    assert built_for == f"{' '.join(targets)} (-march=x86-64-v3 from ${ovext.MARCH_ENV})", which.stdout
+    assert native_for.endswith("(-march=native)") and "avx512f" in native_for.split(), native_for
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-W", "ignore",
                            str(Path(__file__).with_name("test_ovext.py"))],
                           capture_output=True, text=True, timeout=1200, env=env, cwd=root, check=False)

@@ -316,6 +316,10 @@ def _target_flags(cxx: str, cpu: str | None) -> tuple[tuple[str, ...], str]:
     return flags, _targets_of(wanted)
 
 
+#: each library this process built or found: what it was built for (:func:`built_for`)
+_BUILT_FOR: dict[Path, str] = {}
+
+
 def _build() -> Path:
     tools = _toolchain()
     cpu = _cpu_flags()
@@ -328,6 +332,11 @@ def _build() -> Path:
     root = cache_root()
     folder = _trusted_folder(root / "ovext" / key.hexdigest()[:16], root)
     target = folder / LIBRARY
+    march = next((f for f in flags if f.startswith("-march=")), None)
+    how = march or "no -march"
+    if march and march != NATIVE:
+        how += f" from ${MARCH_ENV}"
+    _BUILT_FOR[target] = f"{targets or 'the default target'} ({how})"
     if target.exists():
         problem = _mismatch(target)
         if problem is None:
@@ -338,7 +347,6 @@ def _build() -> Path:
         raise _Unavailable(f"{failed.read_text().strip()} (remembered from an earlier try: delete {failed} to "
                            "build again)")
     timeout = _timeout()
-    march = next((f for f in flags if f.startswith("-march=")), None)
     if march is None:
         how = f", without {NATIVE}: {CPUINFO} names no CPU flags"
     else:
@@ -361,6 +369,14 @@ def _build() -> Path:
 def kernel_extension() -> Path | None:
     """The built extension library (built on the first call), or None (see :func:`unavailable_reason`)."""
     return _status()[0]
+
+
+def built_for() -> str | None:
+    """What the extension's kernels were compiled for, in one line: the vector ISAs
+    (:func:`dispatch_targets`) and the ``-march`` that chose them, e.g. ``avx2 avx fma sse2
+    (-march=x86-64-v3 from $DENOISER_OVEXT_MARCH)``; None where the extension is unavailable."""
+    path = kernel_extension()
+    return None if path is None else _BUILT_FOR.get(path)
 
 
 def unavailable_reason() -> str | None:

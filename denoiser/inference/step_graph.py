@@ -411,6 +411,8 @@ def compiled_kernels(compiled) -> dict[str, dict[str, int]]:
     kernels: dict[str, dict[str, int]] = {}
     for node in compiled.get_runtime_model().get_ordered_ops():
         rt = node.get_rt_info()
+        if "layerType" not in rt or "primitiveType" not in rt:  # a plugin that does not say
+            continue
         kind, impl = rt["layerType"].astype(str), rt["primitiveType"].astype(str)
         if kind not in _NO_KERNEL:
             per = kernels.setdefault(kind, {})

@@ -9,7 +9,8 @@ size and precision, and renders them as a Markdown table grouped by CPU class:
     python -m denoiser.report.cpu_speed render      # docs/results/cpu_speed.md from the CSV
 
 ``add`` skips a row already in the CSV (same date, commit, CPU signature, size, method and
-median), so adding a file twice changes nothing; ``render`` only reads the CSV. Timings compare
+median), so adding a file twice changes nothing, and refuses a run made with instruction sets
+capped (``isa_caps`` in its machine: :func:`denoiser.machine.isa_caps`); ``render`` only reads the CSV. Timings compare
 within a run only (the ratio and its interval come from one run's interleaved rounds); rows of
 different runs are different measurements, never merged.
 
@@ -63,6 +64,11 @@ def rows_of_bench(path: Path) -> list[dict]:
         raise UserError(f"{path}: not a denoiser-bench bench.json ({type(exc).__name__}: {exc})") from None
     if not speedups:
         raise UserError(f"{path}: no student-vs-baseline ratio (the bench timed no student beside OIDN-fast)")
+    caps = machine.get("isa_caps") or {}
+    if caps:  # denoiser.machine.isa_caps: the run timed another CPU's code paths, and OIDN this one's
+        named = ", ".join(f"${k}={v}" for k, v in caps.items())
+        raise UserError(f"{path}: ran with instruction sets capped ({named}): its ratio is neither this CPU's nor "
+                        "an AVX2 CPU's (OIDN reads no cap), so it is not added to the per-CPU record")
     peak = {(f"{r['method']} ({r['backend']})", f"{r['width']}x{r['height']}"): r.get("peak_fraction")
             for r in rows}
     out = []

@@ -123,3 +123,42 @@ def test_the_operations_on_an_avx2_build(cxx, monkeypatch):
                           capture_output=True, text=True, timeout=1200, env=env, cwd=root, check=False)
     tail = proc.stdout[-3000:] + proc.stderr[-2000:]
     assert proc.returncode == 0 and " passed" in proc.stdout and " failed" not in proc.stdout, tail
+
+
+AVX2_CHECK = Path(__file__).parents[2] / "scripts" / "avx2_check.sh"
+
+
+def test_the_avx2_check_variants_undo_one_choice_each(tmp_path):
+    """scripts/avx2_check.sh's stage 4 pairs the shipped kernels against copies with one AVX2
+    choice undone: each copy differs from the source in exactly one line, and the script stops in
+    one line where that line moved (so the AVX2 CPU's run does not pair two equal builds)."""
+    proc = subprocess.run(["bash", str(AVX2_CHECK), "--variants", str(tmp_path / "v")], capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert proc.returncode == 0, proc.stderr
+    for variant, header, line in (("q4", "embed_net.hpp", "constexpr int Q = NOUT % 4 == 0 && S < 16 ? 4 : 1;"),
+                                  ("g16", "pyramid_filter_head.hpp", "constexpr int64_t G = NC;")):
+        old = (HEADERS / header).read_text().splitlines()
+        new = (tmp_path / "v" / variant / header).read_text().splitlines()
+        changed = [(a.strip(), b.strip()) for a, b in zip(old, new, strict=True) if a != b]
+        assert len(changed) == 1 and changed[0][1] == line, changed
+        others = sorted(p.name for p in (tmp_path / "v" / variant).iterdir())
+        assert others == sorted(p.name for p in HEADERS.iterdir() if p.suffix in (".hpp", ".cpp")), others
+    moved = tmp_path / "moved"
+    (moved / "denoiser" / "inference" / "ovext").mkdir(parents=True)
+    (moved / "scripts").mkdir()
+    shutil.copy(AVX2_CHECK, moved / "scripts")
+    for p in HEADERS.iterdir():
+        if p.suffix in (".hpp", ".cpp"):
+            text = p.read_text().replace("? 8 : NC;", "? 8 : NC ;")  # the head-0 product's line, moved
+            (moved / "denoiser" / "inference" / "ovext" / p.name).write_text(text)
+    proc = subprocess.run(["bash", str(moved / "scripts" / "avx2_check.sh"), "--variants", str(tmp_path / "w")],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "update variants()" in proc.stderr, proc.stderr
+
+
+def test_the_avx2_check_refuses_a_cpu_with_avx512(tmp_path):
+    if "avx512f" not in cpu_flags():
+        pytest.skip("this CPU has no AVX-512: the check would run")
+    proc = subprocess.run(["bash", str(AVX2_CHECK), str(tmp_path / "out")], capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert proc.returncode == 2 and "this CPU has AVX-512" in proc.stderr and not (tmp_path / "out").exists(), proc.stderr

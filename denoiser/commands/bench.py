@@ -145,7 +145,7 @@ def run(cfg: DictConfig) -> list[dict]:
     ratios = ratio_rows(rows, student, cfg.compare.baseline, cfg.sizes) if student else []
     info = machine_info(threads, peak, versions, isa)
     machine = machine_description(info)
-    write_report(out_dir, rows, ratios, machine, cfg, plot_path, checks)
+    write_report(out_dir, rows, ratios, machine, cfg, plot_path, checks, caps=info["isa_caps"])
     write_json(out_dir / "bench.json", {"machine": info, "warmup": int(cfg.warmup), "repeats": int(cfg.repeats),
                                         "interleaved": True, "rows": rows, "speedups": ratios, "harness_checks": checks})
     print(machine)

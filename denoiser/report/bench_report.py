@@ -145,7 +145,9 @@ def check_lines(checks: list[dict]) -> list[str]:
 
 
 def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: str, cfg: DictConfig,
-                 plot: Path | None, checks: list[dict] | None = None) -> str:
+                 plot: Path | None, checks: list[dict] | None = None, caps: dict[str, str] | None = None) -> str:
+    """report.md; ``caps``: the run's instruction-set caps (``machine_info``'s ``isa_caps``), which mark
+    the ratio against OIDN as not like for like."""
     interval = ("speed-up: the median over the rounds of the paired ratio (baseline time / method time, both "
                 "timed in the same round); in brackets a distribution-free interval of that median from the "
                 "order statistics of the per-round ratios (at least 95%; for 7 or 8 rounds the min-max, 98.4% and "
@@ -160,7 +162,7 @@ def write_report(out_dir: Path, rows: list[dict], ratios: list[dict], machine: s
         parts += ["## Student vs " + ratios[0]["baseline"] + " (same frames, interleaved rounds)\n",
                   f"Each precision against OIDN's own ({interval})."
                   + (" **Not a like-for-like ratio: this run capped the instruction sets of every engine but OIDN "
-                     "(the machine line).**" if isa_caps() else "") + "\n",
+                     "(the machine line).**" if caps else "") + "\n",
                   markdown_table(ratios, ["size", "compare", "student", "student_ms", "baseline_ms", "speedup_text",
                                           "student_psnr", "baseline_psnr", "psnr_gain"],
                                  FORMATS, {"student_ms": "student ms", "baseline_ms": f"{ratios[0]['baseline']} ms",

@@ -333,10 +333,10 @@ def _build() -> Path:
     folder = _trusted_folder(root / "ovext" / key.hexdigest()[:16], root)
     target = folder / LIBRARY
     march = next((f for f in flags if f.startswith("-march=")), None)
-    how = march or "no -march"
+    chosen_by = march or "no -march"
     if march and march != NATIVE:
-        how += f" from ${MARCH_ENV}"
-    _BUILT_FOR[target] = f"{targets or 'the default target'} ({how})"
+        chosen_by += f" from ${MARCH_ENV}"
+    _BUILT_FOR[target] = f"{targets or 'the default target'} ({chosen_by})"
     if target.exists():
         problem = _mismatch(target)
         if problem is None:
